@@ -1,0 +1,79 @@
+"""The public rasterizer: checks its inputs, then projection -> tile binning -> blending."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from torch import Tensor
+
+from native._validate import check_inputs
+from native.types import RasterOutput
+
+__all__ = ["rasterize", "Backend"]
+
+Backend = Literal["native", "reference"]
+
+
+def rasterize(
+    means: Tensor,       # (N, 3) world-space centres
+    quats: Tensor,       # (N, 4) rotations (w, x, y, z), not necessarily normalized
+    scales: Tensor,      # (N, 3) positive standard deviations
+    opacity_c: Tensor,   # (N,) appearance opacity in [0, 1]
+    opacity_g: Tensor,   # (N,) geometry opacity in [0, 1]
+    colors: Tensor,      # (N, C) features blended with the appearance alpha
+    geometry: Tensor,    # (N, G) features blended with the geometry alpha
+    viewmat: Tensor,     # (4, 4) world-to-camera, OpenCV axes
+    K: Tensor,           # (3, 3) intrinsics
+    width: int,
+    height: int,
+    *,
+    beta: float = 0.0,
+    eps2d: float = 0.3,
+    antialiased: bool = False,
+    near: float = 0.01,
+    far: float = 1e10,
+    background: Tensor | None = None,  # (C,)
+    backend: Backend = "native",
+    validate: bool = True,
+) -> RasterOutput:
+    """Render both branches of N Gaussians in one pass (DESIGN.md section 3.4).
+
+    `backend="reference"` runs the dense plain-PyTorch implementation (`native.reference`), which
+    needs O(N * H * W) memory but works on any device. Every output is differentiable with
+    respect to every float input. `validate=False` skips the input checks (a hot training loop
+    that has already checked its tensors).
+    """
+    if backend == "reference":
+        from native.reference import rasterize as reference
+
+        return reference(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat,
+                         K, width, height, beta=beta, eps2d=eps2d, antialiased=antialiased,
+                         near=near, far=far, background=background, validate=validate)
+    if backend != "native":
+        raise ValueError(f"backend must be 'native' or 'reference', got {backend!r}")
+    if validate:
+        check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
+                     width, height, beta, eps2d, near, far, background, require_contiguous=True)
+    if means.device.type != "cpu":
+        raise ValueError(
+            f"means is on {means.device}, but the native rasterizer has no build for that device "
+            "yet; pass backend='reference' or move the tensors to the CPU")
+    from native._wrapper import Projection, Rasterization, intersect_tiles
+
+    width, height = int(width), int(height)
+    means2d, conics, depths, opac, rects, radii = Projection.apply(
+        means, quats, scales, opacity_c, opacity_g, viewmat, K, width, height, float(beta),
+        float(eps2d), bool(antialiased), float(near), float(far))
+    if means2d.requires_grad:
+        means2d.retain_grad()
+    offsets, ids = intersect_tiles(rects, depths, width, height)
+    absgrad = torch.zeros(means.shape[0], 4, dtype=means.dtype, device=means.device)
+    color, geo, depth, alpha_c, alpha_g, contribution = Rasterization.apply(
+        means2d, conics, opac, depths, colors, geometry, rects, offsets, ids, width, height,
+        absgrad)
+    if background is not None:
+        color = color + (1.0 - alpha_c) * background
+    return RasterOutput(color=color, geometry=geo, depth=depth, alpha_c=alpha_c, alpha_g=alpha_g,
+                        radii=radii, means2d=means2d, absgrad_c=absgrad[:, 0:2],
+                        absgrad_g=absgrad[:, 2:4], contribution=contribution)

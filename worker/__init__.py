@@ -1,0 +1,3 @@
+"""Celery worker and its thin tasks. Filled in by the service issue."""
+
+__all__: list[str] = []
