@@ -1,0 +1,209 @@
+"""Parsing ``capture.json`` (DESIGN.md section 3.1), here and nowhere else.
+
+Parsing collects every schema problem instead of stopping at the first, so ``dgs capture
+validate`` can report them all in one pass. This module must not import torch.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from core.data.capture import (
+    CAPTURE_JSON,
+    FORMAT_VERSION,
+    Camera,
+    Capture,
+    CaptureError,
+    Problem,
+    valid_name,
+)
+
+__all__ = [
+    "extrinsics_problems",
+    "intrinsics_problems",
+    "load_capture",
+    "parse_camera",
+    "parse_capture_json",
+]
+
+_ROTATION_TOL = 1e-4
+
+
+def load_capture(root: str | os.PathLike[str]) -> Capture:
+    """Read ``root/capture.json``; raises :class:`CaptureError` listing every schema problem."""
+    root = Path(root)
+    path = root / CAPTURE_JSON
+    if not path.is_file():
+        raise CaptureError(
+            [Problem(str(path), "capture.json not found (is this a capture folder?)")]
+        )
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CaptureError([Problem(str(path), f"cannot parse capture.json: {exc}")]) from None
+    capture, problems = parse_capture_json(data, root)
+    if problems or capture is None:
+        raise CaptureError(problems)
+    return capture
+
+
+def parse_capture_json(data: Any, root: Path) -> tuple[Capture | None, list[Problem]]:
+    """Parse a decoded capture.json; returns the capture and all problems.
+
+    With problems the capture is partial (cameras with bad entries are left out) or None when
+    nothing usable remains; callers that need a sound capture must check ``problems``.
+    """
+    where = CAPTURE_JSON
+    if not isinstance(data, dict):
+        return None, [Problem(where, "top level must be a JSON object")]
+    problems: list[Problem] = []
+    if data.get("version") != FORMAT_VERSION:
+        problems.append(
+            Problem(where, f"version must be {FORMAT_VERSION}, got {data.get('version')!r}")
+        )
+    up = _parse_up(data.get("up"), problems)
+    frames = _parse_frames(data.get("frames"), problems)
+    cameras = _parse_cameras(data.get("cameras"), problems)
+    space = data.get("normals_space", "world")
+    if space not in ("world", "camera"):
+        problems.append(Problem(where, f"normals_space must be 'world' or 'camera', got {space!r}"))
+    known = {"version", "up", "frames", "cameras", "normals_space", "import"}
+    extra = {k: v for k, v in data.items() if k not in known}
+    record = data.get("import")
+    if not frames or not isinstance(data.get("cameras"), list):
+        return None, problems
+    # Returned even with problems (bad cameras left out) so validation can go on to the files.
+    valid_space = space if space in ("world", "camera") else "world"
+    return Capture(root, tuple(cameras), tuple(frames), up, valid_space, record, extra), problems
+
+
+def _parse_up(value: Any, problems: list[Problem]) -> tuple[float, float, float]:
+    vec = _float_array(value, (3,))
+    if vec is None or np.linalg.norm(vec) < 1e-9:
+        problems.append(Problem(CAPTURE_JSON, f"up must be a non-zero 3-vector, got {value!r}"))
+        return (0.0, 0.0, 1.0)
+    vec = vec / np.linalg.norm(vec)
+    return (float(vec[0]), float(vec[1]), float(vec[2]))
+
+
+def _parse_frames(value: Any, problems: list[Problem]) -> list[str]:
+    if not isinstance(value, list) or not value:
+        problems.append(Problem(CAPTURE_JSON, "frames must be a non-empty list of names"))
+        return []
+    seen: set[str] = set()
+    for name in value:
+        if not valid_name(name):
+            problems.append(
+                Problem(
+                    CAPTURE_JSON, f"frame name {name!r} is not a safe file name ([A-Za-z0-9_.-])"
+                )
+            )
+        elif name in seen:
+            problems.append(Problem(CAPTURE_JSON, f"duplicate frame {name!r}"))
+        else:
+            seen.add(name)
+    return [n for n in value if valid_name(n)]  # never let an unsafe name reach the file system
+
+
+def _parse_cameras(value: Any, problems: list[Problem]) -> list[Camera]:
+    if not isinstance(value, list) or not value:
+        problems.append(Problem(CAPTURE_JSON, "cameras must be a non-empty list"))
+        return []
+    cameras: list[Camera] = []
+    seen: set[str] = set()
+    for i, entry in enumerate(value):
+        cam = parse_camera(entry, f"{CAPTURE_JSON} cameras[{i}]", problems)
+        if cam is None:
+            continue
+        if cam.id in seen:
+            problems.append(Problem(CAPTURE_JSON, f"duplicate camera id {cam.id!r} (cameras[{i}])"))
+        seen.add(cam.id)
+        cameras.append(cam)
+    return cameras
+
+
+def parse_camera(entry: Any, where: str, problems: list[Problem]) -> Camera | None:
+    """One camera entry of capture.json; appends problems naming ``where``, None if bad."""
+    if not isinstance(entry, dict):
+        problems.append(Problem(CAPTURE_JSON, f"{where}: must be an object"))
+        return None
+    n_before = len(problems)
+    cid = entry.get("id")
+    if not valid_name(cid):
+        problems.append(Problem(CAPTURE_JSON, f"{where}: id {cid!r} is not a safe file name"))
+    label = f"{where} ({cid})" if isinstance(cid, str) else where
+    width, height = entry.get("width"), entry.get("height")
+    for key, val in (("width", width), ("height", height)):
+        if not isinstance(val, int) or isinstance(val, bool) or val <= 0:
+            problems.append(
+                Problem(CAPTURE_JSON, f"{label}: {key} must be a positive integer, got {val!r}")
+            )
+    K = _float_array(entry.get("K"), (3, 3))
+    problems.extend(Problem(CAPTURE_JSON, f"{label}: {m}") for m in intrinsics_problems(K))
+    w2c = _float_array(entry.get("world_to_camera"), (4, 4))
+    problems.extend(Problem(CAPTURE_JSON, f"{label}: {m}") for m in extrinsics_problems(w2c))
+    dist = entry.get("distortion")
+    dist_t = None
+    if dist is not None:
+        arr = _float_array(dist, (len(dist),)) if isinstance(dist, list) else None
+        if arr is None or len(arr) not in (4, 5) or not np.all(np.isfinite(arr)):
+            problems.append(
+                Problem(
+                    CAPTURE_JSON,
+                    f"{label}: distortion must be null or 4-5 finite numbers, got {dist!r}",
+                )
+            )
+        else:
+            vals = [float(x) for x in arr] + [0.0] * (5 - len(arr))
+            dist_t = tuple(vals) if any(vals) else None
+    if len(problems) > n_before:
+        return None
+    return Camera(cid, width, height, K, w2c, dist_t)  # type: ignore[arg-type]
+
+
+def intrinsics_problems(K: np.ndarray | None) -> list[str]:
+    """Why ``K`` is not a usable pinhole matrix (empty when it is)."""
+    if K is None:
+        return ["K must be a 3x3 matrix of numbers"]
+    if not np.all(np.isfinite(K)):
+        return [f"K has non-finite entries: {K.tolist()}"]
+    out = []
+    if K[0, 0] <= 1e-6 or K[1, 1] <= 1e-6:
+        out.append(f"K has degenerate focal lengths fx={K[0, 0]}, fy={K[1, 1]} (must be > 0)")
+    if K[0, 1] != 0 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0 or K[2, 2] != 1:
+        out.append(f"K must have the form [[fx,0,cx],[0,fy,cy],[0,0,1]], got {K.tolist()}")
+    return out
+
+
+def extrinsics_problems(w2c: np.ndarray | None) -> list[str]:
+    """Why ``w2c`` is not a rigid world-to-camera transform (empty when it is)."""
+    if w2c is None:
+        return ["world_to_camera must be a 4x4 matrix of numbers"]
+    if not np.all(np.isfinite(w2c)):
+        return ["world_to_camera has non-finite entries"]
+    out = []
+    if np.abs(w2c[3] - np.array([0, 0, 0, 1.0])).max() > 1e-9:
+        out.append(f"world_to_camera last row must be [0,0,0,1], got {w2c[3].tolist()}")
+    R = w2c[:3, :3]
+    err = float(np.abs(R @ R.T - np.eye(3)).max())
+    if err > _ROTATION_TOL or np.linalg.det(R) <= 0:
+        out.append(
+            f"world_to_camera rotation is not a rotation (|R R^T - I| = {err:.2e}, det = "
+            f"{np.linalg.det(R):.4f}); expected orthonormal with det +1"
+        )
+    return out
+
+
+def _float_array(value: Any, shape: tuple[int, ...]) -> np.ndarray | None:
+    try:
+        arr = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return None
+    if arr.shape != shape:
+        return None
+    return arr

@@ -1,0 +1,141 @@
+"""The training dataset: tensors, conventions, downscaling, undistortion, the memory bound."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from core.data import ByteLRUCache, CaptureDataset, load_capture
+from core.data.images import write_png
+
+
+def test_serves_views_as_tensors(synth_capture: Path) -> None:
+    cap = load_capture(synth_capture)
+    ds = CaptureDataset(cap)
+    assert len(ds) == 16
+    s = ds[ds.index_of("000001", "cam05")]
+    assert (s.frame, s.camera_id) == ("000001", "cam05")
+    assert s.image.shape == (48, 48, 3) and s.image.dtype == torch.float32
+    assert 0.0 <= float(s.image.min()) and float(s.image.max()) <= 1.0
+    assert s.mask.shape == (48, 48, 1) and set(s.mask.unique().tolist()) <= {0.0, 1.0}
+    # Priors are world-space unit vectors on the figure, zero on the background.
+    norms = s.normal.norm(dim=2)
+    fg = s.mask[:, :, 0] > 0
+    assert torch.allclose(norms[fg], torch.ones(()), atol=1e-4)
+    assert float(norms[~fg].max()) == 0.0
+    gt = np.load(synth_capture / "gt/normals/000001/cam05.npy")
+    cos = (s.normal.numpy() * gt).sum(axis=2)[fg.numpy()]
+    assert 0.8 < float(np.median(cos)) < 0.9999  # close to truth, but degraded
+    with pytest.raises(IndexError):
+        ds[16]
+
+
+def test_downscale_scales_intrinsics(synth_capture: Path) -> None:
+    cap = load_capture(synth_capture)
+    s = CaptureDataset(cap, downscale=2)[3]
+    cam = cap.cameras[3]
+    assert s.image.shape == (24, 24, 3) and s.mask.shape == (24, 24, 1)
+    np.testing.assert_allclose(s.camera.K[:2], cam.K[:2] / 2)
+    # A 3D point lands on the same relative image position at both scales.
+    point = np.array([[0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(s.camera.project(point)[0], cam.project(point)[0] / 2, atol=1e-9)
+
+
+def test_memory_bound(synth_capture: Path) -> None:
+    cap = load_capture(synth_capture)
+    per_view = 48 * 48 * (3 + 1 + 3) * 4
+    bound = int(per_view * 3.5)
+    ds = CaptureDataset(cap, cache_bytes=bound)
+    for _ in range(2):
+        for i in range(len(ds)):
+            ds[i]
+            assert ds.cache.nbytes <= bound
+    assert len(ds.cache) == 3 and ds.cache.nbytes == 3 * per_view
+    assert ds.cache.misses == 2 * len(ds)  # 16 views cycled through 3 slots: no reuse possible
+    ds[len(ds) - 1]
+    assert ds.cache.hits == 1
+    # A budget of zero still serves every view, caching nothing.
+    empty = CaptureDataset(cap, cache_bytes=0)
+    assert empty[5].image.shape == (48, 48, 3) and empty.cache.nbytes == 0
+
+
+def test_lru_order() -> None:
+    cache = ByteLRUCache(300)
+    for key in "abc":
+        cache.put(key, key, 100)
+    cache.get("a")
+    cache.put("d", "d", 100)  # evicts b, the least recently used
+    assert cache.get("b") is None and cache.get("a") == "a" and cache.nbytes == 300
+    cache.put("huge", "x", 301)
+    assert cache.get("huge") is None and cache.nbytes == 300
+
+
+def test_undistortion_moves_features_to_pinhole_position(tmp_path: Path) -> None:
+    """Draw a dot where the distorted camera sees a point; after undistortion it sits where the
+    ideal pinhole projects it."""
+    from core.data import Camera, Capture, save_capture
+
+    W, H = 80, 60
+    K = np.array([[60.0, 0, 40.0], [0, 60.0, 30.0], [0, 0, 1]])
+    dist = (-0.35, 0.05, 0.002, -0.001, 0.0)
+    cam = Camera("c0", W, H, K, np.eye(4), dist)
+    point = np.array([[0.5, 0.35, 1.0]])  # far from the centre, where distortion is strong
+    distorted = cam.project(point)[0][0]
+    ideal = Camera("c0", W, H, K, np.eye(4), None).project(point)[0][0]
+    assert np.linalg.norm(distorted - ideal) > 3.0
+    yy, xx = np.mgrid[0:H, 0:W] + 0.5
+    blob = np.exp(-((xx - distorted[0]) ** 2 + (yy - distorted[1]) ** 2) / (2 * 1.5**2))
+    write_png(
+        tmp_path / "cap/images/f0/c0.png",
+        (np.repeat(blob[:, :, None], 3, 2) * 255).astype(np.uint8),
+    )
+    save_capture(Capture(tmp_path / "cap", (cam,), ("f0",), (0, -1, 0)))
+    s = CaptureDataset(load_capture(tmp_path / "cap"))[0]
+    assert s.camera.distortion is None
+    img = s.image[:, :, 0].numpy()
+    centroid = np.array([(img * xx).sum(), (img * yy).sum()]) / img.sum()
+    assert np.linalg.norm(centroid - ideal) < 0.3, (centroid, ideal, distorted)
+    raw = CaptureDataset(load_capture(tmp_path / "cap"), undistort=False)[0]
+    assert raw.camera.distortion == dist
+
+
+def test_camera_space_normals_are_rotated_to_world(synth_capture: Path, tmp_path: Path) -> None:
+    import shutil
+
+    root = tmp_path / "cap"
+    shutil.copytree(synth_capture, root, ignore=shutil.ignore_patterns("gt"))
+    cap = load_capture(root)
+    cam = cap.cameras[2]
+    n_world = np.array([0.0, 0.6, 0.8])
+    n_cam = cam.R @ n_world
+    write_png(
+        root / "normals/000000/cam02.png",
+        np.full((48, 48, 3), 0, np.uint16) + ((n_cam + 1) / 2 * 65535).round().astype(np.uint16),
+    )
+    data = json.loads((root / "capture.json").read_text())
+    data["normals_space"] = "camera"
+    (root / "capture.json").write_text(json.dumps(data))
+    s = CaptureDataset(load_capture(root))[2]
+    np.testing.assert_allclose(s.normal[10, 10].numpy(), n_world, atol=1e-4)
+
+
+def test_exr_images_and_normals_stay_linear(tmp_path: Path) -> None:
+    from core.data import Camera, Capture, save_capture, validate_capture
+    from core.data.images import write_exr
+
+    K = np.array([[20.0, 0, 8], [0, 20.0, 6], [0, 0, 1]])
+    cam = Camera("c0", 16, 12, K, np.eye(4), None)
+    image = np.full((12, 16, 3), 2.5, np.float32)  # HDR value above 1 must survive
+    normal = np.zeros((12, 16, 3), np.float32)
+    normal[..., 2] = -1.0
+    write_exr(tmp_path / "cap/images/f0/c0.exr", image)
+    write_exr(tmp_path / "cap/normals/f0/c0.exr", normal)
+    save_capture(Capture(tmp_path / "cap", (cam,), ("f0",), (0, -1, 0)))
+    assert validate_capture(tmp_path / "cap") == []
+    s = CaptureDataset(load_capture(tmp_path / "cap"))[0]
+    assert float(s.image.min()) == 2.5 and s.mask is None
+    np.testing.assert_allclose(s.normal[3, 4].numpy(), [0, 0, -1])
