@@ -38,8 +38,9 @@ def check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, v
                  height, beta, eps2d, near, far, background, require_contiguous: bool) -> None:
     """Raise ValueError naming the first bad argument."""
     named = {"means": means, "quats": quats, "scales": scales, "opacity_c": opacity_c,
-             "opacity_g": opacity_g, "colors": colors, "geometry": geometry,
-             "viewmat": viewmat, "K": K}
+             "opacity_g": opacity_g, "colors": colors, "viewmat": viewmat, "K": K}
+    if geometry is not None:
+        named["geometry"] = geometry
     if background is not None:
         named["background"] = background
     for name, value in named.items():
@@ -51,7 +52,8 @@ def check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, v
     _shape("opacity_c", opacity_c, (n,), f"(N,) with N={n}")
     _shape("opacity_g", opacity_g, (n,), f"(N,) with N={n}")
     _shape("colors", colors, (n, None), f"(N, C) with N={n}")
-    _shape("geometry", geometry, (n, None), f"(N, G) with N={n}")
+    if geometry is not None:
+        _shape("geometry", geometry, (n, None), f"(N, G) with N={n}")
     _shape("viewmat", viewmat, (4, 4), "(4, 4)")
     _shape("K", K, (3, 3), "(3, 3)")
     if background is not None:

@@ -58,13 +58,13 @@ class Rasterization(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, means2d, conics, opac, depths, colors, geometry, rects, offsets, ids, width,
-                height, absgrad):
+                height, absgrad, geometry_branch):
         color, geo, depth, trans, stops, contrib = load().rasterize_fwd(
             means2d, conics, opac, depths, colors, geometry, rects, offsets, ids, width, height,
-            TILE_SIZE)
+            TILE_SIZE, geometry_branch)
         ctx.save_for_backward(means2d, conics, opac, depths, colors, geometry, rects, offsets, ids,
                               color, geo, depth, trans, stops)
-        ctx.config = (width, height)
+        ctx.config = (width, height, geometry_branch)
         ctx.absgrad = absgrad
         alpha = 1.0 - trans
         ctx.mark_non_differentiable(contrib)
@@ -74,14 +74,14 @@ class Rasterization(torch.autograd.Function):
     def backward(ctx, v_color, v_geo, v_depth, v_alpha_c, v_alpha_g, _contrib):
         (means2d, conics, opac, depths, colors, geometry, rects, offsets, ids, color, geo, depth,
          trans, stops) = ctx.saved_tensors
-        width, height = ctx.config
+        width, height, geometry_branch = ctx.config
         v_alpha = torch.cat([_grad_or_zeros(v_alpha_c, depth), _grad_or_zeros(v_alpha_g, depth)],
                             dim=-1)
         g_m2, g_cn, g_op, g_z, g_col, g_geo, g_abs = load().rasterize_bwd(
             means2d, conics, opac, depths, colors, geometry, rects, offsets, ids, width, height,
-            TILE_SIZE, color, geo, depth, trans, stops,
+            TILE_SIZE, geometry_branch, color, geo, depth, trans, stops,
             _grad_or_zeros(v_color, color), _grad_or_zeros(v_geo, geo),
             _grad_or_zeros(v_depth, depth), v_alpha.contiguous())
         with torch.no_grad():
             ctx.absgrad.add_(g_abs)
-        return g_m2, g_cn, g_op, g_z, g_col, g_geo, None, None, None, None, None, None
+        return g_m2, g_cn, g_op, g_z, g_col, g_geo, None, None, None, None, None, None, None

@@ -22,7 +22,7 @@ def rasterize(
     opacity_c: Tensor,   # (N,) appearance opacity in [0, 1]
     opacity_g: Tensor,   # (N,) geometry opacity in [0, 1]
     colors: Tensor,      # (N, C) features blended with the appearance alpha
-    geometry: Tensor,    # (N, G) features blended with the geometry alpha
+    geometry: Tensor | None,  # (N, G) features blended with the geometry alpha; None: no branch
     viewmat: Tensor,     # (4, 4) world-to-camera, OpenCV axes
     K: Tensor,           # (3, 3) intrinsics
     width: int,
@@ -38,6 +38,9 @@ def rasterize(
     validate: bool = True,
 ) -> RasterOutput:
     """Render both branches of N Gaussians in one pass (DESIGN.md section 3.4).
+
+    With `geometry=None` only the appearance branch runs (a plain single-opacity RGB pass, as in
+    the first training stage): `geometry` comes back (H, W, 0) and `depth` and `alpha_g` are zero.
 
     `backend="reference"` runs the dense plain-PyTorch implementation (`native.reference`), which
     needs O(N * H * W) memory but works on any device. Every output is differentiable with
@@ -62,6 +65,9 @@ def rasterize(
     from native._wrapper import Projection, Rasterization, intersect_tiles
 
     width, height = int(width), int(height)
+    geometry_branch = geometry is not None
+    if geometry is None:
+        geometry = means.new_zeros(means.shape[0], 0)
     means2d, conics, depths, opac, rects, radii = Projection.apply(
         means, quats, scales, opacity_c, opacity_g, viewmat, K, width, height, float(beta),
         float(eps2d), bool(antialiased), float(near), float(far))
@@ -71,7 +77,7 @@ def rasterize(
     absgrad = torch.zeros(means.shape[0], 4, dtype=means.dtype, device=means.device)
     color, geo, depth, alpha_c, alpha_g, contribution = Rasterization.apply(
         means2d, conics, opac, depths, colors, geometry, rects, offsets, ids, width, height,
-        absgrad)
+        absgrad, geometry_branch)
     if background is not None:
         color = color + (1.0 - alpha_c) * background
     return RasterOutput(color=color, geometry=geo, depth=depth, alpha_c=alpha_c, alpha_g=alpha_g,

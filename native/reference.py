@@ -111,6 +111,9 @@ def rasterize(means, quats, scales, opacity_c, opacity_g, colors, geometry, view
         check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
                      width, height, beta, eps2d, near, far, background, require_contiguous=False)
     width, height = int(width), int(height)
+    geometry_branch = geometry is not None
+    if geometry is None:
+        geometry = means.new_zeros(means.shape[0], 0)
     n, C, G = means.shape[0], colors.shape[1], geometry.shape[1]
     dtype, device = means.dtype, means.device
     p, mean2d, cov2d, comp, valid = _project(means, quats, scales, viewmat, K, width, height,
@@ -146,7 +149,10 @@ def rasterize(means, quats, scales, opacity_c, opacity_g, colors, geometry, view
         return torch.clamp(opacity[idx][:, None] * torch.exp(e), max=ALPHA_MAX)
 
     w_c, trans_c = _composite(branch_alpha(o_c, slice(0, 2)))
-    w_g, trans_g = _composite(branch_alpha(o_g, slice(2, 4)))
+    if geometry_branch:
+        w_g, trans_g = _composite(branch_alpha(o_g, slice(2, 4)))
+    else:
+        w_g, trans_g = torch.zeros_like(w_c), torch.ones_like(trans_c)
     color = (w_c.T @ colors[idx]).reshape(height, width, C)
     geo = (w_g.T @ geometry[idx]).reshape(height, width, G)
     depth = (w_g.T @ p[idx, 2:3]).reshape(height, width, 1)

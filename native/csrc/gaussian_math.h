@@ -23,6 +23,18 @@ template <typename T> DGS_HD T transmittance_min() { return T(1e-4); }
 // Guard band of the projection Jacobian, as a fraction of the image size (DESIGN 3.4).
 template <typename T> DGS_HD T fov_guard() { return T(0.15); }
 
+// Scalar math with one overload per type, so float code never goes through double on the host.
+DGS_HD float m_exp(float x) { return expf(x); }
+DGS_HD double m_exp(double x) { return exp(x); }
+DGS_HD float m_log(float x) { return logf(x); }
+DGS_HD double m_log(double x) { return log(x); }
+DGS_HD float m_sqrt(float x) { return sqrtf(x); }
+DGS_HD double m_sqrt(double x) { return sqrt(x); }
+DGS_HD float m_ceil(float x) { return ceilf(x); }
+DGS_HD double m_ceil(double x) { return ceil(x); }
+DGS_HD float m_floor(float x) { return floorf(x); }
+DGS_HD double m_floor(double x) { return floor(x); }
+
 template <typename T> struct Vec2 { T x, y; };
 template <typename T> struct Vec3 { T x, y, z; };
 // Symmetric 2x2 matrix [[a, b], [b, c]].
@@ -77,7 +89,7 @@ template <typename T> DGS_HD Vec3<T> matTvec(const Mat3<T>& a, const Vec3<T>& v)
 // Rotation from a quaternion (w, x, y, z), not necessarily normalized.
 
 template <typename T> DGS_HD Mat3<T> quat_to_rotmat(T w, T x, T y, T z) {
-  const T inv = T(1) / sqrt(w * w + x * x + y * y + z * z);
+  const T inv = T(1) / m_sqrt(w * w + x * x + y * y + z * z);
   w *= inv; x *= inv; y *= inv; z *= inv;
   Mat3<T> r;
   r.m[0][0] = T(1) - T(2) * (y * y + z * z);
@@ -95,7 +107,7 @@ template <typename T> DGS_HD Mat3<T> quat_to_rotmat(T w, T x, T y, T z) {
 // Vector-Jacobian product of quat_to_rotmat: dL/dR -> dL/dq (through the normalization).
 template <typename T>
 DGS_HD void quat_to_rotmat_vjp(T w, T x, T y, T z, const Mat3<T>& g, T out[4]) {
-  const T inv = T(1) / sqrt(w * w + x * x + y * y + z * z);
+  const T inv = T(1) / m_sqrt(w * w + x * x + y * y + z * z);
   const T qw = w * inv, qx = x * inv, qy = y * inv, qz = z * inv;
   // Gradient with respect to the normalized quaternion.
   const T gw = T(2) * (qx * (g.m[2][1] - g.m[1][2]) + qy * (g.m[0][2] - g.m[2][0]) +
@@ -276,7 +288,7 @@ template <typename T> DGS_HD T compensation(const Sym2<T>& s_blur, T eps) {
   const T det = det2(s_blur);
   const T det_o = (s_blur.a - eps) * (s_blur.c - eps) - s_blur.b * s_blur.b;
   const T r = det_o / det;
-  return r > T(0) ? sqrt(r) : T(0);
+  return r > T(0) ? m_sqrt(r) : T(0);
 }
 
 // VJP of compensation with respect to s_blur, as a symmetric matrix gradient.
@@ -285,7 +297,7 @@ template <typename T> DGS_HD Sym2<T> compensation_vjp(const Sym2<T>& s, T eps, T
   const T det_o = (s.a - eps) * (s.c - eps) - s.b * s.b;
   const T r = det_o / det;
   if (!(r > T(0))) return {T(0), T(0), T(0)};
-  const T comp = sqrt(r);
+  const T comp = m_sqrt(r);
   const T k = g_comp / (T(2) * comp * det * det);
   // d det / dS = [[c, -b], [-b, a]]; d det_o / dS = [[c - eps, -b], [-b, a - eps]].
   return {k * ((s.c - eps) * det - det_o * s.c), k * (-s.b * det + det_o * s.b),
@@ -306,19 +318,42 @@ DGS_HD void mix_opacities(T op_c, T op_g, T beta, T comp, T& o_c, T& o_g) {
 template <typename T>
 DGS_HD bool screen_extent(const Sym2<T>& cov2d, T o_max, T& ex, T& ey) {
   if (!(o_max >= alpha_min<T>())) return false;
-  const T k = T(2) * log(o_max / alpha_min<T>());
+  const T k = T(2) * m_log(o_max / alpha_min<T>());
   const T kk = k * T(1.001) + T(1e-3);
-  ex = sqrt(kk * cov2d.a) * T(1.001) + T(1e-2);
-  ey = sqrt(kk * cov2d.c) * T(1.001) + T(1e-2);
+  ex = m_sqrt(kk * cov2d.a) * T(1.001) + T(1e-2);
+  ey = m_sqrt(kk * cov2d.c) * T(1.001) + T(1e-2);
   return true;
+}
+
+// Threshold k of the quadratic form d^T conic d <= k inside which max(o_c, o_g) can reach 1/255,
+// widened like screen_extent. Negative when the Gaussian never reaches 1/255.
+template <typename T> DGS_HD T level_k(T o_max) {
+  if (!(o_max >= alpha_min<T>())) return T(-1);
+  return T(2) * m_log(o_max / alpha_min<T>()) * T(1.001) + T(1e-3);
+}
+
+// Pixels [u_lo, u_hi] of row centre y = v + 0.5 inside the ellipse d^T conic d <= k (solving the
+// quadratic in dx), widened by a small margin; false when the row misses the ellipse. Pixels
+// outside the span cannot reach 1/255, so skipping them keeps dense-evaluation results.
+template <typename T>
+DGS_HD bool row_span(const Sym2<T>& conic, T k, T mx, T dy, int64_t& u_lo, int64_t& u_hi) {
+  const T det = conic.a * conic.c - conic.b * conic.b;
+  const T disc = conic.a * k - dy * dy * det;
+  if (!(disc >= T(0))) return false;
+  const T root = m_sqrt(disc) / conic.a;
+  const T centre = mx - T(0.5) - conic.b * dy / conic.a;
+  const T margin = root * T(1e-3) + T(1e-2);
+  u_lo = int64_t(m_ceil(centre - root - margin));
+  u_hi = int64_t(m_floor(centre + root + margin));
+  return u_lo <= u_hi;
 }
 
 // Pixel rectangle [u0, u1] x [v0, v1] (inclusive) of pixel centres u + 0.5 within the extent,
 // clipped to the image. Returns false when empty.
 template <typename T>
 DGS_HD bool pixel_rect(T mx, T my, T ex, T ey, int width, int height, int32_t rect[4]) {
-  const T fu0 = ceil(mx - ex - T(0.5)), fu1 = floor(mx + ex - T(0.5));
-  const T fv0 = ceil(my - ey - T(0.5)), fv1 = floor(my + ey - T(0.5));
+  const T fu0 = m_ceil(mx - ex - T(0.5)), fu1 = m_floor(mx + ex - T(0.5));
+  const T fv0 = m_ceil(my - ey - T(0.5)), fv1 = m_floor(my + ey - T(0.5));
   if (!(fu1 >= T(0)) || !(fv1 >= T(0)) || !(fu0 <= T(width - 1)) || !(fv0 <= T(height - 1)))
     return false;
   rect[0] = fu0 < T(0) ? 0 : int32_t(fu0);

@@ -106,7 +106,7 @@ void projection_fwd_kernel(const at::Tensor& means, const at::Tensor& quats,
       int32_t rect[4];
       if (!pixel_rect(mx, my, ex, ey, cam.k.width, cam.k.height, rect)) continue;
       for (int j = 0; j < 4; ++j) rc[4 * i + j] = rect[j];
-      const T r = ceil(ex > ey ? ex : ey);
+      const T r = m_ceil(ex > ey ? ex : ey);
       rd[i] = r < T(1) ? 1 : int32_t(r);
     }
   });

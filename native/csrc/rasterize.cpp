@@ -49,6 +49,7 @@ template <typename T> struct FwdArgs {
   T *out_color, *out_geo, *out_depth, *trans;
   int32_t* stops;
   T* contrib;  // (threads, N)
+  bool geometry_branch;  // false: appearance only (a plain single-opacity RGB pass)
 };
 
 template <typename T> void forward_tile(const FwdArgs<T>& a, const Tiling& tl, int64_t tile,
@@ -62,8 +63,9 @@ template <typename T> void forward_tile(const FwdArgs<T>& a, const Tiling& tl, i
   std::fill(tcs.begin(), tcs.end(), T(1));
   std::fill(tgs.begin(), tgs.end(), T(1));
   std::fill(stop_c.begin(), stop_c.end(), n_list);
-  std::fill(stop_g.begin(), stop_g.end(), n_list);
-  std::fill(done.begin(), done.end(), uint8_t(0));
+  // Without the geometry branch every pixel starts with that branch finished at position 0.
+  std::fill(stop_g.begin(), stop_g.end(), a.geometry_branch ? n_list : 0);
+  std::fill(done.begin(), done.end(), uint8_t(a.geometry_branch ? 0 : 2));
   int64_t n_done = 0;
   const int64_t C = a.C, G = a.G, W = tl.width, S = tl.size;
   for (int64_t k = start; k < end && n_done < npix; ++k) {
@@ -75,15 +77,20 @@ template <typename T> void forward_tile(const FwdArgs<T>& a, const Tiling& tl, i
     const T oc = a.opac[2 * gid], og = a.opac[2 * gid + 1], z = a.depths[gid];
     const T* col = a.colors + C * gid;
     const T* geo = a.geometry + G * gid;
+    const T kq = level_k(a.geometry_branch && og > oc ? og : oc);
     T best = T(0);
     for (int64_t v = v0; v <= v1; ++v) {
       const T dy = T(v) + T(0.5) - my;
-      for (int64_t u = u0; u <= u1; ++u) {
+      int64_t s0, s1;
+      if (!row_span(conic, kq, mx, dy, s0, s1)) continue;
+      s0 = std::max(s0, u0);
+      s1 = std::min(s1, u1);
+      for (int64_t u = s0; u <= s1; ++u) {
         const int64_t l = (v - b.y0) * S + (u - b.x0);
         uint8_t d = done[l];
         if (d == 3) continue;
         const T dx = T(u) + T(0.5) - mx;
-        const T vis = exp(gaussian_exponent(conic, dx, dy));
+        const T vis = m_exp(gaussian_exponent(conic, dx, dy));
         const int64_t pix = v * W + u;
         bool clamped;
         if (!(d & 1)) {
@@ -146,6 +153,7 @@ template <typename T> struct BwdArgs {
   // Per-thread gradient buffers: (threads, N, 8) [mean x, mean y, conic a b c, o_c, o_g, depth],
   // (threads, N, 4) AbsGS, (threads, N, C), (threads, N, G).
   T *g_param, *g_abs, *g_color, *g_geo;
+  bool geometry_branch;
 };
 
 // Running per-pixel state of the backward walk for one branch.
@@ -182,7 +190,8 @@ inline T backward_branch(BranchState<T>& s, int64_t l, T o, T vis, const T* feat
 }
 
 template <typename T> void backward_tile(const BwdArgs<T>& a, const Tiling& tl, int64_t tile,
-                                         BranchState<T>& sc, BranchState<T>& sg, int tid) {
+                                         BranchState<T>& sc, BranchState<T>& sg,
+                                         std::vector<T>& acc, int tid) {
   const TileBox b = tile_box(tl, tile);
   const int64_t start = a.offsets[tile];
   const int64_t C = a.C, G = a.G, W = tl.width, S = tl.size, N = a.n;
@@ -215,20 +224,27 @@ template <typename T> void backward_tile(const BwdArgs<T>& a, const Tiling& tl, 
     const T oc = a.opac[2 * gid], og = a.opac[2 * gid + 1], z = a.depths[gid];
     const T* col = a.colors + C * gid;
     const T* geo = a.geometry + G * gid;
-    T* gcol = gc_base + C * gid;
-    T* ggeo = gg_base + G * gid;
+    // Feature gradients of this Gaussian over this tile, flushed once at the end.
+    T* gcol = acc.data();
+    T* ggeo = acc.data() + C;
+    std::fill(acc.begin(), acc.end(), T(0));
+    const T kq = level_k(a.geometry_branch && og > oc ? og : oc);
     Vec2<T> g_mean = {T(0), T(0)};
     Sym2<T> g_conic = {T(0), T(0), T(0)};
     T g_oc = T(0), g_og = T(0), g_z = T(0), unused = T(0);
     T abs_c[2] = {T(0), T(0)}, abs_g[2] = {T(0), T(0)};
     for (int64_t v = v0; v <= v1; ++v) {
       const T dy = T(v) + T(0.5) - my;
-      for (int64_t u = u0; u <= u1; ++u) {
+      int64_t s0, s1;
+      if (!row_span(conic, kq, mx, dy, s0, s1)) continue;
+      s0 = std::max(s0, u0);
+      s1 = std::min(s1, u1);
+      for (int64_t u = s0; u <= s1; ++u) {
         const int64_t l = (v - b.y0) * S + (u - b.x0);
         const bool in_c = k < sc.stop[l], in_g = k < sg.stop[l];
         if (!in_c && !in_g) continue;
         const T dx = T(u) + T(0.5) - mx;
-        const T vis = exp(gaussian_exponent(conic, dx, dy));
+        const T vis = m_exp(gaussian_exponent(conic, dx, dy));
         const int64_t pix = v * W + u;
         const T ve_c = in_c ? backward_branch(sc, l, oc, vis, col, a.v_color + C * pix, C, gcol,
                                               T(0), T(0), unused, g_oc)
@@ -246,6 +262,10 @@ template <typename T> void backward_tile(const BwdArgs<T>& a, const Tiling& tl, 
         abs_g[0] += std::abs(dm.x * ve_g); abs_g[1] += std::abs(dm.y * ve_g);
       }
     }
+    T* dst_c = gc_base + C * gid;
+    for (int64_t c = 0; c < C; ++c) dst_c[c] += gcol[c];
+    T* dst_g = gg_base + G * gid;
+    for (int64_t c = 0; c < G; ++c) dst_g[c] += ggeo[c];
     T* gp = gp_base + 8 * gid;
     gp[0] += g_mean.x; gp[1] += g_mean.y;
     gp[2] += g_conic.a; gp[3] += g_conic.b; gp[4] += g_conic.c;
@@ -291,7 +311,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 rasterize_fwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
               const at::Tensor& depths, const at::Tensor& colors, const at::Tensor& geometry,
               const at::Tensor& rects, const at::Tensor& tile_offsets, const at::Tensor& flat_ids,
-              int64_t width, int64_t height, int64_t tile_size) {
+              int64_t width, int64_t height, int64_t tile_size, bool geometry_branch) {
   check_raster_inputs(means2d, conics, opacities, depths, colors, geometry, rects, tile_offsets,
                       flat_ids);
   const Tiling tl = make_tiling(width, height, tile_size, tile_offsets);
@@ -311,7 +331,7 @@ rasterize_fwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
                  rects.data_ptr<int32_t>(), flat_ids.data_ptr<int32_t>(),
                  tile_offsets.data_ptr<int64_t>(), n, C, G, out_color.data_ptr<T>(),
                  out_geo.data_ptr<T>(), out_depth.data_ptr<T>(), trans.data_ptr<T>(),
-                 stops.data_ptr<int32_t>(), contrib.data_ptr<T>()};
+                 stops.data_ptr<int32_t>(), contrib.data_ptr<T>(), geometry_branch};
     at::parallel_for(0, tl.count(), 1, [&](int64_t begin, int64_t end) {
       const int64_t np = tl.size * tl.size;
       std::vector<T> tcs(np), tgs(np);
@@ -329,10 +349,11 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 rasterize_bwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
               const at::Tensor& depths, const at::Tensor& colors, const at::Tensor& geometry,
               const at::Tensor& rects, const at::Tensor& tile_offsets, const at::Tensor& flat_ids,
-              int64_t width, int64_t height, int64_t tile_size, const at::Tensor& out_color,
-              const at::Tensor& out_geometry, const at::Tensor& out_depth,
-              const at::Tensor& transmittance, const at::Tensor& stops, const at::Tensor& v_color,
-              const at::Tensor& v_geometry, const at::Tensor& v_depth, const at::Tensor& v_alpha) {
+              int64_t width, int64_t height, int64_t tile_size, bool geometry_branch,
+              const at::Tensor& out_color, const at::Tensor& out_geometry,
+              const at::Tensor& out_depth, const at::Tensor& transmittance,
+              const at::Tensor& stops, const at::Tensor& v_color, const at::Tensor& v_geometry,
+              const at::Tensor& v_depth, const at::Tensor& v_alpha) {
   check_raster_inputs(means2d, conics, opacities, depths, colors, geometry, rects, tile_offsets,
                       flat_ids);
   const Tiling tl = make_tiling(width, height, tile_size, tile_offsets);
@@ -362,12 +383,13 @@ rasterize_bwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
                  transmittance.data_ptr<T>(), stops.data_ptr<int32_t>(), v_color.data_ptr<T>(),
                  v_geometry.data_ptr<T>(), v_depth.data_ptr<T>(), v_alpha.data_ptr<T>(),
                  g_param.data_ptr<T>(), g_abs.data_ptr<T>(), g_color.data_ptr<T>(),
-                 g_geo.data_ptr<T>()};
+                 g_geo.data_ptr<T>(), geometry_branch};
     at::parallel_for(0, tl.count(), 1, [&](int64_t begin, int64_t end) {
       const int64_t np = tl.size * tl.size;
       BranchState<T> sc(np), sg(np);
+      std::vector<T> acc(C + G);
       const int tid = at::get_thread_num();
-      for (int64_t t = begin; t < end; ++t) backward_tile(a, tl, t, sc, sg, tid);
+      for (int64_t t = begin; t < end; ++t) backward_tile(a, tl, t, sc, sg, acc, tid);
     });
   });
   at::Tensor gp = nthreads > 1 ? g_param.sum(0) : g_param[0];

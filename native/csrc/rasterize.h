@@ -1,5 +1,6 @@
 // Blending of both branches in one pass: appearance features with the appearance alpha,
-// geometry features and depth with the geometry alpha (DESIGN.md 3.4).
+// geometry features and depth with the geometry alpha (DESIGN.md 3.4). With geometry_branch
+// false only the appearance branch runs (a plain single-opacity RGB pass; G must then be 0).
 #pragma once
 
 #include <torch/extension.h>
@@ -15,7 +16,7 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 rasterize_fwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
               const at::Tensor& depths, const at::Tensor& colors, const at::Tensor& geometry,
               const at::Tensor& rects, const at::Tensor& tile_offsets, const at::Tensor& flat_ids,
-              int64_t width, int64_t height, int64_t tile_size);
+              int64_t width, int64_t height, int64_t tile_size, bool geometry_branch);
 
 // Returns gradients for means2d (N,2), conics (N,3), opacities (N,2), depths (N), colors (N,C),
 // geometry (N,G), and the AbsGS sums (N,4): |dL/dmean2d| per pixel summed, appearance (x, y)
@@ -24,9 +25,10 @@ std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tenso
 rasterize_bwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
               const at::Tensor& depths, const at::Tensor& colors, const at::Tensor& geometry,
               const at::Tensor& rects, const at::Tensor& tile_offsets, const at::Tensor& flat_ids,
-              int64_t width, int64_t height, int64_t tile_size, const at::Tensor& out_color,
-              const at::Tensor& out_geometry, const at::Tensor& out_depth,
-              const at::Tensor& transmittance, const at::Tensor& stops, const at::Tensor& v_color,
-              const at::Tensor& v_geometry, const at::Tensor& v_depth, const at::Tensor& v_alpha);
+              int64_t width, int64_t height, int64_t tile_size, bool geometry_branch,
+              const at::Tensor& out_color, const at::Tensor& out_geometry,
+              const at::Tensor& out_depth, const at::Tensor& transmittance,
+              const at::Tensor& stops, const at::Tensor& v_color, const at::Tensor& v_geometry,
+              const at::Tensor& v_depth, const at::Tensor& v_alpha);
 
 }  // namespace dgs
