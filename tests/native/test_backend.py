@@ -1,0 +1,57 @@
+"""Building the extension: never on import, cached by fingerprint, one clear error on failure."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+import native._backend as backend
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_import_never_builds(tmp_path):
+    code = ("import os, native, native.reference, core; "
+            "print(sorted(os.listdir(os.environ['DGS_NATIVE_BUILD_DIR'])))")
+    env = dict(os.environ, DGS_NATIVE_BUILD_DIR=str(tmp_path / "b"), PYTHONPATH=str(REPO))
+    (tmp_path / "b").mkdir()
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,
+                         timeout=120, cwd=tmp_path)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"
+
+
+def test_fingerprint_follows_sources(tmp_path, monkeypatch):
+    for name in backend.SOURCES:
+        (tmp_path / name).write_text("// a\n")
+    monkeypatch.setattr(backend, "_CSRC", tmp_path)
+    first = backend.fingerprint()
+    assert backend.fingerprint() == first
+    (tmp_path / "rasterize.cpp").write_text("// b\n")
+    assert backend.fingerprint() != first
+    (tmp_path / "new_header.h").write_text("// c\n")
+    assert backend.fingerprint() not in (first,)
+
+
+def test_build_dir_override(tmp_path, monkeypatch):
+    monkeypatch.setenv("DGS_NATIVE_BUILD_DIR", str(tmp_path / "x"))
+    assert backend.build_dir() == tmp_path / "x"
+
+
+def test_failed_build_raises_one_clear_error(tmp_path, monkeypatch):
+    src = tmp_path / "csrc"
+    src.mkdir()
+    for name in backend.SOURCES:
+        (src / name).write_text("#error deliberately broken for the test\n")
+    monkeypatch.setattr(backend, "_CSRC", src)
+    monkeypatch.setattr(backend, "_module", None)
+    monkeypatch.setenv("DGS_NATIVE_BUILD_DIR", str(tmp_path / "build"))
+    with pytest.raises(backend.NativeBuildError) as err:
+        backend.load()
+    message = str(err.value)
+    assert "deliberately broken" in message
+    assert "backend='reference'" in message
