@@ -33,10 +33,11 @@ def fingerprint() -> str:
     import torch
 
     h = hashlib.sha256()
-    for path in sorted(_CSRC.glob("*")):
-        if path.suffix in {".h", ".cpp", ".cu"}:
-            h.update(path.name.encode())
-            h.update(path.read_bytes())
+    # What the build compiles: its sources and every header they could include.
+    paths = [_CSRC / s for s in SOURCES] + sorted(_CSRC.glob("*.h"))
+    for path in paths:
+        h.update(path.name.encode())
+        h.update(path.read_bytes() if path.exists() else b"<missing>")
     h.update(repr((_CFLAGS, _LDFLAGS, torch.__version__, sys.version_info[:2])).encode())
     return h.hexdigest()[:16]
 

@@ -33,8 +33,9 @@ def test_fingerprint_follows_sources(tmp_path, monkeypatch):
     assert backend.fingerprint() == first
     (tmp_path / "rasterize.cpp").write_text("// b\n")
     assert backend.fingerprint() != first
+    second = backend.fingerprint()
     (tmp_path / "new_header.h").write_text("// c\n")
-    assert backend.fingerprint() not in (first,)
+    assert backend.fingerprint() not in (first, second)
 
 
 def test_build_dir_override(tmp_path, monkeypatch):
