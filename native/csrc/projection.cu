@@ -1,0 +1,268 @@
+// Projection: CUDA kernels, one thread per Gaussian. The per-Gaussian math is gaussian_math.h;
+// project_one below composes it in the same order as projection.cpp so both give the same values.
+#include <cuda_runtime.h>
+
+#include "gaussian_math.h"
+#include "projection_cuda.h"
+#include "reduce_cuda.h"
+
+namespace dgs {
+namespace cuda {
+namespace {
+
+constexpr int kThreads = 256;
+
+template <typename T> struct Camera {
+  Mat3<T> r;
+  Vec3<T> t;
+  Intrinsics<T> k;
+};
+
+template <typename T>
+__device__ __forceinline__ Camera<T> read_camera(const T* viewmat, const T* K, int width,
+                                                 int height) {
+  Camera<T> cam;
+#pragma unroll
+  for (int i = 0; i < 3; ++i)
+#pragma unroll
+    for (int j = 0; j < 3; ++j) cam.r.m[i][j] = viewmat[4 * i + j];
+  cam.t = {viewmat[3], viewmat[7], viewmat[11]};
+  cam.k = {K[0], K[4], K[2], K[5], width, height};
+  return cam;
+}
+
+// Mirror of projection.cpp's Projected / project_one (kept there in an anonymous namespace).
+template <typename T> struct Projected {
+  Vec3<T> p;
+  Mat3<T> rq, cov3d, cov_cam;
+  Mat23<T> jac;
+  Sym2<T> cov2d;
+  T comp;
+  bool valid;
+};
+
+template <typename T>
+__device__ __forceinline__ Projected<T> project_one(const T* mean, const T* quat, const T* scale,
+                                                    const Camera<T>& cam, T eps2d,
+                                                    bool antialiased, T near_plane, T far_plane) {
+  Projected<T> g;
+  g.valid = false;
+  g.comp = T(1);
+  g.p = matvec(cam.r, Vec3<T>{mean[0], mean[1], mean[2]});
+  g.p.x += cam.t.x; g.p.y += cam.t.y; g.p.z += cam.t.z;
+  if (!(g.p.z > near_plane) || !(g.p.z < far_plane)) return g;
+  g.rq = quat_to_rotmat(quat[0], quat[1], quat[2], quat[3]);
+  g.cov3d = covariance_3d(g.rq, Vec3<T>{scale[0], scale[1], scale[2]});
+  g.cov_cam = matmul(matmul(cam.r, g.cov3d), transpose(cam.r));
+  g.jac = projection_jacobian(g.p, cam.k);
+  g.cov2d = project_covariance(g.jac, g.cov_cam);
+  g.cov2d.a += eps2d;
+  g.cov2d.c += eps2d;
+  if (!(det2(g.cov2d) > T(0))) return g;
+  g.comp = antialiased ? compensation(g.cov2d, eps2d) : T(1);
+  g.valid = true;
+  return g;
+}
+
+template <typename T>
+__global__ void __launch_bounds__(kThreads)
+    projection_fwd_kernel(const T* __restrict__ means, const T* __restrict__ quats,
+                          const T* __restrict__ scales, const T* __restrict__ opacity_c,
+                          const T* __restrict__ opacity_g, const T* __restrict__ viewmat,
+                          const T* __restrict__ K, int64_t n, int width, int height, T beta,
+                          T eps2d, bool antialiased, T near_plane, T far_plane,
+                          T* __restrict__ means2d, T* __restrict__ conics, T* __restrict__ depths,
+                          T* __restrict__ opac, int32_t* __restrict__ rects,
+                          int32_t* __restrict__ radii) {
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i >= n) return;  // no warp collectives in this kernel
+  const Camera<T> cam = read_camera(viewmat, K, width, height);
+  T mx = T(0), my = T(0), o_c = T(0), o_g = T(0), z = T(0);
+  Sym2<T> conic = {T(0), T(0), T(0)};
+  int32_t rect[4] = {0, 0, -1, -1};
+  int32_t radius = 0;
+  const Projected<T> g = project_one(means + 3 * i, quats + 4 * i, scales + 3 * i, cam, eps2d,
+                                     antialiased, near_plane, far_plane);
+  if (g.valid) {
+    mix_opacities(opacity_c[i], opacity_g[i], beta, g.comp, o_c, o_g);
+    mx = cam.k.fx * g.p.x / g.p.z + cam.k.cx;
+    my = cam.k.fy * g.p.y / g.p.z + cam.k.cy;
+    conic = inverse2(g.cov2d);
+    z = g.p.z;
+    T ex, ey;
+    int32_t r[4];
+    if (screen_extent(g.cov2d, o_c > o_g ? o_c : o_g, ex, ey) &&
+        pixel_rect(mx, my, ex, ey, width, height, r)) {
+      for (int j = 0; j < 4; ++j) rect[j] = r[j];
+      const T rr = m_ceil(ex > ey ? ex : ey);
+      radius = rr < T(1) ? 1 : int32_t(rr);
+    }
+  }
+  means2d[2 * i] = mx; means2d[2 * i + 1] = my;
+  conics[3 * i] = conic.a; conics[3 * i + 1] = conic.b; conics[3 * i + 2] = conic.c;
+  depths[i] = z;
+  opac[2 * i] = o_c; opac[2 * i + 1] = o_g;
+  for (int j = 0; j < 4; ++j) rects[4 * i + j] = rect[j];
+  radii[i] = radius;
+}
+
+template <typename T>
+__global__ void __launch_bounds__(kThreads)
+    projection_bwd_kernel(const T* __restrict__ means, const T* __restrict__ quats,
+                          const T* __restrict__ scales, const T* __restrict__ opacity_c,
+                          const T* __restrict__ opacity_g, const T* __restrict__ viewmat,
+                          const T* __restrict__ K, int64_t n, int width, int height, T beta,
+                          T eps2d, bool antialiased, T near_plane, T far_plane,
+                          const T* __restrict__ v_means2d, const T* __restrict__ v_conics,
+                          const T* __restrict__ v_depths, const T* __restrict__ v_opac,
+                          T* __restrict__ g_means, T* __restrict__ g_quats,
+                          T* __restrict__ g_scales, T* __restrict__ g_op_c,
+                          T* __restrict__ g_op_g, T* __restrict__ g_viewmat,
+                          T* __restrict__ g_K) {
+  // Camera gradient of this thread: rotation (9), translation (3), fx fy cx cy (4), as in the
+  // CPU kernel. Threads past n keep zeros but stay for the block reduction.
+  T local[16];
+#pragma unroll
+  for (int j = 0; j < 16; ++j) local[j] = T(0);
+  const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
+  if (i < n) {
+    const Camera<T> cam = read_camera(viewmat, K, width, height);
+    const Projected<T> g = project_one(means + 3 * i, quats + 4 * i, scales + 3 * i, cam, eps2d,
+                                       antialiased, near_plane, far_plane);
+    T gm[3] = {T(0), T(0), T(0)}, gq[4] = {T(0), T(0), T(0), T(0)}, gs[3] = {T(0), T(0), T(0)};
+    T goc = T(0), gog = T(0);
+    if (g.valid) {
+      const T voc = v_opac[2 * i], vog = v_opac[2 * i + 1];
+      const T oc = opacity_c[i], og = opacity_g[i];
+      const T half_c = T(0.5) * g.comp;
+      goc = half_c * ((T(1) + beta) * voc + (T(1) - beta) * vog);
+      gog = half_c * ((T(1) - beta) * voc + (T(1) + beta) * vog);
+      const T v_comp = T(0.5) * (((T(1) + beta) * oc + (T(1) - beta) * og) * voc +
+                                 ((T(1) - beta) * oc + (T(1) + beta) * og) * vog);
+      // conic b is one scalar used twice: its per-element gradient is half.
+      const Sym2<T> conic = inverse2(g.cov2d);
+      Sym2<T> g_cov2d =
+          inverse2_vjp(conic, Sym2<T>{v_conics[3 * i], T(0.5) * v_conics[3 * i + 1],
+                                      v_conics[3 * i + 2]});
+      if (antialiased) {
+        const Sym2<T> gc = compensation_vjp(g.cov2d, eps2d, v_comp);
+        g_cov2d.a += gc.a; g_cov2d.b += gc.b; g_cov2d.c += gc.c;
+      }
+      Mat23<T> g_jac;
+      Mat3<T> g_cov_cam;
+      project_covariance_vjp(g.jac, g.cov_cam, g_cov2d, g_jac, g_cov_cam);
+      const T iz = T(1) / g.p.z;
+      const T vmx = v_means2d[2 * i], vmy = v_means2d[2 * i + 1];
+      Vec3<T> g_p = {cam.k.fx * iz * vmx, cam.k.fy * iz * vmy,
+                     -(cam.k.fx * g.p.x * vmx + cam.k.fy * g.p.y * vmy) * iz * iz + v_depths[i]};
+      IntrinsicsGrad<T> g_k = {g.p.x * iz * vmx, g.p.y * iz * vmy, vmx, vmy};
+      projection_jacobian_vjp(g.p, cam.k, g_jac, g_p, g_k);
+      const Mat3<T> g_cov3d = matmul(matmul(transpose(cam.r), g_cov_cam), cam.r);
+      const Mat3<T> g_r_cov = matmul(matmul(g_cov_cam, cam.r), g.cov3d);  // x2 below
+      Mat3<T> g_rq;
+      Vec3<T> g_s;
+      covariance_3d_vjp(g.rq, Vec3<T>{scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]},
+                        g_cov3d, g_rq, g_s);
+      quat_to_rotmat_vjp(quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3],
+                         g_rq, gq);
+      const Vec3<T> g_mean = matTvec(cam.r, g_p);
+      gm[0] = g_mean.x; gm[1] = g_mean.y; gm[2] = g_mean.z;
+      gs[0] = g_s.x; gs[1] = g_s.y; gs[2] = g_s.z;
+      // Camera: p = R mu + t.
+      const T mu[3] = {means[3 * i], means[3 * i + 1], means[3 * i + 2]};
+      const T gpv[3] = {g_p.x, g_p.y, g_p.z};
+#pragma unroll
+      for (int a = 0; a < 3; ++a) {
+#pragma unroll
+        for (int b = 0; b < 3; ++b) local[3 * a + b] = gpv[a] * mu[b] + T(2) * g_r_cov.m[a][b];
+        local[9 + a] = gpv[a];
+      }
+      local[12] = g_k.fx; local[13] = g_k.fy; local[14] = g_k.cx; local[15] = g_k.cy;
+    }
+    for (int j = 0; j < 3; ++j) g_means[3 * i + j] = gm[j];
+    for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = gq[j];
+    for (int j = 0; j < 3; ++j) g_scales[3 * i + j] = gs[j];
+    g_op_c[i] = goc;
+    g_op_g[i] = gog;
+  }
+  // Block reduction of the camera gradient: shuffles inside each warp, shared memory across
+  // warps, then one atomicAdd per entry per block.
+  __shared__ T partial[kThreads / kWarpSize][16];
+  const int lane = threadIdx.x % kWarpSize, warp = threadIdx.x / kWarpSize;
+#pragma unroll
+  for (int j = 0; j < 16; ++j) {
+    const T s = warp_sum(local[j]);
+    if (lane == 0) partial[warp][j] = s;
+  }
+  __syncthreads();
+  if (threadIdx.x < 16) {
+    const int j = threadIdx.x;
+    T s = T(0);
+    for (int w = 0; w < int(blockDim.x) / kWarpSize; ++w) s += partial[w][j];
+    // Entry j -> viewmat (a, b) for j < 9, viewmat (a, 3) for j < 12, then fx, fy, cx, cy.
+    T* dst = j < 9 ? g_viewmat + 4 * (j / 3) + j % 3
+             : j < 12 ? g_viewmat + 4 * (j - 9) + 3
+             : j == 12 ? g_K + 0
+             : j == 13 ? g_K + 4
+             : j == 14 ? g_K + 2
+                       : g_K + 5;
+    if (s != T(0)) atomicAdd(dst, s);
+  }
+}
+
+inline unsigned blocks_for(int64_t n) { return unsigned((n + kThreads - 1) / kThreads); }
+
+}  // namespace
+
+template <typename T>
+cudaError_t launch_projection_fwd(const T* means, const T* quats, const T* scales,
+                                  const T* opacity_c, const T* opacity_g, const T* viewmat,
+                                  const T* K, int64_t n, int width, int height, T beta, T eps2d,
+                                  bool antialiased, T near_plane, T far_plane, T* means2d,
+                                  T* conics, T* depths, T* opacities, int32_t* rects,
+                                  int32_t* radii, cudaStream_t stream) {
+  if (n < 0 || width < 0 || height < 0) return cudaErrorInvalidValue;
+  if (n == 0) return cudaSuccess;
+  projection_fwd_kernel<T><<<blocks_for(n), kThreads, 0, stream>>>(
+      means, quats, scales, opacity_c, opacity_g, viewmat, K, n, width, height, beta, eps2d,
+      antialiased, near_plane, far_plane, means2d, conics, depths, opacities, rects, radii);
+  return cudaGetLastError();
+}
+
+template <typename T>
+cudaError_t launch_projection_bwd(const T* means, const T* quats, const T* scales,
+                                  const T* opacity_c, const T* opacity_g, const T* viewmat,
+                                  const T* K, int64_t n, int width, int height, T beta, T eps2d,
+                                  bool antialiased, T near_plane, T far_plane,
+                                  const T* v_means2d, const T* v_conics, const T* v_depths,
+                                  const T* v_opacities, T* g_means, T* g_quats, T* g_scales,
+                                  T* g_opacity_c, T* g_opacity_g, T* g_viewmat, T* g_K,
+                                  cudaStream_t stream) {
+  if (n < 0 || width < 0 || height < 0) return cudaErrorInvalidValue;
+  cudaError_t err = cudaMemsetAsync(g_viewmat, 0, 16 * sizeof(T), stream);
+  if (err != cudaSuccess) return err;
+  err = cudaMemsetAsync(g_K, 0, 9 * sizeof(T), stream);
+  if (err != cudaSuccess) return err;
+  if (n == 0) return cudaSuccess;
+  projection_bwd_kernel<T><<<blocks_for(n), kThreads, 0, stream>>>(
+      means, quats, scales, opacity_c, opacity_g, viewmat, K, n, width, height, beta, eps2d,
+      antialiased, near_plane, far_plane, v_means2d, v_conics, v_depths, v_opacities, g_means,
+      g_quats, g_scales, g_opacity_c, g_opacity_g, g_viewmat, g_K);
+  return cudaGetLastError();
+}
+
+#define DGS_INSTANTIATE_PROJECTION(T)                                                          \
+  template cudaError_t launch_projection_fwd<T>(                                               \
+      const T*, const T*, const T*, const T*, const T*, const T*, const T*, int64_t, int, int, \
+      T, T, bool, T, T, T*, T*, T*, T*, int32_t*, int32_t*, cudaStream_t);                     \
+  template cudaError_t launch_projection_bwd<T>(                                               \
+      const T*, const T*, const T*, const T*, const T*, const T*, const T*, int64_t, int, int, \
+      T, T, bool, T, T, const T*, const T*, const T*, const T*, T*, T*, T*, T*, T*, T*, T*,    \
+      cudaStream_t);
+
+DGS_INSTANTIATE_PROJECTION(float)
+DGS_INSTANTIATE_PROJECTION(double)
+#undef DGS_INSTANTIATE_PROJECTION
+
+}  // namespace cuda
+}  // namespace dgs
