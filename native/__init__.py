@@ -1,10 +1,13 @@
-"""The differentiable disentangled rasterizer (C++ CPU now, CUDA later) and its reference.
+"""The differentiable disentangled rasterizer and the Gaussian ray tracer for ambient occlusion
+(C++ CPU now, CUDA later), with their plain PyTorch references.
 
 Importing this package never builds the extension; the first native call does (see _backend).
 """
 
 from native._backend import NativeBuildError
 from native.rasterize import Backend, rasterize
+from native.raytrace import gaussian_visibility, trace_visibility
 from native.types import RasterOutput
 
-__all__ = ["rasterize", "RasterOutput", "NativeBuildError", "Backend"]
+__all__ = ["rasterize", "RasterOutput", "NativeBuildError", "Backend", "trace_visibility",
+           "gaussian_visibility"]

@@ -17,7 +17,8 @@ from types import ModuleType
 __all__ = ["NativeBuildError", "load", "build_dir", "fingerprint", "SOURCES"]
 
 _CSRC = Path(__file__).resolve().parent / "csrc"
-SOURCES: tuple[str, ...] = ("ext.cpp", "projection.cpp", "intersect.cpp", "rasterize.cpp")
+SOURCES: tuple[str, ...] = ("ext.cpp", "projection.cpp", "intersect.cpp", "rasterize.cpp",
+                            "raytrace.cpp")
 _CFLAGS: tuple[str, ...] = ("-O3", "-fopenmp", "-std=c++17")
 _LDFLAGS: tuple[str, ...] = ("-fopenmp",)
 

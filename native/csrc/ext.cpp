@@ -4,6 +4,7 @@
 #include "intersect.h"
 #include "projection.h"
 #include "rasterize.h"
+#include "raytrace.h"
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("projection_fwd", &dgs::projection_fwd, "Project Gaussians (forward)");
@@ -11,4 +12,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("intersect_tiles", &dgs::intersect_tiles, "Bin Gaussians into tiles, sorted by depth");
   m.def("rasterize_fwd", &dgs::rasterize_fwd, "Blend both branches (forward)");
   m.def("rasterize_bwd", &dgs::rasterize_bwd, "Blend both branches (backward)");
+  m.def("trace_visibility", &dgs::trace_visibility, "Ambient occlusion by Gaussian ray tracing");
 }

@@ -1,0 +1,18 @@
+// Gaussian ray tracer for ambient occlusion: a BVH over the Gaussians' 3-sigma boxes and rays
+// over a Fibonacci hemisphere about a normal; visibility is the cosine-weighted mean of the
+// transmittance T = prod (1 - alpha at each Gaussian's closest approach).
+#pragma once
+
+#include <torch/extension.h>
+
+namespace dgs {
+
+// origins (M,3), normals (M,3) unit; means (N,3), quats (N,4), scales (N,3), opacity (N);
+// exclude (M,) int64: a Gaussian index each origin ignores (itself), or -1.
+// Returns visibility (M,) in [0, 1].
+at::Tensor trace_visibility(const at::Tensor& origins, const at::Tensor& normals,
+                            const at::Tensor& means, const at::Tensor& quats,
+                            const at::Tensor& scales, const at::Tensor& opacity,
+                            const at::Tensor& exclude, int64_t n_dirs);
+
+}  // namespace dgs
