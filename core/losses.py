@@ -1,0 +1,181 @@
+"""Training losses of DESIGN.md section 5, on (H, W, C) image tensors.
+
+- photometric: (1 - 0.2) L1 + 0.2 D-SSIM, SSIM with an 11x11 Gaussian window, sigma 1.5
+  (3DGS, Kerbl et al. 2023, lambda_dssim = 0.2; SSIM constants of Wang et al. 2004).
+- normal prior: 0.2 L1 + 0.05 edge-aware smoothness |grad N| exp(-|grad N_prior|).
+- depth-normal consistency: 0.01 mean(sg(O_g) - N . n(D)), n(D) the normal of the
+  back-projected expected depth by central differences, in world space like N.
+- visibility: 0.1 L1 + 0.01 smoothness.
+The weights are the defaults of `LossWeights`; each function returns the weighted term.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+__all__ = [
+    "LossWeights",
+    "depth_normal_consistency",
+    "depth_to_normals",
+    "depth_to_points",
+    "normal_prior_loss",
+    "photometric_loss",
+    "ssim",
+    "visibility_loss",
+]
+
+
+@dataclass(frozen=True)
+class LossWeights:
+    """Weights of each loss term (DESIGN.md section 5)."""
+
+    dssim: float = 0.2
+    """Share of D-SSIM in the photometric loss; L1 gets 1 - dssim."""
+    normal_l1: float = 0.2
+    """L1 between rendered normals and the prior."""
+    normal_smooth: float = 0.05
+    """Edge-aware smoothness of rendered normals."""
+    consistency: float = 0.01
+    """Depth-normal consistency."""
+    visibility_l1: float = 0.1
+    """L1 between rendered visibility and the baked AO maps."""
+    visibility_smooth: float = 0.01
+    """Smoothness of rendered visibility."""
+
+
+@functools.lru_cache(maxsize=8)
+def _window(size: int, sigma: float, channels: int) -> Tensor:
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-x * x / (2 * sigma * sigma))
+    g = (g / g.sum()).float()
+    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+
+
+def ssim(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """Mean SSIM of two (H, W, C) images in 0..1: Gaussian window, zero padding 'same' as in
+    3DGS utils/loss_utils.py, C1 = 0.01^2, C2 = 0.03^2 (Wang et al. 2004)."""
+    if a.shape != b.shape or a.dim() != 3:
+        raise ValueError(f"a, b: expected equal (H, W, C) shapes, got {tuple(a.shape)} and "
+                         f"{tuple(b.shape)}")
+    c = a.shape[2]
+    w = _window(window, sigma, c).to(a)
+    x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
+
+    def blur(t: Tensor) -> Tensor:
+        return F.conv2d(t, w, padding=window // 2, groups=c)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x * mu_x
+    syy = blur(y * y) - mu_y * mu_y
+    sxy = blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+    return s.mean()
+
+
+def photometric_loss(pred: Tensor, target: Tensor, weights: LossWeights = LossWeights()) -> Tensor:
+    """(1 - dssim) L1 + dssim (1 - SSIM) over (H, W, 3) images."""
+    l1 = (pred - target).abs().mean()
+    return (1 - weights.dssim) * l1 + weights.dssim * (1 - ssim(pred, target))
+
+
+def _dx(t: Tensor) -> Tensor:
+    return t[:, 1:] - t[:, :-1]
+
+
+def _dy(t: Tensor) -> Tensor:
+    return t[1:] - t[:-1]
+
+
+def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
+                      weights: LossWeights = LossWeights()) -> Tensor:
+    """0.2 L1(N, N_prior) + 0.05 mean(|grad N| exp(-|grad N_prior|)) on (H, W, 3) maps.
+
+    Only pixels with a prior (non-zero vector) and inside `mask` (H, W, 1) count for the L1; the
+    smoothness uses forward differences with both pixels valid, |.| the channel mean of |diff|.
+    """
+    if normal.shape != prior.shape or normal.shape[-1] != 3:
+        raise ValueError(f"normal, prior: expected equal (H, W, 3) shapes, got "
+                         f"{tuple(normal.shape)} and {tuple(prior.shape)}")
+    valid = (prior.abs().sum(dim=-1, keepdim=True) > 0).float()
+    if mask is not None:
+        valid = valid * (mask > 0.5).float()
+    count = valid.sum().clamp_min(1.0)
+    l1 = ((normal - prior).abs().mean(dim=-1, keepdim=True) * valid).sum() / count
+    smooth = normal.new_zeros(())
+    pairs = ((_dx, valid[:, 1:] * valid[:, :-1]), (_dy, valid[1:] * valid[:-1]))
+    for d, v in pairs:  # v: both pixels of the difference are valid
+        g = d(normal).abs().mean(dim=-1, keepdim=True)
+        edge = torch.exp(-d(prior).abs().mean(dim=-1, keepdim=True))
+        smooth = smooth + ((g * edge) * v).sum() / v.sum().clamp_min(1)
+    return weights.normal_l1 * l1 + weights.normal_smooth * smooth
+
+
+def depth_to_points(depth: Tensor, K: Tensor, viewmat: Tensor) -> Tensor:
+    """Back-project an (H, W, 1) camera-z depth map to world points (H, W, 3).
+
+    Pixel (u, v) has its centre at (u + 0.5, v + 0.5); X_cam = z K^-1 (u+0.5, v+0.5, 1);
+    X_world = R^T (X_cam - t) with viewmat = [R t] world-to-camera.
+    """
+    h, w = depth.shape[:2]
+    v, u = torch.meshgrid(torch.arange(h, dtype=depth.dtype, device=depth.device) + 0.5,
+                          torch.arange(w, dtype=depth.dtype, device=depth.device) + 0.5,
+                          indexing="ij")
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    rays = torch.stack([(u - cx) / fx, (v - cy) / fy, torch.ones_like(u)], dim=-1)
+    cam = rays * depth
+    R, t = viewmat[:3, :3].to(depth), viewmat[:3, 3].to(depth)
+    return (cam - t) @ R  # row-vector form of R^T (x - t)
+
+
+def depth_to_normals(depth: Tensor, K: Tensor, viewmat: Tensor) -> Tensor:
+    """World normals (H-2, W-2, 3) of the interior pixels from central differences of the
+    back-projected depth, oriented towards the camera.
+
+    With OpenCV axes (x right, y down, z forward), dX/du x dX/dv points away from the camera, so
+    the camera-facing normal is dX/dv x dX/du (a rotation keeps cross products).
+    """
+    p = depth_to_points(depth, K, viewmat)
+    du = p[1:-1, 2:] - p[1:-1, :-2]
+    dv = p[2:, 1:-1] - p[:-2, 1:-1]
+    return F.normalize(torch.cross(dv, du, dim=-1), dim=-1)
+
+
+def depth_normal_consistency(normal: Tensor, depth: Tensor, alpha_g: Tensor, K: Tensor,
+                             viewmat: Tensor, weights: LossWeights = LossWeights(),
+                             min_alpha: float = 0.5) -> Tensor:
+    """0.01 mean(sg(O_g) - N . n(D)) over interior pixels whose 3x3 neighbourhood is covered
+    (alpha_g > min_alpha; elsewhere the expected depth is meaningless).
+
+    `normal` is the rendered, unnormalized (H, W, 3) normal (about O_g n), so the term is 0 when
+    the rendered normal agrees with the depth's; `depth` is the expected depth (H, W, 1).
+    """
+    if depth.shape[:2] != normal.shape[:2] or alpha_g.shape != depth.shape:
+        raise ValueError(f"normal, depth, alpha_g: expected (H, W, 3), (H, W, 1), (H, W, 1), got "
+                         f"{tuple(normal.shape)}, {tuple(depth.shape)}, {tuple(alpha_g.shape)}")
+    if depth.shape[0] < 3 or depth.shape[1] < 3:
+        return normal.sum() * 0.0
+    n_d = depth_to_normals(depth, K, viewmat)
+    a = alpha_g.detach()
+    covered = (a > min_alpha).float()
+    # min-pool: a pixel counts when its whole 3x3 neighbourhood is covered
+    valid = -F.max_pool2d(-covered.permute(2, 0, 1)[None], 3, stride=1)[0].permute(1, 2, 0)
+    term = a[1:-1, 1:-1] - (normal[1:-1, 1:-1] * n_d).sum(dim=-1, keepdim=True)
+    return weights.consistency * (term * valid).sum() / valid.sum().clamp_min(1.0)
+
+
+def visibility_loss(visibility: Tensor, target: Tensor, mask: Tensor | None = None,
+                    weights: LossWeights = LossWeights()) -> Tensor:
+    """0.1 L1(V, V_target) + 0.01 mean |grad V| on (H, W, 1) maps (mask: pixels that count)."""
+    if visibility.shape != target.shape:
+        raise ValueError(f"visibility, target: expected equal shapes, got "
+                         f"{tuple(visibility.shape)} and {tuple(target.shape)}")
+    m = torch.ones_like(target) if mask is None else (mask > 0.5).to(target)
+    l1 = ((visibility - target).abs() * m).sum() / m.sum().clamp_min(1.0)
+    smooth = _dx(visibility).abs().mean() + _dy(visibility).abs().mean()
+    return weights.visibility_l1 * l1 + weights.visibility_smooth * smooth

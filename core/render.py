@@ -1,0 +1,155 @@
+"""Rendering a GaussianModel from one camera: SH colour, geometry features, a typed result.
+
+Colour is evaluated from SH along the view direction (camera centre to each mean) and offset by
+0.5 then clamped at 0, as in 3DGS (Kerbl et al. 2023, gaussian_renderer/__init__.py). The
+geometry features are [normal (3), visibility (1)] blended with the geometry alpha; beta mixing
+of the two opacities happens inside the rasterizer.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+import native
+from core.model import GaussianModel
+from native.types import RasterOutput
+
+__all__ = ["Render", "RenderCamera", "eval_sh", "render", "safe_divide"]
+
+# Real SH constants of the 3DGS implementation (utils/sh_utils.py, after the PlenOctree code).
+SH_C0 = 0.28209479177387814
+SH_C1 = 0.4886025119029199
+SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+         0.5462742152960396)
+SH_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+         -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def sh_basis(dirs: Tensor, degree: int) -> Tensor:
+    """Real SH basis (..., (degree+1)^2) at unit directions (..., 3), in the 3DGS order/signs."""
+    if degree not in (0, 1, 2, 3):
+        raise ValueError(f"degree: expected 0, 1, 2 or 3, got {degree}")
+    x, y, z = dirs.unbind(-1)
+    out = [torch.full_like(x, SH_C0)]
+    if degree > 0:
+        out += [-SH_C1 * y, SH_C1 * z, -SH_C1 * x]
+    if degree > 1:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        out += [SH_C2[0] * xy, SH_C2[1] * yz, SH_C2[2] * (2 * zz - xx - yy), SH_C2[3] * xz,
+                SH_C2[4] * (xx - yy)]
+    if degree > 2:
+        out += [SH_C3[0] * y * (3 * xx - yy), SH_C3[1] * xy * z, SH_C3[2] * y * (4 * zz - xx - yy),
+                SH_C3[3] * z * (2 * zz - 3 * xx - 3 * yy), SH_C3[4] * x * (4 * zz - xx - yy),
+                SH_C3[5] * z * (xx - yy), SH_C3[6] * x * (xx - 3 * yy)]
+    return torch.stack(out, dim=-1)
+
+
+def eval_sh(sh: Tensor, dirs: Tensor, degree: int) -> Tensor:
+    """Evaluate SH coefficients (N, K>=(degree+1)^2, C) at unit directions (N, 3) -> (N, C)."""
+    k = (degree + 1) ** 2
+    if sh.dim() != 3 or sh.shape[1] < k:
+        raise ValueError(f"sh: expected shape (N, >={k}, C) for degree {degree}, "
+                         f"got {tuple(sh.shape)}")
+    basis = sh_basis(dirs, degree)
+    return (basis[:, :, None] * sh[:, :k]).sum(dim=1)
+
+
+@dataclass(frozen=True)
+class RenderCamera:
+    """A pinhole camera as the rasterizer wants it (float32 tensors, OpenCV axes)."""
+
+    viewmat: Tensor
+    """(4, 4) world-to-camera."""
+    K: Tensor
+    """(3, 3) intrinsics."""
+    width: int
+    """Image width in pixels."""
+    height: int
+    """Image height in pixels."""
+
+    @classmethod
+    def from_camera(cls, camera) -> RenderCamera:
+        """From a `core.data.Camera` (numpy float64)."""
+        return cls(torch.from_numpy(np.asarray(camera.world_to_camera, np.float32)).contiguous(),
+                   torch.from_numpy(np.asarray(camera.K, np.float32)).contiguous(),
+                   int(camera.width), int(camera.height))
+
+    @property
+    def center(self) -> Tensor:
+        """(3,) camera centre in world coordinates, -R^T t."""
+        R, t = self.viewmat[:3, :3], self.viewmat[:3, 3]
+        return -R.T @ t
+
+
+@dataclass
+class Render:
+    """One rendered view. Image fields are (H, W, channels)."""
+
+    rgb: Tensor
+    """(H, W, 3) colour including the background."""
+    normal: Tensor
+    """(H, W, 3) alpha_g-weighted world normals, not normalized (zero without the branch)."""
+    depth: Tensor
+    """(H, W, 1) expected camera depth, raw depth / alpha_g (0 where alpha_g is ~0)."""
+    visibility: Tensor
+    """(H, W, 1) alpha_g-weighted visibility."""
+    alpha_c: Tensor
+    """(H, W, 1) appearance coverage."""
+    alpha_g: Tensor
+    """(H, W, 1) geometry coverage."""
+    raster: RasterOutput
+    """The rasterizer's output (means2d, radii, AbsGS statistics, contribution)."""
+
+
+def safe_divide(num: Tensor, den: Tensor, eps: float = 1e-6) -> Tensor:
+    """num / den where den > eps, else 0, with finite gradients everywhere."""
+    ok = den > eps
+    return torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
+
+
+def render(
+    model: GaussianModel,
+    camera: RenderCamera,
+    *,
+    sh_degree: int = 3,
+    beta: float = 0.0,
+    geometry: bool = True,
+    tie_opacity: bool = False,
+    background: Tensor | None = None,
+    eps2d: float = 0.1,
+    antialiased: bool = True,
+    backend: native.Backend = "native",
+) -> Render:
+    """Render `model` from `camera`.
+
+    `geometry=False` runs the appearance branch only (stage 1); `tie_opacity=True` passes the
+    appearance opacity for the geometry one too (opacity_g tied to opacity_c, so that beta mixing
+    leaves the appearance opacity unchanged). The defaults eps2d 0.1, antialiased follow the
+    Mip-Splatting 2D filter of DESIGN.md section 5.
+    """
+    if not 0 <= sh_degree <= 3:
+        raise ValueError(f"sh_degree: expected 0..3, got {sh_degree}")
+    if background is None:
+        background = torch.zeros(3)
+    means = model.means
+    dirs = torch.nn.functional.normalize(means - camera.center[None], dim=-1)
+    colors = torch.clamp_min(eval_sh(model.sh, dirs, sh_degree) + 0.5, 0.0)
+    opacity_c = model.opacity_c
+    opacity_g = opacity_c if tie_opacity else model.opacity_g
+    features = torch.cat([model.normals, model.visibility], dim=1) if geometry else None
+    out = native.rasterize(
+        means, model.quats.contiguous(), model.scales.contiguous(), opacity_c.contiguous(),
+        opacity_g.contiguous(), colors.contiguous(), features, camera.viewmat, camera.K,
+        camera.width, camera.height, beta=float(beta), eps2d=eps2d, antialiased=antialiased,
+        background=background.to(means.dtype), backend=backend)
+    if geometry:
+        normal, visibility = out.geometry[..., :3], out.geometry[..., 3:4]
+    else:
+        normal = out.color.new_zeros(camera.height, camera.width, 3)
+        visibility = out.color.new_zeros(camera.height, camera.width, 1)
+    return Render(rgb=out.color, normal=normal, depth=safe_divide(out.depth, out.alpha_g),
+                  visibility=visibility, alpha_c=out.alpha_c, alpha_g=out.alpha_g, raster=out)

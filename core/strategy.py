@@ -1,0 +1,222 @@
+"""Densification and pruning for disentangled Gaussians (DESIGN.md section 5), as a strategy
+object with explicit state, in the manner of gsplat's `strategy/` (called after each step).
+
+- Statistics: AbsGS (Ye et al. 2024) per branch, the mean over the views that saw a Gaussian of
+  the norm of its per-view absolute screen-space gradient, in NDC units (pixel gradients times
+  W/2, H/2, as 3DGS and gsplat measure them).
+- A Gaussian is densified when either branch passes its threshold. Small ones are cloned, large
+  ones split in two (3DGS: scale threshold percent_dense 0.01 x scene extent, split samples drawn
+  from the Gaussian, scales divided by 1.6). In a branch that passed, both resulting Gaussians get
+  opacity 1 - sqrt(1 - o) (Bulo et al. 2024, "Revising densification in Gaussian splatting"),
+  so that together they cover like the original; in a branch that did not pass, the original (or
+  first sample) keeps its opacity and the copy starts at 0.005.
+- At each opacity reset: drop the rho fraction with the lowest contribution (max over views of
+  alpha*T in either branch since the last reset) and those transparent in both branches; then
+  rho *= 0.75 and opacities become min(o, 0.01) (3DGS reset).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+from torch import Tensor
+
+from core.model import GaussianModel
+from native.reference import quat_to_rotmat
+from native.types import RasterOutput
+
+__all__ = ["DensifyConfig", "DensifyStrategy", "StrategyState"]
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """Thresholds and factors of the densification strategy."""
+
+    grad_threshold_c: float = 0.0008
+    """AbsGS threshold of the appearance branch (AbsGS / gsplat absgrad default 0.0008)."""
+    grad_threshold_g: float = 0.0008
+    """AbsGS threshold of the geometry branch."""
+    clone_scale: float = 0.01
+    """Clone when the largest scale <= clone_scale x extent, else split (3DGS percent_dense)."""
+    split_factor: float = 1.6
+    """Split samples get scales / split_factor (3DGS: 0.8 x 2 samples)."""
+    new_branch_opacity: float = 0.005
+    """Opacity of the copy in a branch that did not pass its threshold."""
+    transparent: float = 0.005
+    """Below this opacity in both branches a Gaussian is pruned (3DGS min_opacity)."""
+    rho: float = 0.1
+    """Initial fraction pruned by lowest contribution at a reset (0.25 for ActorsHQ-like)."""
+    rho_decay: float = 0.75
+    """rho is multiplied by this after each reset."""
+    reset_value: float = 0.01
+    """Opacity reset: o = min(o, reset_value) (3DGS)."""
+    max_gaussians: int | None = None
+    """Stop growing beyond this many Gaussians (highest gradients densify first)."""
+
+
+@dataclass
+class StrategyState:
+    """Per-Gaussian statistics since the last densification (gradients, counts, radii) or the last
+    reset (contribution), and the current pruning fraction."""
+
+    grad_c: Tensor
+    """(N,) summed AbsGS gradient norms of the appearance branch."""
+    grad_g: Tensor
+    """(N,) summed AbsGS gradient norms of the geometry branch."""
+    count: Tensor
+    """(N,) number of views in which the Gaussian was drawn."""
+    max_radii: Tensor
+    """(N,) largest screen radius seen (pixels)."""
+    contribution: Tensor
+    """(N,) max over views of alpha * T in either branch."""
+    rho: float
+    """Fraction pruned by lowest contribution at the next reset."""
+    resets: int = 0
+    """Opacity resets done so far."""
+    history: list[dict[str, int]] = field(default_factory=list)
+    """One record per densification / reset: counts cloned, split, pruned."""
+
+    def select(self, index: Tensor) -> None:
+        """Re-index every per-Gaussian tensor (a boolean mask or an index tensor)."""
+        for name in ("grad_c", "grad_g", "count", "max_radii", "contribution"):
+            setattr(self, name, getattr(self, name)[index])
+
+
+def _logit(p: Tensor) -> Tensor:
+    p = p.clamp(1e-6, 1 - 1e-6)
+    return torch.log(p / (1 - p))
+
+
+class DensifyStrategy:
+    """Grow, prune and reset a GaussianModel together with its optimizer's state."""
+
+    def __init__(self, config: DensifyConfig = DensifyConfig(), extent: float = 1.0):
+        if not extent > 0:
+            raise ValueError(f"extent: expected a positive scene extent, got {extent}")
+        self.config = config
+        self.extent = float(extent)
+
+    def initialize_state(self, n: int) -> StrategyState:
+        z = torch.zeros(n)
+        return StrategyState(z.clone(), z.clone(), z.clone(), z.clone(), z.clone(),
+                             rho=self.config.rho)
+
+    def update(self, state: StrategyState, out: RasterOutput, width: int, height: int) -> None:
+        """Accumulate one view's statistics (call after backward, which fills the absgrads)."""
+        n = state.count.shape[0]
+        if out.radii.shape[0] != n:
+            raise ValueError(f"out: rendered {out.radii.shape[0]} Gaussians, state has {n}")
+        with torch.no_grad():
+            ndc = torch.tensor([width / 2.0, height / 2.0])
+            seen = out.radii > 0
+            state.grad_c += torch.where(seen, (out.absgrad_c.detach().cpu() * ndc).norm(dim=1), 0)
+            state.grad_g += torch.where(seen, (out.absgrad_g.detach().cpu() * ndc).norm(dim=1), 0)
+            state.count += seen.float()
+            state.max_radii = torch.maximum(state.max_radii, out.radii.float())
+            state.contribution = torch.maximum(state.contribution, out.contribution.detach())
+
+    def _selection(self, model: GaussianModel, state: StrategyState) -> tuple[Tensor, Tensor]:
+        """Which Gaussians passed in the appearance / geometry branch (capped growth)."""
+        cfg = self.config
+        denom = state.count.clamp_min(1)
+        pass_c = state.grad_c / denom > cfg.grad_threshold_c
+        pass_g = state.grad_g / denom > cfg.grad_threshold_g
+        if cfg.max_gaussians is not None:
+            room = max(cfg.max_gaussians - len(model), 0)
+            score = torch.maximum(state.grad_c / cfg.grad_threshold_c,
+                                  state.grad_g / cfg.grad_threshold_g) / denom
+            score = torch.where(pass_c | pass_g, score, -1.0)
+            over = score.argsort(descending=True)[room:]
+            pass_c[over] = False
+            pass_g[over] = False
+        return pass_c, pass_g
+
+    def densify(self, model: GaussianModel, optimizer: torch.optim.Optimizer | None,
+                state: StrategyState, generator: torch.Generator | None = None) -> dict[str, int]:
+        """Clone / split where either branch passed its threshold; reset the gradient stats."""
+        with torch.no_grad():
+            pass_c, pass_g = self._selection(model, state)
+            selected = pass_c | pass_g
+            small = model.scales.max(dim=1).values <= self.config.clone_scale * self.extent
+            clone, split = selected & small, selected & ~small
+            if bool(selected.any()):
+                n = len(model)
+                new_c = self._clone(model, clone, pass_c, pass_g)
+                new_s = self._split(model, split, pass_c, pass_g, generator)
+                model.extend({k: torch.cat([new_c[k], new_s[k]]) for k in new_c}, optimizer)
+                # New rows inherit their parent's statistics (the contribution matters).
+                parents = torch.cat([clone.nonzero()[:, 0], split.nonzero()[:, 0].repeat(2)])
+                state.select(torch.cat([torch.arange(n), parents]))
+                keep = torch.ones(len(model), dtype=torch.bool)
+                keep[:n] = ~split
+                model.keep(keep, optimizer)
+                state.select(keep)
+            for name in ("grad_c", "grad_g", "count", "max_radii"):
+                getattr(state, name).zero_()
+        record = {"cloned": int(clone.sum()), "split": int(split.sum()), "n": len(model)}
+        state.history.append(record)
+        return record
+
+    @staticmethod
+    def _branch_opacities(raw: Tensor, passed: Tensor, cfg: DensifyConfig) -> tuple[Tensor, Tensor]:
+        """(kept, copy) opacity logits for one branch: Bulo where passed, else (o, 0.005)."""
+        o = torch.sigmoid(raw)
+        bulo = _logit(1 - torch.sqrt(1 - o))
+        copy = torch.where(passed, bulo, math.log(cfg.new_branch_opacity
+                                                  / (1 - cfg.new_branch_opacity)))
+        return torch.where(passed, bulo, raw), copy
+
+    def _clone(self, model: GaussianModel, mask: Tensor, pass_c: Tensor,
+               pass_g: Tensor) -> dict[str, Tensor]:
+        rows = {k: p.detach()[mask].clone() for k, p in model.params.items()}
+        for name, passed in (("opacity_c", pass_c[mask]), ("opacity_g", pass_g[mask])):
+            kept, copy = self._branch_opacities(rows[name], passed, self.config)
+            model.params[name].data[mask] = kept
+            rows[name] = copy
+        return rows
+
+    def _split(self, model: GaussianModel, mask: Tensor, pass_c: Tensor, pass_g: Tensor,
+               generator: torch.Generator | None) -> dict[str, Tensor]:
+        """Two samples per split Gaussian: first all the first samples, then all the second."""
+        rows = {k: p.detach()[mask] for k, p in model.params.items()}
+        scales = torch.exp(rows["scales"])
+        R = quat_to_rotmat(rows["quats"])
+        out = {k: v.repeat((2,) + (1,) * (v.dim() - 1)) for k, v in rows.items()}
+        noise = torch.randn(2 * scales.shape[0], 3, generator=generator) * scales.repeat(2, 1)
+        out["means"] = out["means"] + torch.einsum("nij,nj->ni", R.repeat(2, 1, 1), noise)
+        out["scales"] = torch.log(scales / self.config.split_factor).repeat(2, 1)
+        for name, passed in (("opacity_c", pass_c[mask]), ("opacity_g", pass_g[mask])):
+            kept, copy = self._branch_opacities(rows[name], passed, self.config)
+            out[name] = torch.cat([kept, copy])
+        return out
+
+    def prune_and_reset(self, model: GaussianModel, optimizer: torch.optim.Optimizer | None,
+                        state: StrategyState, tied: bool = False) -> dict[str, int]:
+        """Prune (lowest-contribution fraction rho, transparent in both branches), decay rho,
+        reset both opacities to min(o, reset_value). `tied`: opacity_g follows opacity_c (stage 1),
+        so transparency is judged on opacity_c alone."""
+        cfg = self.config
+        with torch.no_grad():
+            n = len(model)
+            o_c = model.opacity_c
+            o_g = o_c if tied else model.opacity_g
+            drop = (o_c < cfg.transparent) & (o_g < cfg.transparent)
+            k = int(math.floor(state.rho * n))
+            if k > 0:
+                drop[state.contribution.argsort(stable=True)[:k]] = True
+            if bool(drop.all()):
+                drop[state.contribution.argmax()] = False  # never leave an empty model
+            model.keep(~drop, optimizer)
+            state.select(~drop)
+            limit = math.log(cfg.reset_value / (1 - cfg.reset_value))
+            for name in ("opacity_c", "opacity_g"):
+                model.assign(name, model.params[name].detach().clamp_max(limit), optimizer)
+            state.contribution.zero_()
+            record = {"pruned": int(drop.sum()), "n": len(model), "rho_percent": round(
+                100 * state.rho)}
+            state.rho *= cfg.rho_decay
+            state.resets += 1
+        state.history.append(record)
+        return record

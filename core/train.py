@@ -1,0 +1,353 @@
+"""Static reconstruction of one frame: the staged schedule, losses and densification put together.
+
+`Trainer` runs the loop; what happens around it (progress, checkpoints) comes in through small
+callback objects (in the manner of nerfstudio's engine/callbacks.py). Ambient-occlusion baking is
+a hook (`AOBaker`, by default `core.ao.GaussianAOBaker` on the native ray tracer) called at the
+step the schedule names; with `bake_ao` off the visibility loss stays off and the trainer records
+that baking was skipped.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Protocol, TextIO
+
+import torch
+from torch import Tensor
+
+from core.data.capture import Camera
+from core.losses import (
+    LossWeights,
+    depth_normal_consistency,
+    normal_prior_loss,
+    photometric_loss,
+    visibility_loss,
+)
+from core.model import GaussianModel, LearningRates, means_lr
+from core.render import RenderCamera, render
+from core.seeding import sample_points, scene_extent
+from core.stages import Schedule, StagePlan, plan, schedule_for
+from core.strategy import DensifyConfig, DensifyStrategy, StrategyState
+
+__all__ = [
+    "AOBaker",
+    "Callback",
+    "CheckpointCallback",
+    "ProgressCallback",
+    "StepInfo",
+    "TrainConfig",
+    "Trainer",
+    "View",
+    "psnr",
+    "train_config",
+    "training_cameras",
+]
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Everything that decides how one frame is reconstructed."""
+
+    schedule: Schedule = field(default_factory=Schedule)
+    """Stage boundaries, beta ramp, densification and reset timing."""
+    rates: LearningRates = field(default_factory=LearningRates)
+    """Adam learning rates per parameter group."""
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    """Densification and pruning thresholds."""
+    losses: LossWeights = field(default_factory=LossWeights)
+    """Loss weights."""
+    init_points: int = 100_000
+    """Random initial points (carved by masks when present)."""
+    eps2d: float = 0.1
+    """Screen-space blur of the Mip-Splatting 2D filter (DESIGN.md section 5)."""
+    antialiased: bool = True
+    """Apply the Mip-Splatting opacity compensation."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """Colour behind the Gaussians; masked-out target pixels take it too."""
+    seed: int = 0
+    """Seeds initial points, view order and split samples."""
+    bake_ao: bool = True
+    """Bake ambient occlusion at the stage-3 step with the native ray tracer (per-Gaussian
+    visibility and per-view targets); off: the visibility loss stays off."""
+
+    def __post_init__(self) -> None:
+        if self.init_points < 1:
+            raise ValueError(f"init_points: expected >= 1, got {self.init_points}")
+
+    def to_dict(self) -> dict:
+        """The fully resolved configuration as JSON-compatible data (for RUN/config.json)."""
+        return asdict(self)
+
+
+def train_config(preset: str) -> TrainConfig:
+    """Named presets: `paper` (30k steps), `fast` (7.5k) and `test` (500, tiny captures)."""
+    schedule = schedule_for(preset)
+    if preset == "paper":
+        return TrainConfig(schedule=schedule)
+    if preset == "fast":
+        return TrainConfig(schedule=schedule, init_points=50_000,
+                           rates=replace(LearningRates(), means_decay_steps=schedule.iterations))
+    return TrainConfig(schedule=schedule, init_points=1_000,
+                       rates=replace(LearningRates(), means_decay_steps=schedule.iterations),
+                       densify=replace(DensifyConfig(), max_gaussians=4_000))
+
+
+def training_cameras(cameras: Sequence[Camera]) -> list[Camera]:
+    """Every camera except the held-out ones (index % 8 == 0, DESIGN.md section 3.2)."""
+    return [c for i, c in enumerate(cameras) if i % 8 != 0]
+
+
+@dataclass
+class View:
+    """One training view in memory: camera and (H, W, C) tensors."""
+
+    camera: Camera
+    image: Tensor
+    mask: Tensor | None = None
+    normal: Tensor | None = None
+
+    @classmethod
+    def from_sample(cls, sample) -> View:
+        """From a `core.data.Sample`."""
+        return cls(sample.camera, sample.image, sample.mask, sample.normal)
+
+
+class AOBaker(Protocol):
+    """Bakes visibility: per-Gaussian values written into the model (through the optimizer, so
+    Adam's moments follow), per-view target maps (H, W, 1) returned. The default is
+    `core.ao.GaussianAOBaker` (the native ray tracer)."""
+
+    def __call__(self, model: GaussianModel, cameras: Sequence[RenderCamera],
+                 optimizer: torch.optim.Optimizer, beta: float) -> list[Tensor]: ...
+
+
+@dataclass
+class StepInfo:
+    """What a callback sees after each step."""
+
+    step: int
+    plan: StagePlan
+    losses: dict[str, float]
+    n_gaussians: int
+    seconds: float
+
+
+class Callback:
+    """Hooks around training; override what you need."""
+
+    def on_train_start(self, trainer: Trainer) -> None: ...
+
+    def on_step_end(self, trainer: Trainer, info: StepInfo) -> None: ...
+
+    def on_train_end(self, trainer: Trainer) -> None: ...
+
+
+class ProgressCallback(Callback):
+    """Prints (or hands to `report`) a line every `every` steps."""
+
+    def __init__(self, every: int = 100, stream: TextIO | None = None,
+                 report: Callable[[StepInfo], None] | None = None):
+        if every < 1:
+            raise ValueError(f"every: expected >= 1, got {every}")
+        self.every, self.stream, self.report = every, stream, report
+
+    def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
+        last = info.step == trainer.config.schedule.iterations - 1
+        if info.step % self.every and not last:
+            return
+        if self.report is not None:
+            self.report(info)
+            return
+        print(f"step {info.step + 1}/{trainer.config.schedule.iterations} stage {info.plan.stage} "
+              f"loss {info.losses['total']:.4f} gaussians {info.n_gaussians} "
+              f"{info.seconds:.1f}s", file=self.stream or sys.stdout)
+
+
+class CheckpointCallback(Callback):
+    """Writes `folder/checkpoint.pt` (atomically) every `every` steps and at the end."""
+
+    def __init__(self, folder: str | os.PathLike[str], every: int = 1000):
+        if every < 1:
+            raise ValueError(f"every: expected >= 1, got {every}")
+        self.folder, self.every = Path(folder), every
+
+    def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
+        if (info.step + 1) % self.every == 0:
+            trainer.save_checkpoint(self.folder / "checkpoint.pt")
+
+    def on_train_end(self, trainer: Trainer) -> None:
+        trainer.save_checkpoint(self.folder / "checkpoint.pt")
+
+
+def psnr(pred: Tensor, target: Tensor) -> float:
+    """Peak signal-to-noise ratio (dB) of images in 0..1."""
+    mse = float((pred.detach() - target).square().mean())
+    return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
+
+
+class Trainer:
+    """Reconstructs one frame from its training views."""
+
+    def __init__(self, views: Sequence[View], config: TrainConfig = TrainConfig(), *,
+                 model: GaussianModel | None = None, callbacks: Sequence[Callback] = (),
+                 ao_baker: AOBaker | None = None):
+        if not views:
+            raise ValueError("views: expected at least one training view")
+        self.views = list(views)
+        self.config = config
+        self.callbacks = list(callbacks)
+        if ao_baker is None and config.bake_ao:
+            from core.ao import GaussianAOBaker
+
+            ao_baker = GaussianAOBaker()
+        self.ao_baker = ao_baker if config.bake_ao else None
+        self.extent = scene_extent([v.camera for v in self.views])
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.model = model if model is not None else self._initial_model()
+        self.optimizer = self.model.make_optimizer(config.rates, self.extent)
+        self.strategy = DensifyStrategy(config.densify, self.extent)
+        self.state = self.strategy.initialize_state(len(self.model))
+        self.cameras = [RenderCamera.from_camera(v.camera) for v in self.views]
+        self.background = torch.tensor(config.background, dtype=torch.float32)
+        self.ao_targets: list[Tensor] | None = None
+        self.notes: list[str] = []
+        self.step = 0
+        self._order: list[int] = []
+
+    @classmethod
+    def from_capture(cls, capture, frame: str, config: TrainConfig = TrainConfig(), *,
+                     downscale: float = 1.0, **kwargs) -> Trainer:
+        """A trainer on the training cameras (held-out ones excluded) of one frame of a
+        `core.data.Capture`; `kwargs` go to the constructor (model, callbacks, ao_baker)."""
+        from core.data.dataset import CaptureDataset
+
+        if frame not in capture.frames:
+            raise ValueError(f"frame: {frame!r} is not in {capture.root} (frames "
+                             f"{list(capture.frames)[:5]}...)")
+        ids = [c.id for c in training_cameras(capture.cameras)]
+        if not ids:
+            raise ValueError(f"capture: {capture.root} has no training camera (every 8th camera "
+                             "is held out, so at least 2 are needed)")
+        ds = CaptureDataset(capture, frames=[frame], cameras=ids, downscale=downscale)
+        return cls([View.from_sample(ds[i]) for i in range(len(ds))], config, **kwargs)
+
+    def _initial_model(self) -> GaussianModel:
+        pts, cols = sample_points(
+            [v.camera for v in self.views], self.config.init_points,
+            images=[v.image.numpy() for v in self.views],
+            masks=[None if v.mask is None else v.mask.numpy() for v in self.views],
+            seed=self.config.seed)
+        return GaussianModel.from_points(pts, cols)
+
+    def target(self, index: int) -> Tensor:
+        """The training image, composited on the background where a mask says background."""
+        view = self.views[index]
+        if view.mask is None:
+            return view.image
+        return view.image * view.mask + self.background * (1 - view.mask)
+
+    def render_view(self, index: int, p: StagePlan):
+        return render(self.model, self.cameras[index], sh_degree=p.sh_degree, beta=p.beta,
+                      geometry=p.geometry_branch, tie_opacity=p.tie_opacity,
+                      background=self.background, eps2d=self.config.eps2d,
+                      antialiased=self.config.antialiased)
+
+    def _next_view(self) -> int:
+        if not self._order:  # every view once per epoch, in random order (3DGS viewpoint stack)
+            self._order = torch.randperm(len(self.views), generator=self.generator).tolist()
+        return self._order.pop()
+
+    def _losses(self, index: int, p: StagePlan, r) -> dict[str, Tensor]:
+        w, view, cam = self.config.losses, self.views[index], self.cameras[index]
+        terms = {"photometric": photometric_loss(r.rgb, self.target(index), w)}
+        if p.normal_prior and view.normal is not None:
+            terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
+        if p.consistency:
+            terms["consistency"] = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K,
+                                                            cam.viewmat, w)
+        if p.visibility and self.ao_targets is not None:
+            terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index], view.mask, w)
+        return terms
+
+    def _before_step(self, p: StagePlan) -> None:
+        if p.start_geometry:
+            centers = torch.stack([c.center for c in self.cameras])
+            self.model.init_geometry(centers, self.optimizer)
+        if p.bake_ao:
+            if self.ao_baker is None:
+                self.notes.append(f"step {p.step}: AO baking skipped (bake_ao is off); "
+                                  "visibility loss off")
+            else:
+                self.ao_targets = self.ao_baker(self.model, self.cameras, self.optimizer, p.beta)
+        lr = means_lr(self.config.rates, self.extent, p.step)
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = lr
+
+    def train_step(self) -> StepInfo:
+        """One optimisation step at `self.step`, then densification / reset as planned."""
+        start = time.perf_counter()
+        p = plan(self.step, self.config.schedule)
+        self._before_step(p)
+        index = self._next_view()
+        r = self.render_view(index, p)
+        terms = self._losses(index, p, r)
+        total = sum(terms.values())
+        total.backward()
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        cam = self.cameras[index]
+        self.strategy.update(self.state, r.raster, cam.width, cam.height)
+        if p.densify:
+            self.strategy.densify(self.model, self.optimizer, self.state, self.generator)
+        if p.reset_opacity:
+            self.strategy.prune_and_reset(self.model, self.optimizer, self.state, p.tie_opacity)
+        losses = {k: float(v.detach()) for k, v in terms.items()}
+        losses["total"] = float(total.detach())
+        info = StepInfo(self.step, p, losses, len(self.model), time.perf_counter() - start)
+        self.step += 1
+        return info
+
+    def train(self) -> GaussianModel:
+        """Run the remaining steps of the schedule; returns the model."""
+        for cb in self.callbacks:
+            cb.on_train_start(self)
+        while self.step < self.config.schedule.iterations:
+            info = self.train_step()
+            for cb in self.callbacks:
+                cb.on_step_end(self, info)
+        for cb in self.callbacks:
+            cb.on_train_end(self)
+        return self.model
+
+    @torch.no_grad()
+    def evaluate(self, indices: Sequence[int] | None = None) -> float:
+        """Mean PSNR over views (all training views by default) with the current step's plan."""
+        p = plan(min(self.step, self.config.schedule.iterations - 1), self.config.schedule)
+        ids = range(len(self.views)) if indices is None else indices
+        return sum(psnr(self.render_view(i, p).rgb, self.target(i)) for i in ids) / len(ids)
+
+    def save_checkpoint(self, path: str | os.PathLike[str]) -> None:
+        """Parameters, optimizer and strategy state and the step, written atomically."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        blob = {"step": self.step, "params": {k: v.detach() for k, v in self.model.params.items()},
+                "optimizer": self.optimizer.state_dict(), "strategy": asdict(self.state)}
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(blob, tmp)
+        os.replace(tmp, path)
+
+    def load_checkpoint(self, path: str | os.PathLike[str]) -> None:
+        """Resume from `save_checkpoint`'s file (same views and config)."""
+        blob = torch.load(path, weights_only=True)
+        self.model = GaussianModel(blob["params"])
+        self.optimizer = self.model.make_optimizer(self.config.rates, self.extent)
+        self.optimizer.load_state_dict(blob["optimizer"])
+        self.state = StrategyState(**blob["strategy"])
+        self.step = int(blob["step"])

@@ -1,0 +1,108 @@
+"""Ambient occlusion baking: per-Gaussian visibility and per-view AO maps."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+from core.ao import AOConfig, ao_map, init_visibility, scaled_camera
+from core.model import GaussianModel, LearningRates
+from core.render import RenderCamera
+
+
+def _plane_params(xs, ys, z_of, normal, spacing):
+    """Thin discs tiling a patch; positions from a grid, all with one unit normal."""
+    gx, gy = torch.meshgrid(xs, ys, indexing="ij")
+    pts = z_of(gx.reshape(-1), gy.reshape(-1))
+    n = pts.shape[0]
+    z = torch.tensor([0.0, 0.0, 1.0])
+    axis = torch.linalg.cross(z, normal)
+    angle = math.atan2(float(axis.norm()), float(z @ normal))
+    axis = axis / axis.norm() if float(axis.norm()) > 0 else torch.tensor([1.0, 0.0, 0.0])
+    q = torch.cat([torch.tensor([math.cos(angle / 2)]), axis * math.sin(angle / 2)])
+    return pts, q.repeat(n, 1), torch.tensor([spacing, spacing, spacing * 0.05]).repeat(n, 1), \
+        normal.repeat(n, 1)
+
+
+def _corner_model() -> GaussianModel:
+    """A floor (z = 0, x in [0, 2]) meeting a wall (x = 0) along the y axis."""
+    s = 0.06
+    a = torch.arange(0.0, 2.0, s)
+    floor = _plane_params(a, torch.arange(-1.0, 1.0, s),
+                          lambda x, y: torch.stack([x, y, torch.zeros_like(x)], -1),
+                          torch.tensor([0.0, 0.0, 1.0]), s)
+    wall = _plane_params(torch.arange(-1.0, 1.0, s), torch.arange(0.0, 1.5, s),
+                         lambda y, z: torch.stack([torch.zeros_like(y), y, z], -1),
+                         torch.tensor([1.0, 0.0, 0.0]), s)
+    means, quats, scales, normals = (torch.cat([f, w]) for f, w in zip(floor, wall))
+    model = GaussianModel.from_points(means)
+    n = means.shape[0]
+    p = model.params
+    with torch.no_grad():
+        p["quats"].copy_(quats)
+        p["scales"].copy_(scales.log())
+        p["normals"].copy_(normals)
+        p["opacity_g"].fill_(math.log(0.95 / 0.05))
+        p["opacity_c"].fill_(math.log(0.95 / 0.05))
+    model.n_floor = floor[0].shape[0]
+    assert len(model) == n
+    return model
+
+
+def test_visibility_is_lower_in_the_corner():
+    model = _corner_model()
+    opt = model.make_optimizer(LearningRates(), 2.0)
+    before = model.params["visibility"]
+    vis = init_visibility(model, opt, AOConfig(n_dirs=64))
+    floor_x = model.means[: model.n_floor, 0]
+    near, far = vis[: model.n_floor][floor_x < 0.15], vis[: model.n_floor][floor_x > 1.5]
+    # Far from the wall the floor sees its whole sky; next to it about half.
+    assert float(far.mean()) > 0.9
+    assert float(near.mean()) < 0.75
+    assert torch.allclose(model.visibility[:, 0], vis.clamp(1e-4, 1 - 1e-4), atol=1e-5)
+    assert model.params["visibility"] is not before
+    assert any(p is model.params["visibility"] for g in opt.param_groups for p in g["params"])
+
+
+def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> torch.Tensor:
+    eye, target, up = (np.asarray(v, float) for v in (eye, target, up))
+    z = target - eye
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    vm = np.eye(4)
+    vm[:3, :3] = np.stack([x, y, z])
+    vm[:3, 3] = -vm[:3, :3] @ eye
+    return torch.tensor(vm, dtype=torch.float32)
+
+
+def test_ao_map_darkens_the_corner():
+    model = _corner_model()
+    w = h = 64
+    f = 40.0
+    K = torch.tensor([[f, 0.0, w / 2], [0.0, f, h / 2], [0.0, 0.0, 1.0]])
+    cam = RenderCamera(_look_at((2.2, 0.0, 1.2), (0.5, 0.0, 0.2)), K, w, h)
+    ao = ao_map(model, cam, config=AOConfig(n_dirs=32))
+    assert ao.shape == (h, w, 1)
+    assert float(ao.min()) >= 0.0 and float(ao.max()) <= 1.0
+    # The corner line (x = 0, z = 0) projects above the image centre, the near floor (x = 1.3)
+    # below it. The corner is darker.
+    corner = torch.tensor([0.0, 0.0, 0.02, 1.0]) @ cam.viewmat.T
+    uc, vc = (K @ corner[:3] / corner[2])[:2].round().long().tolist()
+    near = torch.tensor([1.3, 0.0, 0.0, 1.0]) @ cam.viewmat.T
+    un, vn = (K @ near[:3] / near[2])[:2].round().long().tolist()
+    assert float(ao[vc, uc]) < float(ao[vn, un]) - 0.1, (float(ao[vc, uc]), float(ao[vn, un]))
+
+
+def test_scaled_camera_keeps_pixel_centres():
+    K = torch.tensor([[50.0, 0.0, 32.0], [0.0, 55.0, 24.0], [0.0, 0.0, 1.0]])
+    cam = RenderCamera(torch.eye(4), K, 64, 48)
+    small = scaled_camera(cam, 0.25)
+    assert (small.width, small.height) == (16, 12)
+    p = torch.tensor([0.3, -0.2, 2.0])
+    full = (K @ p / p[2])[:2]
+    part = (small.K @ p / p[2])[:2]
+    assert torch.allclose(part, full * 0.25, atol=1e-5)

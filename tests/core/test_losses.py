@@ -1,0 +1,187 @@
+"""Losses of DESIGN.md section 5 on inputs with known answers."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from core.losses import (
+    depth_normal_consistency,
+    depth_to_normals,
+    depth_to_points,
+    normal_prior_loss,
+    photometric_loss,
+    ssim,
+    visibility_loss,
+)
+from core.model import GaussianModel
+from core.render import RenderCamera, render
+
+
+def naive_ssim(a: np.ndarray, b: np.ndarray) -> float:
+    """Direct per-pixel SSIM, zero padding outside the image, 11x11 Gaussian sigma 1.5."""
+    x = np.arange(11) - 5.0
+    g = np.exp(-x * x / (2 * 1.5**2))
+    g /= g.sum()
+    w = np.outer(g, g)
+    h, wd, c = a.shape
+    pa, pb = np.pad(a, ((5, 5), (5, 5), (0, 0))), np.pad(b, ((5, 5), (5, 5), (0, 0)))
+    total = 0.0
+    for i in range(h):
+        for j in range(wd):
+            for k in range(c):
+                A, B = pa[i:i + 11, j:j + 11, k], pb[i:i + 11, j:j + 11, k]
+                ma, mb = (w * A).sum(), (w * B).sum()
+                va, vb = (w * A * A).sum() - ma**2, (w * B * B).sum() - mb**2
+                cov = (w * A * B).sum() - ma * mb
+                total += ((2 * ma * mb + 1e-4) * (2 * cov + 9e-4)) / (
+                    (ma**2 + mb**2 + 1e-4) * (va + vb + 9e-4))
+    return total / (h * wd * c)
+
+
+def test_ssim_matches_direct_formula():
+    g = torch.Generator().manual_seed(0)
+    a = torch.rand(9, 12, 3, generator=g, dtype=torch.float64)
+    b = (a + 0.2 * torch.rand(9, 12, 3, generator=g, dtype=torch.float64)).clamp(0, 1)
+    assert ssim(a, b).item() == pytest.approx(naive_ssim(a.numpy(), b.numpy()), abs=1e-6)
+    assert ssim(a, a).item() == pytest.approx(1.0, abs=1e-9)
+    with pytest.raises(ValueError, match="a, b"):
+        ssim(a, b[:, :5])
+
+
+def test_photometric_loss_known_values():
+    g = torch.Generator().manual_seed(1)
+    img = torch.rand(16, 16, 3, generator=g)
+    assert photometric_loss(img, img).item() == pytest.approx(0.0, abs=1e-6)
+    other = (img + 0.1).clamp(max=1.0)
+    expect = 0.8 * (other - img).abs().mean() + 0.2 * (1 - ssim(other, img))
+    assert photometric_loss(other, img).item() == pytest.approx(expect.item(), rel=1e-6)
+    pred = img.clone().requires_grad_()
+    photometric_loss(pred, torch.rand(16, 16, 3, generator=g)).backward()
+    assert torch.isfinite(pred.grad).all() and pred.grad.abs().sum() > 0
+
+
+def test_normal_prior_loss_known_values():
+    n = torch.nn.functional.normalize(torch.randn(10, 10, 3), dim=-1)
+    assert normal_prior_loss(torch.zeros(10, 10, 3) + n[0, 0], n[0, 0].expand(10, 10, 3)).item() \
+        == pytest.approx(0.0, abs=1e-7)
+    # Constant maps: smoothness 0, L1 = 0.2 * mean |N - prior|.
+    pred = torch.full((10, 10, 3), 0.5)
+    prior = torch.tensor([0.0, 0.0, 1.0]).expand(10, 10, 3)
+    assert normal_prior_loss(pred, prior).item() == pytest.approx(0.2 * (0.5 + 0.5 + 0.5) / 3)
+    # Pixels without a prior (zero vectors) do not count.
+    holes = prior.clone()
+    holes[:, :5] = 0
+    assert normal_prior_loss(pred, holes).item() == pytest.approx(0.2 * 0.5)
+    # Edge-aware: the same jump in N costs less where the prior has an edge there too.
+    jump = torch.zeros(10, 10, 3)
+    jump[:, 5:] = 1.0
+    flat_prior = torch.full((10, 10, 3), 0.5)
+    edge_prior = flat_prior.clone()
+    edge_prior[:, 5:] = 1.5
+    smooth_flat = normal_prior_loss(jump + 0.5, flat_prior) - 0.2 * (jump.mean())
+    assert normal_prior_loss(jump + 0.5, edge_prior) < smooth_flat
+    pred = torch.randn(10, 10, 3, requires_grad=True)
+    normal_prior_loss(pred, n, mask=torch.ones(10, 10, 1)).backward()
+    assert torch.isfinite(pred.grad).all()
+
+
+def rotation(axis: list[float], angle: float) -> torch.Tensor:
+    a = torch.nn.functional.normalize(torch.tensor(axis, dtype=torch.float64), dim=0)
+    k = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=torch.float64)
+    return torch.eye(3, dtype=torch.float64) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
+
+
+def plane_view(h: int = 20, w: int = 24):
+    """Depth of the camera-space plane n.X = -d (n facing the camera) and the world normal."""
+    K = torch.tensor([[30.0, 0, 12.3], [0, 28.0, 9.7], [0, 0, 1]], dtype=torch.float64)
+    R = rotation([0.3, -1.0, 0.5], 0.7)
+    viewmat = torch.eye(4, dtype=torch.float64)
+    viewmat[:3, :3] = R
+    viewmat[:3, 3] = torch.tensor([0.2, -0.4, 1.0], dtype=torch.float64)
+    n_cam = torch.nn.functional.normalize(torch.tensor([0.3, -0.2, -1.0], dtype=torch.float64),
+                                          dim=0)
+    v, u = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij")
+    rays = torch.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], torch.ones_like(u)], -1)
+    depth = (-3.0 / (rays.double() @ n_cam))[..., None]
+    return depth, K, viewmat, R.T @ n_cam
+
+
+def test_back_projection_returns_world_points():
+    depth, K, viewmat, _ = plane_view()
+    pts = depth_to_points(depth, K, viewmat)
+    cam = pts @ viewmat[:3, :3].T + viewmat[:3, 3]
+    torch.testing.assert_close(cam[..., 2:], depth)
+    uv = (cam @ K.T)[..., :2] / cam[..., 2:]
+    torch.testing.assert_close(uv[3, 5], torch.tensor([5.5, 3.5], dtype=torch.float64))
+
+
+def test_plane_gives_the_minimum_of_the_consistency_term():
+    depth, K, viewmat, n_world = plane_view()
+    n_d = depth_to_normals(depth, K, viewmat)
+    torch.testing.assert_close(n_d, n_world.expand_as(n_d), atol=1e-6, rtol=0)
+    alpha = torch.full_like(depth, 0.8)
+    good = depth_normal_consistency(0.8 * n_world.expand(20, 24, 3), depth, alpha, K, viewmat)
+    assert good.item() == pytest.approx(0.0, abs=1e-8)
+    flipped = depth_normal_consistency(-0.8 * n_world.expand(20, 24, 3), depth, alpha, K, viewmat)
+    assert flipped.item() == pytest.approx(0.01 * 1.6, rel=1e-6)
+    n_tilt = rotation([1, 0, 0], 0.3) @ n_world
+    tilted = depth_normal_consistency(0.8 * n_tilt.expand(20, 24, 3), depth, alpha, K, viewmat)
+    expect = 0.01 * 0.8 * (1 - float(n_tilt @ n_world))
+    assert expect > 1e-4 and tilted.item() == pytest.approx(expect, rel=1e-4)
+
+
+def test_consistency_of_a_rendered_plane():
+    # A dense layer of flat Gaussians at z = 3 facing the camera: N = O_g (0, 0, -1) = n(D) O_g.
+    ax = torch.linspace(-2.6, 2.6, 25)
+    y, x = torch.meshgrid(ax, ax, indexing="ij")
+    pts = torch.stack([x.reshape(-1), y.reshape(-1), torch.full((625,), 3.0)], dim=-1)
+    m = GaussianModel.from_points(pts)
+    with torch.no_grad():
+        m.params["scales"][:, 2] = math.log(1e-3)
+        m.params["opacity_c"].fill_(2.0)
+        m.params["opacity_g"].fill_(2.0)
+        m.params["normals"].copy_(torch.tensor([[0.0, 0.0, -1.0]]))
+    cam = RenderCamera(torch.eye(4), torch.tensor([[20.0, 0, 16], [0, 20.0, 16], [0, 0, 1]]),
+                       32, 32)
+    r = render(m, cam, sh_degree=0, beta=0.5)
+    assert (r.alpha_g > 0.5).float().mean() > 0.5
+    loss = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K, cam.viewmat)
+    assert -1e-6 < loss.item() < 1e-4
+    with torch.no_grad():
+        m.params["normals"].copy_(torch.tensor([[0.0, 1.0, -1.0]]))
+    r2 = render(m, cam, sh_degree=0, beta=0.5)
+    worse = depth_normal_consistency(r2.normal, r2.depth, r2.alpha_g, cam.K, cam.viewmat)
+    assert worse.item() > loss.item() + 1e-3
+    worse.backward()
+    for name in ("normals", "means", "opacity_g"):
+        assert torch.isfinite(m.params[name].grad).all(), name
+    assert m.params["normals"].grad.abs().sum() > 0
+
+
+def test_consistency_gradients_are_finite_on_empty_pixels():
+    depth = torch.zeros(8, 8, 1)
+    depth[2:6, 2:6] = 2.0
+    depth.requires_grad_()
+    normal = torch.randn(8, 8, 3, requires_grad=True)
+    alpha = (depth.detach() > 0).float()
+    K, V = torch.tensor([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), torch.eye(4)
+    depth_normal_consistency(normal, depth, alpha, K, V).backward()
+    assert torch.isfinite(depth.grad).all() and torch.isfinite(normal.grad).all()
+
+
+def test_visibility_loss_known_values():
+    v = torch.full((6, 6, 1), 0.5, requires_grad=True)
+    assert visibility_loss(v, torch.full((6, 6, 1), 0.5)).item() == pytest.approx(0.0)
+    assert visibility_loss(v, torch.full((6, 6, 1), 0.3)).item() == pytest.approx(0.02)
+    stripes = torch.zeros(6, 6, 1)
+    stripes[:, ::2] = 1.0
+    # L1 0 against itself; smoothness: mean |dx| = 1, mean |dy| = 0.
+    assert visibility_loss(stripes, stripes).item() == pytest.approx(0.01)
+    visibility_loss(v, torch.rand(6, 6, 1), mask=torch.ones(6, 6, 1)).backward()
+    assert torch.isfinite(v.grad).all()
+    with pytest.raises(ValueError, match="visibility, target"):
+        visibility_loss(v, torch.zeros(5, 6, 1))

@@ -1,0 +1,205 @@
+"""Densification strategy bookkeeping on tiny models: statistics, clone/split opacities, pruning,
+opacity reset and the optimizer's state kept consistent."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from core.model import GaussianModel
+from core.render import RenderCamera, render
+from core.strategy import DensifyConfig, DensifyStrategy
+from native.types import RasterOutput
+
+
+def logit(p: float) -> float:
+    return math.log(p / (1 - p))
+
+
+def tiny_model(n: int = 3) -> GaussianModel:
+    m = GaussianModel.from_points(torch.arange(3 * n, dtype=torch.float32).reshape(n, 3))
+    with torch.no_grad():
+        m.params["scales"].copy_(torch.log(torch.tensor([[0.005, 0.005, 0.005],
+                                                         [0.5, 0.2, 0.1],
+                                                         [0.3, 0.3, 0.3]] * (n // 3 + 1))[:n]))
+        m.params["opacity_c"].copy_(torch.tensor([logit(0.6), logit(0.5), logit(0.4)] * n)[:n])
+        m.params["opacity_g"].copy_(torch.tensor([logit(0.3), logit(0.8), logit(0.2)] * n)[:n])
+    return m
+
+
+def fake_output(n: int, absgrad_c, absgrad_g, radii, contribution) -> RasterOutput:
+    z = torch.zeros(1, 1, 1)
+    return RasterOutput(color=z, geometry=z, depth=z, alpha_c=z, alpha_g=z,
+                        radii=torch.tensor(radii, dtype=torch.int32),
+                        means2d=torch.zeros(n, 2), absgrad_c=torch.tensor(absgrad_c),
+                        absgrad_g=torch.tensor(absgrad_g),
+                        contribution=torch.tensor(contribution))
+
+
+def test_update_accumulates_ndc_absgrad_per_branch():
+    s = DensifyStrategy()
+    st = s.initialize_state(3)
+    out = fake_output(3, [[1e-4, 0.0], [0.0, 2e-4], [5.0, 5.0]], [[0.0, 0.0], [3e-4, 0.0],
+                                                                    [1.0, 1.0]],
+                      [2, 7, 0], [0.2, 0.5, 0.9])
+    s.update(st, out, width=40, height=20)
+    s.update(st, out, width=40, height=20)
+    # NDC units: x gradients times W/2 = 20, y times H/2 = 10; unseen Gaussian 2 gets nothing.
+    torch.testing.assert_close(st.grad_c, torch.tensor([2 * 2e-3, 2 * 2e-3, 0.0]))
+    torch.testing.assert_close(st.grad_g, torch.tensor([0.0, 2 * 6e-3, 0.0]))
+    torch.testing.assert_close(st.count, torch.tensor([2.0, 2.0, 0.0]))
+    torch.testing.assert_close(st.max_radii, torch.tensor([2.0, 7.0, 0.0]))
+    torch.testing.assert_close(st.contribution, torch.tensor([0.2, 0.5, 0.9]))
+    with pytest.raises(ValueError, match="out"):
+        s.update(s.initialize_state(4), out, 40, 20)
+
+
+def _stepped_optimizer(m: GaussianModel) -> torch.optim.Optimizer:
+    opt = m.make_optimizer()
+    loss = sum(p.square().sum() for p in m.params.values())
+    loss.backward()
+    opt.step()
+    opt.zero_grad()
+    return opt
+
+
+def test_clone_and_split_opacities_and_adam_state():
+    m = tiny_model()
+    before = {k: p.detach().clone() for k, p in m.params.items()}
+    opt = _stepped_optimizer(m)
+    after_step = {k: p.detach().clone() for k, p in m.params.items()}
+    moments = {g["name"]: opt.state[g["params"][0]]["exp_avg"].clone() for g in opt.param_groups}
+    s = DensifyStrategy(DensifyConfig(), extent=1.0)
+    st = s.initialize_state(3)
+    # Gaussian 0 (small) passes the appearance threshold only, 1 (large) the geometry one only.
+    st.grad_c[:] = torch.tensor([0.01, 0.0, 0.0])
+    st.grad_g[:] = torch.tensor([0.0, 0.01, 0.0])
+    st.count[:] = 1.0
+    st.contribution[:] = torch.tensor([0.3, 0.6, 0.9])
+    rec = s.densify(m, opt, st, generator=torch.Generator().manual_seed(0))
+    assert rec == {"cloned": 1, "split": 1, "n": 5}
+    assert len(m) == 5
+    # Rows: 0 (clone original), 2 (untouched), 3 (clone copy), 4 and 5 -> 3, 4 (split samples).
+    o_c, o_g = m.opacity_c.detach(), m.opacity_g.detach()
+    o0c = torch.sigmoid(after_step["opacity_c"][0])
+    bulo = 1 - torch.sqrt(1 - o0c)
+    assert o_c[0].item() == pytest.approx(bulo.item(), rel=1e-5)
+    assert o_c[2].item() == pytest.approx(bulo.item(), rel=1e-5)  # the copy
+    assert 1 - (1 - o_c[0]) * (1 - o_c[2]) == pytest.approx(o0c.item(), rel=1e-5)
+    assert o_g[0].item() == pytest.approx(torch.sigmoid(after_step["opacity_g"][0]).item())
+    assert o_g[2].item() == pytest.approx(0.005, rel=1e-4)
+    torch.testing.assert_close(m.params["means"][2], after_step["means"][0])
+    # Untouched Gaussian 2 is now row 1.
+    for k in m.params:
+        torch.testing.assert_close(m.params[k][1], after_step[k][2])
+    # Split of Gaussian 1: geometry passed -> both Bulo; appearance: first keeps, second 0.005.
+    o1g = torch.sigmoid(after_step["opacity_g"][1])
+    torch.testing.assert_close(o_g[3:5], (1 - torch.sqrt(1 - o1g)).expand(2), rtol=1e-5, atol=0)
+    assert o_c[3].item() == pytest.approx(torch.sigmoid(after_step["opacity_c"][1]).item())
+    assert o_c[4].item() == pytest.approx(0.005, rel=1e-4)
+    torch.testing.assert_close(m.scales[3:5], (torch.exp(after_step["scales"][1]) / 1.6).expand(2, 3))
+    assert not torch.equal(m.params["means"][3], m.params["means"][4])
+    assert (m.params["means"][3:5] - after_step["means"][1]).norm(dim=1).max() < 5 * 0.5
+    # Optimizer state: kept rows keep their moments, new rows start at zero.
+    for group in opt.param_groups:
+        p, name = group["params"][0], group["name"]
+        assert p is m.params[name]
+        ea = opt.state[p]["exp_avg"]
+        assert ea.shape == p.shape
+        torch.testing.assert_close(ea[0], moments[name][0])
+        torch.testing.assert_close(ea[1], moments[name][2])
+        assert torch.all(ea[2:] == 0)
+    # Statistics: gradients cleared, contribution inherited from the parents.
+    assert torch.all(st.grad_c == 0) and torch.all(st.count == 0)
+    torch.testing.assert_close(st.contribution, torch.tensor([0.3, 0.9, 0.3, 0.6, 0.6]))
+    assert before["means"].shape[0] == 3
+    loss = sum(p.square().sum() for p in m.params.values())
+    loss.backward()
+    opt.step()  # Adam accepts the edited state
+
+
+def test_nothing_passes_nothing_changes():
+    m = tiny_model()
+    opt = _stepped_optimizer(m)
+    s = DensifyStrategy()
+    st = s.initialize_state(3)
+    st.grad_c[:] = 1e-4
+    st.count[:] = 1.0
+    assert s.densify(m, opt, st) == {"cloned": 0, "split": 0, "n": 3}
+
+
+def test_max_gaussians_caps_growth():
+    m = tiny_model(6)
+    s = DensifyStrategy(DensifyConfig(max_gaussians=8))
+    st = s.initialize_state(6)
+    st.grad_c[:] = torch.tensor([0.01, 0.02, 0.03, 0.04, 0.05, 0.06])
+    st.count[:] = 1.0
+    s.densify(m, None, st)
+    assert len(m) == 8  # room for 2: each densified Gaussian adds one row net
+    assert st.history[-1]["cloned"] + st.history[-1]["split"] == 2
+
+
+def test_prune_and_reset():
+    n = 20
+    m = tiny_model(n)
+    with torch.no_grad():
+        m.params["opacity_c"][5] = logit(0.001)
+        m.params["opacity_g"][5] = logit(0.002)   # transparent in both: pruned
+        m.params["opacity_c"][6] = logit(0.001)   # transparent in one branch only: kept
+    opt = _stepped_optimizer(m)
+    s = DensifyStrategy()
+    st = s.initialize_state(n)
+    st.contribution[:] = torch.linspace(0.05, 1.0, n)
+    st.contribution[6] = 0.99
+    ids = m.params["means"][:, 0].detach().clone()
+    rec = s.prune_and_reset(m, opt, st)
+    # rho 0.1 of 20 -> the 2 lowest contributions (0, 1), plus 5.
+    assert rec["pruned"] == 3 and len(m) == 17
+    kept = set(m.params["means"][:, 0].tolist())
+    assert kept == set(ids.tolist()) - {ids[0].item(), ids[1].item(), ids[5].item()}
+    assert st.rho == pytest.approx(0.075)
+    assert m.opacity_c.max() <= 0.01 + 1e-6 and m.opacity_g.max() <= 0.01 + 1e-6
+    assert m.opacity_c.min() < 0.002  # min(o, 0.01), not a constant
+    assert torch.all(st.contribution == 0)
+    for group in opt.param_groups:
+        p = group["params"][0]
+        assert opt.state[p]["exp_avg"].shape == p.shape
+        if group["name"].startswith("opacity"):
+            assert torch.all(opt.state[p]["exp_avg"] == 0)
+    s.prune_and_reset(m, opt, st)
+    assert st.rho == pytest.approx(0.1 * 0.75**2) and st.resets == 2
+
+
+def test_tied_opacity_prunes_on_appearance_alone():
+    m = tiny_model(3)
+    with torch.no_grad():
+        m.params["opacity_c"][1] = logit(0.001)
+    st = DensifyStrategy(DensifyConfig(rho=0.0)).initialize_state(3)
+    DensifyStrategy(DensifyConfig(rho=0.0)).prune_and_reset(m, None, st, tied=True)
+    assert len(m) == 2
+
+
+def test_rendered_gradients_drive_densification():
+    g = torch.Generator().manual_seed(0)
+    pts = torch.randn(30, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, 3.0])
+    m = GaussianModel.from_points(pts)
+    opt = m.make_optimizer()
+    cam = RenderCamera(torch.eye(4), torch.tensor([[30.0, 0, 12], [0, 30.0, 12], [0, 0, 1]]),
+                       24, 24)
+    s = DensifyStrategy(DensifyConfig(grad_threshold_c=1e-6, grad_threshold_g=1e3))
+    st = s.initialize_state(len(m))
+    target = torch.rand(24, 24, 3, generator=g)
+    r = render(m, cam, sh_degree=0, beta=0.3)
+    ((r.rgb - target).abs().mean()).backward()
+    opt.step()
+    s.update(st, r.raster, 24, 24)
+    assert st.grad_c.sum() > 0 and st.grad_g.sum() == 0
+    seen = int((r.raster.radii > 0).sum())
+    rec = s.densify(m, opt, st, generator=g)
+    assert rec["cloned"] + rec["split"] == seen
+    assert len(m) == 30 + seen
+    r2 = render(m, cam, sh_degree=0, beta=0.3)
+    ((r2.rgb - target).abs().mean()).backward()
+    opt.step()
