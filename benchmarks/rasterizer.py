@@ -6,8 +6,9 @@ single-opacity RGB pass (appearance branch only), and the dense PyTorch referenc
 in memory (small scenes only: it needs O(N * H * W) memory). It also breaks the 100k / 512^2
 case into its stages, and with --check compares native and reference on freshly drawn scenes.
 
-Each measurement runs in its own process so that peak memory (RSS above the baseline after the
-scene is built) is not polluted by earlier runs. Prints Markdown tables.
+Each measurement runs in its own process; peak memory is the high-water mark of resident memory
+during one forward+backward (after a warm-up) above the resident memory before it. Prints
+Markdown tables.
 
     python benchmarks/rasterizer.py [--scene surface|volume|both] [--quick] [--check]
 """
@@ -38,7 +39,23 @@ def _rss_mb() -> float:
         return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def _reset_peak() -> None:
+    """Reset the process's peak RSS (VmHWM) so the next reading is the peak of what follows."""
+    try:
+        with open("/proc/self/clear_refs", "w") as f:
+            f.write("5")
+    except OSError:
+        pass
+
+
 def _peak_mb() -> float:
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1]) / 1024
+    except OSError:
+        pass
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
@@ -77,8 +94,10 @@ def _child(spec: dict) -> dict:
         import native._backend
 
         native._backend.load()
+    run(True)  # warm-up (first-call allocations, thread pool)
     base = _rss_mb()
-    run(True)  # warm-up, and the peak-memory sample
+    _reset_peak()
+    run(True)  # the peak-memory sample
     peak = _peak_mb() - base
     reps = spec.get("reps", 5)
     fwd, full = [], []
