@@ -312,6 +312,61 @@ DGS_HD void mix_opacities(T op_c, T op_g, T beta, T comp, T& o_c, T& o_g) {
 }
 
 // ---------------------------------------------------------------------------------------------
+// One Gaussian through one camera: everything the projection forward computes, kept together so
+// the backward pass (and the CUDA kernels) recompute it with the very same code.
+
+template <typename T> struct ProjCamera {
+  Mat3<T> r;  // world-to-camera rotation
+  Vec3<T> t;  // world-to-camera translation
+  Intrinsics<T> k;
+};
+
+// From a row-major 4x4 world-to-camera matrix and a row-major 3x3 K.
+template <typename T>
+DGS_HD ProjCamera<T> camera_from(const T* viewmat, const T* K, int width, int height) {
+  ProjCamera<T> cam;
+  for (int i = 0; i < 3; ++i)
+    for (int j = 0; j < 3; ++j) cam.r.m[i][j] = viewmat[4 * i + j];
+  cam.t = {viewmat[3], viewmat[7], viewmat[11]};
+  cam.k = {K[0], K[4], K[2], K[5], width, height};
+  return cam;
+}
+
+template <typename T> struct Projected {
+  Vec3<T> p;        // camera-space mean
+  Mat3<T> rq;       // rotation of the Gaussian
+  Mat3<T> cov3d;    // world-space covariance
+  Mat3<T> cov_cam;  // camera-space covariance
+  Mat23<T> jac;
+  Sym2<T> cov2d;    // with the eps2d filter
+  T comp;           // Mip-Splatting compensation (1 without antialiasing)
+  bool valid;       // inside (near, far) with a positive-definite 2D covariance
+};
+
+template <typename T>
+DGS_HD Projected<T> project_one(const T* mean, const T* quat, const T* scale,
+                                const ProjCamera<T>& cam, T eps2d, bool antialiased, T near_plane,
+                                T far_plane) {
+  Projected<T> g;
+  g.valid = false;
+  g.comp = T(1);
+  g.p = matvec(cam.r, Vec3<T>{mean[0], mean[1], mean[2]});
+  g.p.x += cam.t.x; g.p.y += cam.t.y; g.p.z += cam.t.z;
+  if (!(g.p.z > near_plane) || !(g.p.z < far_plane)) return g;
+  g.rq = quat_to_rotmat(quat[0], quat[1], quat[2], quat[3]);
+  g.cov3d = covariance_3d(g.rq, Vec3<T>{scale[0], scale[1], scale[2]});
+  g.cov_cam = matmul(matmul(cam.r, g.cov3d), transpose(cam.r));
+  g.jac = projection_jacobian(g.p, cam.k);
+  g.cov2d = project_covariance(g.jac, g.cov_cam);
+  g.cov2d.a += eps2d;
+  g.cov2d.c += eps2d;
+  if (!(det2(g.cov2d) > T(0))) return g;
+  g.comp = antialiased ? compensation(g.cov2d, eps2d) : T(1);
+  g.valid = true;
+  return g;
+}
+
+// ---------------------------------------------------------------------------------------------
 // Screen extent: the axis-aligned box of the ellipse where max(o_c, o_g) exp(-q/2) >= 1/255,
 // widened by a small margin so that float rounding never drops a pixel that dense evaluation
 // would blend. Returns false when the Gaussian can never reach 1/255.

@@ -11,62 +11,15 @@
 namespace dgs {
 namespace {
 
-template <typename T> struct Camera {
-  Mat3<T> r;
-  Vec3<T> t;
-  Intrinsics<T> k;
-};
-
-template <typename T> Camera<T> read_camera(const at::Tensor& viewmat, const at::Tensor& K,
-                                            int64_t width, int64_t height) {
-  auto vm = viewmat.accessor<T, 2>();
-  auto kk = K.accessor<T, 2>();
-  Camera<T> cam;
-  for (int i = 0; i < 3; ++i)
-    for (int j = 0; j < 3; ++j) cam.r.m[i][j] = vm[i][j];
-  cam.t = {vm[0][3], vm[1][3], vm[2][3]};
-  cam.k = {kk[0][0], kk[1][1], kk[0][2], kk[1][2], int(width), int(height)};
-  return cam;
-}
-
-// Everything the forward computes for one Gaussian, kept together so that the backward pass
-// recomputes it with the very same code.
-template <typename T> struct Projected {
-  Vec3<T> p;        // camera-space mean
-  Mat3<T> rq;       // rotation of the Gaussian
-  Mat3<T> cov3d;    // world-space covariance
-  Mat3<T> cov_cam;  // camera-space covariance
-  Mat23<T> jac;
-  Sym2<T> cov2d;    // with the eps2d filter
-  T comp;
-  bool valid;
-};
-
-template <typename T>
-Projected<T> project_one(const T* mean, const T* quat, const T* scale, const Camera<T>& cam,
-                         T eps2d, bool antialiased, T near_plane, T far_plane) {
-  Projected<T> g;
-  g.valid = false;
-  g.p = matvec(cam.r, Vec3<T>{mean[0], mean[1], mean[2]});
-  g.p.x += cam.t.x; g.p.y += cam.t.y; g.p.z += cam.t.z;
-  if (!(g.p.z > near_plane) || !(g.p.z < far_plane)) return g;
-  g.rq = quat_to_rotmat(quat[0], quat[1], quat[2], quat[3]);
-  g.cov3d = covariance_3d(g.rq, Vec3<T>{scale[0], scale[1], scale[2]});
-  g.cov_cam = matmul(matmul(cam.r, g.cov3d), transpose(cam.r));
-  g.jac = projection_jacobian(g.p, cam.k);
-  g.cov2d = project_covariance(g.jac, g.cov_cam);
-  g.cov2d.a += eps2d;
-  g.cov2d.c += eps2d;
-  if (!(det2(g.cov2d) > T(0))) return g;
-  g.comp = antialiased ? compensation(g.cov2d, eps2d) : T(1);
-  g.valid = true;
-  return g;
+template <typename T> ProjCamera<T> read_camera(const at::Tensor& viewmat, const at::Tensor& K,
+                                                int64_t width, int64_t height) {
+  return camera_from(viewmat.data_ptr<T>(), K.data_ptr<T>(), int(width), int(height));
 }
 
 template <typename T>
 void projection_fwd_kernel(const at::Tensor& means, const at::Tensor& quats,
                            const at::Tensor& scales, const at::Tensor& opacity_c,
-                           const at::Tensor& opacity_g, const Camera<T>& cam, T beta, T eps2d,
+                           const at::Tensor& opacity_g, const ProjCamera<T>& cam, T beta, T eps2d,
                            bool antialiased, T near_plane, T far_plane, at::Tensor& means2d,
                            at::Tensor& conics, at::Tensor& depths, at::Tensor& opac,
                            at::Tensor& rects, at::Tensor& radii) {
@@ -115,7 +68,7 @@ void projection_fwd_kernel(const at::Tensor& means, const at::Tensor& quats,
 template <typename T>
 void projection_bwd_kernel(const at::Tensor& means, const at::Tensor& quats,
                            const at::Tensor& scales, const at::Tensor& opacity_c,
-                           const at::Tensor& opacity_g, const Camera<T>& cam, T beta, T eps2d,
+                           const at::Tensor& opacity_g, const ProjCamera<T>& cam, T beta, T eps2d,
                            bool antialiased, T near_plane, T far_plane, const at::Tensor& v_means2d,
                            const at::Tensor& v_conics, const at::Tensor& v_depths,
                            const at::Tensor& v_opac, at::Tensor& g_means, at::Tensor& g_quats,
@@ -220,7 +173,7 @@ projection_fwd(const at::Tensor& means, const at::Tensor& quats, const at::Tenso
   at::Tensor rects = at::empty({n, 4}, opts.dtype(at::kInt));
   at::Tensor radii = at::empty({n}, opts.dtype(at::kInt));
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "projection_fwd", [&] {
-    const Camera<scalar_t> cam = read_camera<scalar_t>(viewmat, K, width, height);
+    const ProjCamera<scalar_t> cam = read_camera<scalar_t>(viewmat, K, width, height);
     projection_fwd_kernel<scalar_t>(means, quats, scales, opacity_c, opacity_g, cam,
                                     scalar_t(beta), scalar_t(eps2d), antialiased,
                                     scalar_t(near_plane), scalar_t(far_plane), means2d, conics,
@@ -241,6 +194,8 @@ projection_bwd(const at::Tensor& means, const at::Tensor& quats, const at::Tenso
   check_cpu_input(v_conics, "v_conics", {n, 3});
   check_cpu_input(v_depths, "v_depths", {n});
   check_cpu_input(v_opacities, "v_opacities", {n, 2});
+  check_cpu_input(viewmat, "viewmat", {4, 4});
+  check_cpu_input(K, "K", {3, 3});
   auto opts = means.options();
   at::Tensor g_means = at::zeros({n, 3}, opts);
   at::Tensor g_quats = at::zeros({n, 4}, opts);
@@ -251,7 +206,7 @@ projection_bwd(const at::Tensor& means, const at::Tensor& quats, const at::Tenso
   at::Tensor g_K = at::zeros({3, 3}, opts);
   const int nthreads = at::get_num_threads();
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "projection_bwd", [&] {
-    const Camera<scalar_t> cam = read_camera<scalar_t>(viewmat, K, width, height);
+    const ProjCamera<scalar_t> cam = read_camera<scalar_t>(viewmat, K, width, height);
     std::vector<scalar_t> cam_grad;
     projection_bwd_kernel<scalar_t>(means, quats, scales, opacity_c, opacity_g, cam,
                                     scalar_t(beta), scalar_t(eps2d), antialiased,

@@ -1,5 +1,5 @@
-// Projection: CUDA kernels, one thread per Gaussian. The per-Gaussian math is gaussian_math.h;
-// project_one below composes it in the same order as projection.cpp so both give the same values.
+// Projection: CUDA kernels, one thread per Gaussian. The per-Gaussian math, project_one
+// included, is gaussian_math.h, shared with projection.cpp so both give the same values.
 #include <cuda_runtime.h>
 
 #include "gaussian_math.h"
@@ -11,58 +11,6 @@ namespace cuda {
 namespace {
 
 constexpr int kThreads = 256;
-
-template <typename T> struct Camera {
-  Mat3<T> r;
-  Vec3<T> t;
-  Intrinsics<T> k;
-};
-
-template <typename T>
-__device__ __forceinline__ Camera<T> read_camera(const T* viewmat, const T* K, int width,
-                                                 int height) {
-  Camera<T> cam;
-#pragma unroll
-  for (int i = 0; i < 3; ++i)
-#pragma unroll
-    for (int j = 0; j < 3; ++j) cam.r.m[i][j] = viewmat[4 * i + j];
-  cam.t = {viewmat[3], viewmat[7], viewmat[11]};
-  cam.k = {K[0], K[4], K[2], K[5], width, height};
-  return cam;
-}
-
-// Mirror of projection.cpp's Projected / project_one (kept there in an anonymous namespace).
-template <typename T> struct Projected {
-  Vec3<T> p;
-  Mat3<T> rq, cov3d, cov_cam;
-  Mat23<T> jac;
-  Sym2<T> cov2d;
-  T comp;
-  bool valid;
-};
-
-template <typename T>
-__device__ __forceinline__ Projected<T> project_one(const T* mean, const T* quat, const T* scale,
-                                                    const Camera<T>& cam, T eps2d,
-                                                    bool antialiased, T near_plane, T far_plane) {
-  Projected<T> g;
-  g.valid = false;
-  g.comp = T(1);
-  g.p = matvec(cam.r, Vec3<T>{mean[0], mean[1], mean[2]});
-  g.p.x += cam.t.x; g.p.y += cam.t.y; g.p.z += cam.t.z;
-  if (!(g.p.z > near_plane) || !(g.p.z < far_plane)) return g;
-  g.rq = quat_to_rotmat(quat[0], quat[1], quat[2], quat[3]);
-  g.cov3d = covariance_3d(g.rq, Vec3<T>{scale[0], scale[1], scale[2]});
-  g.cov_cam = matmul(matmul(cam.r, g.cov3d), transpose(cam.r));
-  g.jac = projection_jacobian(g.p, cam.k);
-  g.cov2d = project_covariance(g.jac, g.cov_cam);
-  g.cov2d.a += eps2d;
-  g.cov2d.c += eps2d;
-  if (!(det2(g.cov2d) > T(0))) return g;
-  g.comp = antialiased ? compensation(g.cov2d, eps2d) : T(1);
-  g.valid = true;
-  return g;
-}
 
 template <typename T>
 __global__ void __launch_bounds__(kThreads)
@@ -76,7 +24,7 @@ __global__ void __launch_bounds__(kThreads)
                           int32_t* __restrict__ radii) {
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i >= n) return;  // no warp collectives in this kernel
-  const Camera<T> cam = read_camera(viewmat, K, width, height);
+  const ProjCamera<T> cam = camera_from(viewmat, K, width, height);
   T mx = T(0), my = T(0), o_c = T(0), o_g = T(0), z = T(0);
   Sym2<T> conic = {T(0), T(0), T(0)};
   int32_t rect[4] = {0, 0, -1, -1};
@@ -126,7 +74,7 @@ __global__ void __launch_bounds__(kThreads)
   for (int j = 0; j < 16; ++j) local[j] = T(0);
   const int64_t i = int64_t(blockIdx.x) * blockDim.x + threadIdx.x;
   if (i < n) {
-    const Camera<T> cam = read_camera(viewmat, K, width, height);
+    const ProjCamera<T> cam = camera_from(viewmat, K, width, height);
     const Projected<T> g = project_one(means + 3 * i, quats + 4 * i, scales + 3 * i, cam, eps2d,
                                        antialiased, near_plane, far_plane);
     T gm[3] = {T(0), T(0), T(0)}, gq[4] = {T(0), T(0), T(0), T(0)}, gs[3] = {T(0), T(0), T(0)};
