@@ -366,6 +366,68 @@ DGS_HD Projected<T> project_one(const T* mean, const T* quat, const T* scale,
   return g;
 }
 
+// Gradients of one Gaussian's projection; `camera` holds the world-to-camera rotation (9,
+// row-major), translation (3) and fx, fy, cx, cy (4), to be summed over Gaussians.
+template <typename T> struct ProjectionGrads {
+  T mean[3], quat[4], scale[3], op_c, op_g;
+  T camera[16];
+};
+
+// VJP of project_one followed by mean2d = (fx x/z + cx, fy y/z + cy), depth = z, the conic
+// (inverse 2D covariance) and the beta mixing of the opacities, for a valid `g`.
+// v_conic is (a, b, c) with b the one off-diagonal scalar; v_opac is (appearance, geometry).
+template <typename T>
+DGS_HD ProjectionGrads<T> project_one_vjp(const Projected<T>& g, const T* mean, const T* quat,
+                                          const T* scale, T op_c, T op_g,
+                                          const ProjCamera<T>& cam, T beta, T eps2d,
+                                          bool antialiased, const T* v_mean2d, const T* v_conic,
+                                          T v_depth, const T* v_opac) {
+  ProjectionGrads<T> out;
+  // Opacity mixing.
+  const T voc = v_opac[0], vog = v_opac[1];
+  const T half_c = T(0.5) * g.comp;
+  out.op_c = half_c * ((T(1) + beta) * voc + (T(1) - beta) * vog);
+  out.op_g = half_c * ((T(1) - beta) * voc + (T(1) + beta) * vog);
+  const T v_comp = T(0.5) * (((T(1) + beta) * op_c + (T(1) - beta) * op_g) * voc +
+                             ((T(1) - beta) * op_c + (T(1) + beta) * op_g) * vog);
+  // Conic -> 2D covariance (conic b is one scalar used twice: per-element gradient is half).
+  const Sym2<T> conic = inverse2(g.cov2d);
+  Sym2<T> g_cov2d = inverse2_vjp(conic, Sym2<T>{v_conic[0], T(0.5) * v_conic[1], v_conic[2]});
+  if (antialiased) {
+    const Sym2<T> gc = compensation_vjp(g.cov2d, eps2d, v_comp);
+    g_cov2d.a += gc.a; g_cov2d.b += gc.b; g_cov2d.c += gc.c;
+  }
+  Mat23<T> g_jac;
+  Mat3<T> g_cov_cam;
+  project_covariance_vjp(g.jac, g.cov_cam, g_cov2d, g_jac, g_cov_cam);
+  // Camera point: mean2d, depth and the Jacobian.
+  const T iz = T(1) / g.p.z;
+  const T vmx = v_mean2d[0], vmy = v_mean2d[1];
+  Vec3<T> g_p = {cam.k.fx * iz * vmx, cam.k.fy * iz * vmy,
+                 -(cam.k.fx * g.p.x * vmx + cam.k.fy * g.p.y * vmy) * iz * iz + v_depth};
+  IntrinsicsGrad<T> g_k = {g.p.x * iz * vmx, g.p.y * iz * vmy, vmx, vmy};
+  projection_jacobian_vjp(g.p, cam.k, g_jac, g_p, g_k);
+  // Camera-space covariance R C R^T -> world covariance and the camera rotation.
+  const Mat3<T> g_cov3d = matmul(matmul(transpose(cam.r), g_cov_cam), cam.r);
+  const Mat3<T> g_r_cov = matmul(matmul(g_cov_cam, cam.r), g.cov3d);  // x2 below
+  Mat3<T> g_rq;
+  Vec3<T> g_s;
+  covariance_3d_vjp(g.rq, Vec3<T>{scale[0], scale[1], scale[2]}, g_cov3d, g_rq, g_s);
+  quat_to_rotmat_vjp(quat[0], quat[1], quat[2], quat[3], g_rq, out.quat);
+  const Vec3<T> g_mean = matTvec(cam.r, g_p);
+  out.mean[0] = g_mean.x; out.mean[1] = g_mean.y; out.mean[2] = g_mean.z;
+  out.scale[0] = g_s.x; out.scale[1] = g_s.y; out.scale[2] = g_s.z;
+  // Camera: p = R mu + t.
+  const T gpv[3] = {g_p.x, g_p.y, g_p.z};
+  for (int a = 0; a < 3; ++a) {
+    for (int b = 0; b < 3; ++b) out.camera[3 * a + b] = gpv[a] * mean[b] + T(2) * g_r_cov.m[a][b];
+    out.camera[9 + a] = gpv[a];
+  }
+  out.camera[12] = g_k.fx; out.camera[13] = g_k.fy; out.camera[14] = g_k.cx;
+  out.camera[15] = g_k.cy;
+  return out;
+}
+
 // ---------------------------------------------------------------------------------------------
 // Screen extent: the axis-aligned box of the ellipse where max(o_c, o_g) exp(-q/2) >= 1/255,
 // widened by a small margin so that float rounding never drops a pixel that dense evaluation

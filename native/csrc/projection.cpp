@@ -97,52 +97,15 @@ void projection_bwd_kernel(const at::Tensor& means, const at::Tensor& quats,
       const Projected<T> g = project_one(mp + 3 * i, qp + 4 * i, sp + 3 * i, cam, eps2d,
                                          antialiased, near_plane, far_plane);
       if (!g.valid) continue;
-      // Opacity mixing.
-      const T voc = vop[2 * i], vog = vop[2 * i + 1];
-      const T half_c = T(0.5) * g.comp;
-      goc[i] = half_c * ((T(1) + beta) * voc + (T(1) - beta) * vog);
-      gog[i] = half_c * ((T(1) - beta) * voc + (T(1) + beta) * vog);
-      const T v_comp = T(0.5) * (((T(1) + beta) * ocp[i] + (T(1) - beta) * ogp[i]) * voc +
-                                 ((T(1) - beta) * ocp[i] + (T(1) + beta) * ogp[i]) * vog);
-      // Conic -> 2D covariance (conic b is one scalar used twice: per-element gradient is half).
-      const Sym2<T> conic = inverse2(g.cov2d);
-      Sym2<T> g_cov2d =
-          inverse2_vjp(conic, Sym2<T>{vcn[3 * i], T(0.5) * vcn[3 * i + 1], vcn[3 * i + 2]});
-      if (antialiased) {
-        const Sym2<T> gc = compensation_vjp(g.cov2d, eps2d, v_comp);
-        g_cov2d.a += gc.a; g_cov2d.b += gc.b; g_cov2d.c += gc.c;
-      }
-      Mat23<T> g_jac;
-      Mat3<T> g_cov_cam;
-      project_covariance_vjp(g.jac, g.cov_cam, g_cov2d, g_jac, g_cov_cam);
-      // Camera point: mean2d, depth and the Jacobian.
-      const T iz = T(1) / g.p.z;
-      const T vmx = vm2[2 * i], vmy = vm2[2 * i + 1];
-      Vec3<T> g_p = {cam.k.fx * iz * vmx, cam.k.fy * iz * vmy,
-                     -(cam.k.fx * g.p.x * vmx + cam.k.fy * g.p.y * vmy) * iz * iz + vdp[i]};
-      IntrinsicsGrad<T> g_k = {g.p.x * iz * vmx, g.p.y * iz * vmy, vmx, vmy};
-      projection_jacobian_vjp(g.p, cam.k, g_jac, g_p, g_k);
-      // Camera-space covariance R C R^T -> world covariance and the camera rotation.
-      const Mat3<T> g_cov3d = matmul(matmul(transpose(cam.r), g_cov_cam), cam.r);
-      const Mat3<T> g_r_cov = matmul(matmul(g_cov_cam, cam.r), g.cov3d);  // x2 below
-      Mat3<T> g_rq;
-      Vec3<T> g_s;
-      covariance_3d_vjp(g.rq, Vec3<T>{sp[3 * i], sp[3 * i + 1], sp[3 * i + 2]}, g_cov3d, g_rq,
-                        g_s);
-      T g_q[4];
-      quat_to_rotmat_vjp(qp[4 * i], qp[4 * i + 1], qp[4 * i + 2], qp[4 * i + 3], g_rq, g_q);
-      const Vec3<T> g_mean = matTvec(cam.r, g_p);
-      gm[3 * i] = g_mean.x; gm[3 * i + 1] = g_mean.y; gm[3 * i + 2] = g_mean.z;
-      for (int j = 0; j < 4; ++j) gq[4 * i + j] = g_q[j];
-      gs[3 * i] = g_s.x; gs[3 * i + 1] = g_s.y; gs[3 * i + 2] = g_s.z;
-      // Camera: p = R mu + t.
-      const T mu[3] = {mp[3 * i], mp[3 * i + 1], mp[3 * i + 2]};
-      const T gpv[3] = {g_p.x, g_p.y, g_p.z};
-      for (int a = 0; a < 3; ++a) {
-        for (int b = 0; b < 3; ++b) local[3 * a + b] += gpv[a] * mu[b] + T(2) * g_r_cov.m[a][b];
-        local[9 + a] += gpv[a];
-      }
-      local[12] += g_k.fx; local[13] += g_k.fy; local[14] += g_k.cx; local[15] += g_k.cy;
+      const ProjectionGrads<T> pg = project_one_vjp(
+          g, mp + 3 * i, qp + 4 * i, sp + 3 * i, ocp[i], ogp[i], cam, beta, eps2d, antialiased,
+          vm2 + 2 * i, vcn + 3 * i, vdp[i], vop + 2 * i);
+      for (int j = 0; j < 3; ++j) gm[3 * i + j] = pg.mean[j];
+      for (int j = 0; j < 4; ++j) gq[4 * i + j] = pg.quat[j];
+      for (int j = 0; j < 3; ++j) gs[3 * i + j] = pg.scale[j];
+      goc[i] = pg.op_c;
+      gog[i] = pg.op_g;
+      for (int j = 0; j < 16; ++j) local[j] += pg.camera[j];
     }
     T* dst = cam_grad.data() + 16 * at::get_thread_num();
     for (int j = 0; j < 16; ++j) dst[j] += local[j];

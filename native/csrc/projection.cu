@@ -80,52 +80,19 @@ __global__ void __launch_bounds__(kThreads)
     T gm[3] = {T(0), T(0), T(0)}, gq[4] = {T(0), T(0), T(0), T(0)}, gs[3] = {T(0), T(0), T(0)};
     T goc = T(0), gog = T(0);
     if (g.valid) {
-      const T voc = v_opac[2 * i], vog = v_opac[2 * i + 1];
-      const T oc = opacity_c[i], og = opacity_g[i];
-      const T half_c = T(0.5) * g.comp;
-      goc = half_c * ((T(1) + beta) * voc + (T(1) - beta) * vog);
-      gog = half_c * ((T(1) - beta) * voc + (T(1) + beta) * vog);
-      const T v_comp = T(0.5) * (((T(1) + beta) * oc + (T(1) - beta) * og) * voc +
-                                 ((T(1) - beta) * oc + (T(1) + beta) * og) * vog);
-      // conic b is one scalar used twice: its per-element gradient is half.
-      const Sym2<T> conic = inverse2(g.cov2d);
-      Sym2<T> g_cov2d =
-          inverse2_vjp(conic, Sym2<T>{v_conics[3 * i], T(0.5) * v_conics[3 * i + 1],
-                                      v_conics[3 * i + 2]});
-      if (antialiased) {
-        const Sym2<T> gc = compensation_vjp(g.cov2d, eps2d, v_comp);
-        g_cov2d.a += gc.a; g_cov2d.b += gc.b; g_cov2d.c += gc.c;
-      }
-      Mat23<T> g_jac;
-      Mat3<T> g_cov_cam;
-      project_covariance_vjp(g.jac, g.cov_cam, g_cov2d, g_jac, g_cov_cam);
-      const T iz = T(1) / g.p.z;
-      const T vmx = v_means2d[2 * i], vmy = v_means2d[2 * i + 1];
-      Vec3<T> g_p = {cam.k.fx * iz * vmx, cam.k.fy * iz * vmy,
-                     -(cam.k.fx * g.p.x * vmx + cam.k.fy * g.p.y * vmy) * iz * iz + v_depths[i]};
-      IntrinsicsGrad<T> g_k = {g.p.x * iz * vmx, g.p.y * iz * vmy, vmx, vmy};
-      projection_jacobian_vjp(g.p, cam.k, g_jac, g_p, g_k);
-      const Mat3<T> g_cov3d = matmul(matmul(transpose(cam.r), g_cov_cam), cam.r);
-      const Mat3<T> g_r_cov = matmul(matmul(g_cov_cam, cam.r), g.cov3d);  // x2 below
-      Mat3<T> g_rq;
-      Vec3<T> g_s;
-      covariance_3d_vjp(g.rq, Vec3<T>{scales[3 * i], scales[3 * i + 1], scales[3 * i + 2]},
-                        g_cov3d, g_rq, g_s);
-      quat_to_rotmat_vjp(quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3],
-                         g_rq, gq);
-      const Vec3<T> g_mean = matTvec(cam.r, g_p);
-      gm[0] = g_mean.x; gm[1] = g_mean.y; gm[2] = g_mean.z;
-      gs[0] = g_s.x; gs[1] = g_s.y; gs[2] = g_s.z;
-      // Camera: p = R mu + t.
-      const T mu[3] = {means[3 * i], means[3 * i + 1], means[3 * i + 2]};
-      const T gpv[3] = {g_p.x, g_p.y, g_p.z};
+      const ProjectionGrads<T> pg = project_one_vjp(
+          g, means + 3 * i, quats + 4 * i, scales + 3 * i, opacity_c[i], opacity_g[i], cam, beta,
+          eps2d, antialiased, v_means2d + 2 * i, v_conics + 3 * i, v_depths[i], v_opac + 2 * i);
 #pragma unroll
-      for (int a = 0; a < 3; ++a) {
+      for (int j = 0; j < 3; ++j) gm[j] = pg.mean[j];
 #pragma unroll
-        for (int b = 0; b < 3; ++b) local[3 * a + b] = gpv[a] * mu[b] + T(2) * g_r_cov.m[a][b];
-        local[9 + a] = gpv[a];
-      }
-      local[12] = g_k.fx; local[13] = g_k.fy; local[14] = g_k.cx; local[15] = g_k.cy;
+      for (int j = 0; j < 4; ++j) gq[j] = pg.quat[j];
+#pragma unroll
+      for (int j = 0; j < 3; ++j) gs[j] = pg.scale[j];
+      goc = pg.op_c;
+      gog = pg.op_g;
+#pragma unroll
+      for (int j = 0; j < 16; ++j) local[j] = pg.camera[j];
     }
     for (int j = 0; j < 3; ++j) g_means[3 * i + j] = gm[j];
     for (int j = 0; j < 4; ++j) g_quats[4 * i + j] = gq[j];
