@@ -38,7 +38,7 @@ from core.synth.shading import (
     vertex_visibility,
 )
 
-__all__ = ["SynthConfig", "dome_cameras", "synthesize"]
+__all__ = ["SynthConfig", "dome_cameras", "look_at", "synthesize"]
 
 _TARGET = np.array([0.0, 0.0, 0.9])
 _UP = (0.0, 0.0, 1.0)
@@ -73,6 +73,21 @@ class SynthConfig:
             raise ValueError(f"size: expected at least 8x8, got {self.width}x{self.height}")
 
 
+def look_at(eye, target, up) -> np.ndarray:
+    """(4, 4) world-to-camera of a camera at `eye` looking at `target`, OpenCV axes (x right,
+    y down, z forward), with `up` pointing up in the image."""
+    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
+    fwd = target - eye
+    fwd /= np.linalg.norm(fwd)
+    right = np.cross(fwd, up)
+    right /= np.linalg.norm(right)
+    down = np.cross(fwd, right)
+    w2c = np.eye(4)
+    w2c[:3, :3] = np.stack([right, down, fwd])
+    w2c[:3, 3] = -w2c[:3, :3] @ eye
+    return w2c
+
+
 def dome_cameras(config: SynthConfig, rng: np.random.Generator) -> list[Camera]:
     """Cameras on the upper hemisphere (5..65 degrees elevation, golden-angle azimuths), looking at
     the figure, with a few percent of focal and principal-point jitter so intrinsics differ."""
@@ -87,14 +102,7 @@ def dome_cameras(config: SynthConfig, rng: np.random.Generator) -> list[Camera]:
         eye = _TARGET + config.radius * np.array(
             [np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)]
         )
-        fwd = _TARGET - eye
-        fwd /= np.linalg.norm(fwd)
-        right = np.cross(fwd, _UP)
-        right /= np.linalg.norm(right)
-        down = np.cross(fwd, right)
-        w2c = np.eye(4)
-        w2c[:3, :3] = np.stack([right, down, fwd])
-        w2c[:3, 3] = -w2c[:3, :3] @ eye
+        w2c = look_at(eye, _TARGET, _UP)
         # 36 degrees vertical field of view fits the 1.9 m figure with its swinging limbs.
         f = 0.5 * H / np.tan(np.radians(18)) * (1 + rng.uniform(-0.03, 0.03))
         cx = W / 2 * (1 + rng.uniform(-0.02, 0.02))

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from core.ao import AOConfig, ao_map, init_visibility, scaled_camera
 from core.model import GaussianModel, LearningRates
 from core.render import RenderCamera
+from core.synth.generate import look_at
 
 
 def _plane_params(xs, ys, z_of, normal, spacing):
@@ -66,17 +66,8 @@ def test_visibility_is_lower_in_the_corner():
     assert any(p is model.params["visibility"] for g in opt.param_groups for p in g["params"])
 
 
-def _look_at(eye, target, up=(0.0, 0.0, 1.0)) -> torch.Tensor:
-    eye, target, up = (np.asarray(v, float) for v in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    vm = np.eye(4)
-    vm[:3, :3] = np.stack([x, y, z])
-    vm[:3, 3] = -vm[:3, :3] @ eye
-    return torch.tensor(vm, dtype=torch.float32)
+def _look_at(eye, target) -> torch.Tensor:
+    return torch.tensor(look_at(eye, target, (0.0, 0.0, 1.0)), dtype=torch.float32)
 
 
 def test_ao_map_darkens_the_corner():

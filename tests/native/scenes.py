@@ -45,19 +45,9 @@ class Scene:
 
 def look_at(eye, target, up=(0.0, -1.0, 0.0)) -> Tensor:
     """World-to-camera (4,4), OpenCV axes (x right, y down, z forward)."""
-    eye, target, up = (torch.tensor(v, dtype=torch.float64) for v in (eye, target, up))
-    z = target - eye
-    z = z / z.norm()
-    x = torch.linalg.cross(z, up)
-    if x.norm() < 1e-9:
-        x = torch.linalg.cross(z, torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64))
-    x = x / x.norm()
-    y = torch.linalg.cross(z, x)
-    R = torch.stack([x, y, z])
-    vm = torch.eye(4, dtype=torch.float64)
-    vm[:3, :3] = R
-    vm[:3, 3] = -R @ eye
-    return vm.float()
+    from core.synth.generate import look_at as look_at_np
+
+    return torch.tensor(look_at_np(eye, target, up), dtype=torch.float32)
 
 
 def random_scene(n: int, width: int, height: int, *, C: int = 3, G: int = 5, seed: int = 0,
