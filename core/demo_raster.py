@@ -1,8 +1,8 @@
-"""The interim demo: a synthetic capture, then its ground-truth surface splatted through the
+"""`dgs demo --raster`: a synthetic capture, then its ground-truth surface splatted through the
 disentangled rasterizer and compared with the ground truth of a held-out camera.
 
-Until the reconstruction pipeline lands (static reconstruction issue), this shows the two parts
-that exist end to end: `dgs synth` + validation, and `native.rasterize` with both branches.
+No training: a quick check of `dgs synth` + validation and of `native.rasterize` with both
+branches (the main demo, `core.commands_demo`, reconstructs the capture).
 """
 
 from __future__ import annotations
@@ -60,8 +60,9 @@ def run_raster_demo(out: str = "demo") -> int:
     capture_dir = root / "capture"
     t0 = time.perf_counter()
     if not (capture_dir / "capture.json").exists():
-        print(f"[1/3] dgs synth -> {capture_dir} (16 views, 128x128, 1 frame)", flush=True)
-        synthesize(capture_dir, SynthConfig(frames=1, views=16, width=128, height=128, seed=0))
+        print(f"[1/3] dgs synth -> {capture_dir} (16 views, 128x128, 1 frame, priors)", flush=True)
+        synthesize(capture_dir, SynthConfig(frames=1, views=16, width=128, height=128, seed=0,
+                                            priors=True))
     capture = load_capture(capture_dir)
     check_capture(capture_dir)
     print(f"      capture valid: {len(capture.cameras)} cameras, {len(capture.frames)} frame(s) "
@@ -105,12 +106,12 @@ def run_raster_demo(out: str = "demo") -> int:
                             (gt_normal + 1) / 2 * (gt_depth > 0)[..., None], to_rgb(1 - dn)], 1)
     _png(renders / f"{cam.id}_rgb.png", rgb)
     _png(renders / f"{cam.id}_normal.png", np.where(fg[..., None], (normal + 1) / 2, 0))
-    _png(root / "demo.png", sheet)
+    _png(root / "raster_demo.png", sheet)
     print("[3/3] results", flush=True)
     print(f"      normal cosine vs ground truth (foreground): {cos:.4f}")
     print(f"      mean |depth error|: {err:.4f} m (scene ~2 m tall)")
-    print(f"      contact sheet: {root / 'demo.png'} (capture | splat rgb | splat normal | "
+    print(f"      contact sheet: {root / 'raster_demo.png'} (capture | splat rgb | splat normal | "
           "ground-truth normal | depth)")
-    print("      The reconstruction job (dgs reconstruct) arrives with the static reconstruction "
-          "issue; then `make demo` runs it on this capture.")
+    print("      `dgs demo` (without --raster) reconstructs this capture instead of splatting "
+          "its ground truth.")
     return 0

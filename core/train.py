@@ -136,6 +136,8 @@ class StepInfo:
     losses: dict[str, float]
     n_gaussians: int
     seconds: float
+    psnr: float | None = None
+    """PSNR (dB) of this step's training render against its target."""
 
 
 class Callback:
@@ -170,19 +172,25 @@ class ProgressCallback(Callback):
 
 
 class CheckpointCallback(Callback):
-    """Writes `folder/checkpoint.pt` (atomically) every `every` steps and at the end."""
+    """Writes `folder/<filename>` (atomically) every `every` steps and at the end; `extra`
+    (a callable returning plain data) is stored beside the training state."""
 
-    def __init__(self, folder: str | os.PathLike[str], every: int = 1000):
+    def __init__(self, folder: str | os.PathLike[str], every: int = 1000,
+                 filename: str = "checkpoint.pt", extra: Callable[[], object] | None = None):
         if every < 1:
             raise ValueError(f"every: expected >= 1, got {every}")
-        self.folder, self.every = Path(folder), every
+        self.folder, self.every, self.filename, self.extra = Path(folder), every, filename, extra
+
+    def _save(self, trainer: Trainer) -> None:
+        trainer.save_checkpoint(self.folder / self.filename,
+                                extra=None if self.extra is None else self.extra())
 
     def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
         if (info.step + 1) % self.every == 0:
-            trainer.save_checkpoint(self.folder / "checkpoint.pt")
+            self._save(trainer)
 
     def on_train_end(self, trainer: Trainer) -> None:
-        trainer.save_checkpoint(self.folder / "checkpoint.pt")
+        self._save(trainer)
 
 
 def psnr(pred: Tensor, target: Tensor) -> float:
@@ -310,7 +318,8 @@ class Trainer:
             self.strategy.prune_and_reset(self.model, self.optimizer, self.state, p.tie_opacity)
         losses = {k: float(v.detach()) for k, v in terms.items()}
         losses["total"] = float(total.detach())
-        info = StepInfo(self.step, p, losses, len(self.model), time.perf_counter() - start)
+        info = StepInfo(self.step, p, losses, len(self.model), time.perf_counter() - start,
+                        psnr(r.rgb, self.target(index)))
         self.step += 1
         return info
 
@@ -333,21 +342,26 @@ class Trainer:
         ids = range(len(self.views)) if indices is None else indices
         return sum(psnr(self.render_view(i, p).rgb, self.target(i)) for i in ids) / len(ids)
 
-    def save_checkpoint(self, path: str | os.PathLike[str]) -> None:
-        """Parameters, optimizer and strategy state and the step, written atomically."""
+    def save_checkpoint(self, path: str | os.PathLike[str], extra: object = None) -> None:
+        """Parameters, optimizer and strategy state, the step, the baked AO targets (so a resumed
+        stage 3 keeps its visibility loss) and `extra` (plain data), written atomically."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         blob = {"step": self.step, "params": {k: v.detach() for k, v in self.model.params.items()},
-                "optimizer": self.optimizer.state_dict(), "strategy": asdict(self.state)}
+                "optimizer": self.optimizer.state_dict(), "strategy": asdict(self.state),
+                "ao_targets": self.ao_targets, "notes": list(self.notes), "extra": extra}
         tmp = path.with_name(path.name + ".tmp")
         torch.save(blob, tmp)
         os.replace(tmp, path)
 
-    def load_checkpoint(self, path: str | os.PathLike[str]) -> None:
-        """Resume from `save_checkpoint`'s file (same views and config)."""
+    def load_checkpoint(self, path: str | os.PathLike[str]) -> object:
+        """Resume from `save_checkpoint`'s file (same views and config); returns its `extra`."""
         blob = torch.load(path, weights_only=True)
         self.model = GaussianModel(blob["params"])
         self.optimizer = self.model.make_optimizer(self.config.rates, self.extent)
         self.optimizer.load_state_dict(blob["optimizer"])
         self.state = StrategyState(**blob["strategy"])
         self.step = int(blob["step"])
+        self.ao_targets = blob.get("ao_targets")
+        self.notes = list(blob.get("notes") or [])
+        return blob.get("extra")

@@ -1,0 +1,135 @@
+"""`dgs eval`: quality of a run on its held-out views (DESIGN.md 3.3 `eval.json`, section 5).
+
+- rgb: PSNR over foreground pixels when the capture has masks (else the whole image; `psnr_full`
+  is always over the whole image, comparable with papers that composite on black) and SSIM
+  (11x11 Gaussian window, `core.losses.ssim`) on the whole image with the capture composited on
+  the run's background, against RUN/renders/<frame>/<camera>_rgb.png;
+- normals: mean cosine and mean angle on foreground pixels against the synthetic ground truth
+  (gt/normals) when the capture has it, else against the normal priors (normals/), else null.
+  Foreground pixels the run left uncovered (black in _normal.png) count as cosine 0, so a run
+  cannot score well by drawing nothing;
+- lpips stays null (backbone weights cannot be downloaded at run time) and chamfer null until
+  meshes are written.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["evaluate_run", "normal_agreement"]
+
+
+def _read_png(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    if not path.is_file():
+        raise ValueError(f"run_dir: {path} not found (the run has no render for this view)")
+    return np.asarray(Image.open(path)).astype(np.float32) / 255.0
+
+
+def normal_agreement(pred_png: np.ndarray, reference: np.ndarray,
+                     foreground: np.ndarray) -> tuple[float, float] | None:
+    """(mean cosine, mean angle in degrees) between normals stored as (n+1)/2 (black: none) and
+    unit `reference` normals (H, W, 3) over `foreground` (H, W) pixels; None when no pixel."""
+    if not foreground.any():
+        return None
+    covered = pred_png.max(axis=-1) > 0
+    n = pred_png * 2.0 - 1.0
+    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6)
+    cos = np.where(covered, np.clip((n * reference).sum(-1), -1.0, 1.0), 0.0)[foreground]
+    return float(cos.mean()), float(np.degrees(np.arccos(cos)).mean())
+
+
+def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np.ndarray | None,
+                  background: np.ndarray, linear: bool) -> dict:
+    import torch
+
+    from core.losses import ssim
+
+    image = sample.image.numpy()
+    mask = None if sample.mask is None else sample.mask.numpy()
+    if linear:
+        from core.synth.shading import linear_to_srgb  # renders are sRGB; compare like with like
+
+        image = linear_to_srgb(image).astype(np.float32)
+    target = image if mask is None else image * mask + background * (1 - mask)
+    fg = np.ones(target.shape[:2], bool) if mask is None else mask[..., 0] > 0.5
+    mse = float(((rgb - target) ** 2)[fg].mean()) if fg.any() else 0.0
+    full = float(((rgb - target) ** 2).mean())
+    out = {"camera": sample.camera_id,
+           "psnr": 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse),
+           "psnr_full": 100.0 if full <= 1e-10 else -10.0 * math.log10(full),
+           "ssim": float(ssim(torch.from_numpy(rgb), torch.from_numpy(target)))}
+    if gt_normal is not None:
+        ref, source = gt_normal, "ground truth"
+        region = np.linalg.norm(gt_normal, axis=-1) > 0.5
+    elif sample.normal is not None:
+        ref, source = sample.normal.numpy(), "prior"
+        region = np.linalg.norm(ref, axis=-1) > 0.5
+    else:
+        return {**out, "normal_cos": None, "normal_deg": None, "normal_reference": None}
+    if mask is not None:
+        region &= fg
+    agree = normal_agreement(normal_png, ref, region)
+    return {**out, "normal_cos": None if agree is None else agree[0],
+            "normal_deg": None if agree is None else agree[1], "normal_reference": source}
+
+
+def _mean(rows: list[dict], key: str) -> float | None:
+    vals = [r[key] for r in rows if r.get(key) is not None]
+    return float(np.mean(vals)) if vals else None
+
+
+def _summary(rows: list[dict]) -> dict:
+    return {k: _mean(rows, k) for k in ("psnr", "psnr_full", "ssim", "normal_cos", "normal_deg")}
+
+
+def evaluate_run(run_dir: str | os.PathLike[str],
+                 capture_dir: str | os.PathLike[str] | None = None) -> dict:
+    """Score the held-out renders of every finished frame of `run_dir`; writes RUN/eval.json and
+    returns its content. `capture_dir` defaults to the capture recorded in RUN/config.json."""
+    from core.data import CaptureDataset, load_capture
+    from core.pipeline import write_json
+
+    run = Path(run_dir)
+    if not (run / "config.json").is_file():
+        raise ValueError(f"run_dir: {run} is not a run directory (no config.json)")
+    config = json.loads((run / "config.json").read_text())
+    capture_dir = Path(capture_dir if capture_dir is not None else config["capture"])
+    if not (capture_dir / "capture.json").is_file():
+        raise ValueError(f"capture: {capture_dir} has no capture.json (pass --capture)")
+    capture = load_capture(capture_dir)
+    metrics_path = run / "metrics.json"
+    done = json.loads(metrics_path.read_text())["frames"] if metrics_path.is_file() else {}
+    # Every finished frame, also those of an earlier invocation with another --frames.
+    frames = [f for f in capture.frames if f in done]
+    if not frames:
+        raise ValueError(f"run_dir: {run} has no finished frame of {capture_dir} to evaluate")
+    held = [c.id for i, c in enumerate(capture.cameras) if i % 8 == 0]
+    background = np.asarray(config["train"]["background"], np.float32)
+    per_frame, rows = [], []
+    for frame in frames:
+        ds = CaptureDataset(capture, frames=[frame], cameras=held)
+        views = []
+        for i in range(len(ds)):
+            s = ds[i]
+            base = run / "renders" / frame / s.camera_id
+            gt_path = capture_dir / "gt" / "normals" / frame / f"{s.camera_id}.npy"
+            image = capture.image_path(frame, s.camera_id)
+            views.append(_view_metrics(
+                s, _read_png(Path(f"{base}_rgb.png"))[..., :3],
+                _read_png(Path(f"{base}_normal.png"))[..., :3],
+                np.load(gt_path) if gt_path.is_file() else None, background,
+                image is not None and image.suffix.lower() == ".exr"))
+        rows += views
+        per_frame.append({"frame": frame, **_summary(views), "views": views})
+    result = {**_summary(rows), "lpips": None, "chamfer": None,
+              "normal_reference": rows[0]["normal_reference"], "capture": str(capture_dir),
+              "views": len(rows), "per_frame": per_frame}
+    write_json(run / "eval.json", result)
+    return result

@@ -1,0 +1,334 @@
+"""The main job: reconstruct every selected frame of a capture into a run directory (DESIGN.md 3.3).
+
+Per frame: the full static stages (`core.train.Trainer`), a PLY, renders of the held-out cameras,
+per-frame metrics; checkpoints land atomically under RUN/checkpoints/<frame>.pt so an interrupted
+run resumes where it stopped. Sequences (deform + refine inside a GoP) come in a later issue: for
+now every frame is a key frame, and metrics.json says so.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from core.train import Callback, CheckpointCallback, StepInfo, TrainConfig, Trainer, train_config
+
+__all__ = ["RunConfig", "apply_overrides", "parse_frames", "reconstruct", "render_heldout",
+           "resolve_config", "write_json"]
+
+# Geometry coverage above which a pixel gets a normal and AO in the pictures (else black): low
+# enough that the soft edges of a short run still show, high enough that the direction of the
+# alpha-weighted normal sum is not noise.
+COVERAGE = 0.2
+
+SEQUENCE_NOTE = ("sequences with deformation (GoP) come in a later issue: every frame was "
+                 "reconstructed independently with the full static stages")
+
+
+@dataclass(frozen=True)
+class RunConfig:
+    """What a run needs beyond one frame's training configuration."""
+
+    train: TrainConfig = field(default_factory=TrainConfig)
+    """How each frame is trained (the preset, with overrides applied)."""
+    checkpoint_every: int = 1000
+    """Steps between checkpoints (RUN/checkpoints/<frame>.pt, written atomically)."""
+    gop: int = 20
+    """Frames per group of pictures; recorded, unused until sequences land."""
+    normal_estimator: str | None = None
+    """Model file (TorchScript, or .onnx with onnxruntime) for views without a normals/ prior."""
+    normal_estimator_space: str = "camera"
+    """'camera' or 'world': the space the estimator's normals are in."""
+
+    def __post_init__(self) -> None:
+        if self.checkpoint_every < 1:
+            raise ValueError(f"checkpoint_every: expected >= 1, got {self.checkpoint_every}")
+        if self.gop < 1:
+            raise ValueError(f"gop: expected >= 1, got {self.gop}")
+        if self.normal_estimator_space not in ("camera", "world"):
+            raise ValueError("normal_estimator_space: expected 'camera' or 'world', got "
+                             f"{self.normal_estimator_space!r}")
+
+
+def _convert(current: object, value: object, where: str) -> object:
+    """`value` from JSON in the type of `current` (tuples from lists, floats from ints)."""
+    if isinstance(current, bool) or isinstance(value, bool):
+        ok = isinstance(current, bool) and isinstance(value, bool)
+    elif isinstance(current, int):
+        ok = isinstance(value, int)
+    elif isinstance(current, float):
+        ok, value = isinstance(value, (int, float)), float(value) if isinstance(
+            value, (int, float)) else value
+    elif isinstance(current, tuple):
+        ok = isinstance(value, list) and len(value) == len(current)
+        value = tuple(_convert(c, v, where) for c, v in zip(current, value)) if ok else value
+    else:  # str | None fields
+        ok = value is None or isinstance(value, str)
+    if not ok:
+        raise ValueError(f"{where}: expected a value like {current!r}, got {value!r}")
+    return value
+
+
+def apply_overrides(obj, overrides: dict, where: str = "config"):
+    """A copy of dataclass `obj` with the (nested) JSON `overrides` applied; unknown keys and
+    wrong types raise ValueError naming the key."""
+    if not isinstance(overrides, dict):
+        raise ValueError(f"{where}: expected a JSON object, got {type(overrides).__name__}")
+    names = {f.name for f in fields(obj)}
+    changes = {}
+    for key, value in overrides.items():
+        if key not in names:
+            raise ValueError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(names))})")
+        current = getattr(obj, key)
+        if is_dataclass(current):
+            changes[key] = apply_overrides(current, value, f"{where}.{key}")
+        else:
+            changes[key] = _convert(current, value, f"{where}.{key}")
+    try:
+        return replace(obj, **changes)
+    except ValueError as exc:
+        raise ValueError(f"{where}: {exc}") from None
+
+
+def resolve_config(preset: str, config_file: str | os.PathLike[str] | None = None) -> RunConfig:
+    """The preset's configuration with a JSON file's overrides (same shape as RUN/config.json's
+    `train`, `checkpoint_every`, ... keys)."""
+    cfg = RunConfig(train=train_config(preset), checkpoint_every=100 if preset == "test" else 1000)
+    if config_file is None:
+        return cfg
+    path = Path(config_file)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"config: cannot read {path}: {exc}") from None
+    return apply_overrides(cfg, data, where=str(path))
+
+
+def parse_frames(spec: str | None, frames: tuple[str, ...] | list[str]) -> list[str]:
+    """`A:B` (a Python slice, also `A:`, `:B`, `A:B:S` or a single index) over the capture's
+    frame list; None selects every frame."""
+    if spec is None:
+        return list(frames)
+    try:
+        parts = [int(p) if p.strip() else None for p in str(spec).split(":")]
+        if len(parts) > 3:
+            raise ValueError
+        chosen = (list(frames)[slice(*parts)] if len(parts) > 1
+                  else [list(frames)[parts[0]]])
+    except (ValueError, IndexError):
+        raise ValueError(f"frames: expected A:B (a slice over {len(frames)} frames), "
+                         f"got {spec!r}") from None
+    if not chosen:
+        raise ValueError(f"frames: {spec!r} selects no frame of the {len(frames)} in the capture")
+    return chosen
+
+
+def write_json(path: Path, data) -> None:
+    """Write JSON atomically (a reader never sees half a file)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(data, indent=2) + "\n")
+    os.replace(tmp, path)
+
+
+class _History(Callback):
+    """Per-step records for metrics.json and the plots (survives resume via the checkpoint)."""
+
+    def __init__(self) -> None:
+        self.records: list[dict] = []
+
+    def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
+        self.records.append({"step": info.step, "stage": info.plan.stage,
+                             "gaussians": info.n_gaussians, "psnr": info.psnr,
+                             "seconds": info.seconds, **info.losses})
+
+
+class _Tqdm(Callback):
+    """A progress bar: stage, iteration, loss, Gaussians, ETA."""
+
+    def __init__(self, label: str):
+        self.label, self.bar = label, None
+
+    def on_train_start(self, trainer: Trainer) -> None:
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=trainer.config.schedule.iterations, initial=trainer.step,
+                        desc=self.label, unit="it", dynamic_ncols=True, leave=True)
+
+    def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
+        self.bar.update(1)
+        if info.step % 10 == 0 or info.step == trainer.config.schedule.iterations - 1:
+            self.bar.set_postfix(stage=info.plan.stage, loss=f"{info.losses['total']:.4f}",
+                                 gaussians=info.n_gaussians, refresh=False)
+
+    def on_train_end(self, trainer: Trainer) -> None:
+        self.bar.close()
+
+
+def _check_run_dir(run: Path, resume: bool) -> None:
+    if not run.exists() or (run.is_dir() and not any(run.iterdir())):
+        return
+    if not run.is_dir():
+        raise ValueError(f"out: {run} exists and is not a folder")
+    if not resume:
+        raise ValueError(f"out: {run} already exists and is not empty; pass --resume to continue "
+                         "a run there, or choose another folder")
+    if not (run / "config.json").is_file():
+        raise ValueError(f"out: {run} is not a run directory (no config.json); cannot resume")
+
+
+def _config_record(capture_dir: Path, preset: str, chosen: list[str], cfg: RunConfig) -> dict:
+    return {"version": 1, "preset": preset, "capture": str(capture_dir.resolve()),
+            "frames": chosen, **asdict(cfg)}
+
+
+def _same_config(old: dict, new: dict) -> bool:
+    keys = [f.name for f in fields(RunConfig)]
+    return json.loads(json.dumps({k: old.get(k) for k in keys})) == json.loads(
+        json.dumps({k: new[k] for k in keys}))
+
+
+def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[str], *,
+                preset: str = "fast", frames: str | None = None,
+                config_file: str | os.PathLike[str] | None = None, resume: bool = False,
+                gop: int | None = None, overrides: dict | None = None,
+                progress: bool = True) -> dict:
+    """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
+    `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
+    run: finished frames are skipped, an unfinished one restarts from its checkpoint. `gop`
+    overrides the configuration's group-of-pictures length (recorded only, for now);
+    `overrides` (same shape as a --config file) apply after the file."""
+    from core.data import check_capture
+
+    capture_dir, run = Path(capture_dir), Path(run_dir)
+    cfg = resolve_config(preset, config_file)
+    if overrides:
+        cfg = apply_overrides(cfg, overrides, where="overrides")
+    if gop is not None:
+        cfg = replace(cfg, gop=gop)
+    from core.priors import load_estimator
+
+    # Every input is checked before anything is written, so bad input leaves no half run behind.
+    estimator = load_estimator(cfg.normal_estimator, cfg.normal_estimator_space)
+    capture = check_capture(capture_dir)
+    chosen = parse_frames(frames, capture.frames)
+    _check_run_dir(run, resume)
+    record = _config_record(capture_dir, preset, chosen, cfg)
+    if (run / "config.json").is_file():
+        old = json.loads((run / "config.json").read_text())
+        if not _same_config(old, record):
+            raise ValueError(f"resume: {run / 'config.json'} records another configuration; "
+                             "resume with the same --preset and --config")
+    write_json(run / "config.json", record)
+    metrics_path = run / "metrics.json"
+    metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
+    metrics.update({"version": 1, "preset": preset, "gop": cfg.gop, "note": SEQUENCE_NOTE})
+    metrics.setdefault("frames", {})
+    show = progress and sys.stderr.isatty()
+    for i, frame in enumerate(chosen):
+        if frame in metrics["frames"] and (run / "frames" / frame / "gaussians.ply").is_file():
+            continue
+        label = f"frame {frame} ({i + 1}/{len(chosen)})"
+        metrics["frames"][frame] = _reconstruct_frame(capture, frame, run, cfg, estimator,
+                                                      label if show else None)
+        write_json(metrics_path, metrics)
+        # The frame is finished (PLY and metrics on disk): its training state is no longer needed.
+        (run / "checkpoints" / f"{frame}.pt").unlink(missing_ok=True)
+    from core.plots import plot_run
+
+    plot_run(run)
+    return metrics
+
+
+def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator,
+                       label: str | None) -> dict:
+    from core.priors import fill_priors
+
+    history = _History()
+    ckpt_dir = run / "checkpoints"
+    callbacks: list[Callback] = [history, CheckpointCallback(
+        ckpt_dir, cfg.checkpoint_every, filename=f"{frame}.pt", extra=lambda: history.records)]
+    if label is not None:
+        callbacks.append(_Tqdm(label))
+    start = time.perf_counter()
+    trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks)
+    priors = fill_priors(trainer.views, estimator)
+    ckpt = ckpt_dir / f"{frame}.pt"
+    resumed_at = 0
+    if ckpt.is_file():
+        history.records = list(trainer.load_checkpoint(ckpt) or [])
+        resumed_at = trainer.step
+    trainer.train()
+    out = run / "frames" / frame
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / "gaussians.ply.tmp"
+    trainer.model.save_ply(tmp)
+    os.replace(tmp, out / "gaussians.ply")
+    render_heldout(capture, frame, trainer, run / "renders" / frame)
+    last = history.records[-1] if history.records else {}
+    return {
+        "iterations": cfg.train.schedule.iterations,
+        "seconds": round(time.perf_counter() - start, 3),
+        "resumed_at": resumed_at,
+        "gaussians": len(trainer.model),
+        "final_losses": {k: v for k, v in last.items()
+                         if k not in ("step", "stage", "gaussians", "psnr", "seconds")},
+        "train_psnr": round(trainer.evaluate(), 4),
+        "normal_prior": priors,
+        "stages": "static (key frame)",
+        "notes": trainer.notes,
+        "history": _thin(history.records),
+    }
+
+
+def _thin(records: list[dict], keep: int = 2000) -> list[dict]:
+    """At most about `keep` records (every k-th and the last) so metrics.json stays small."""
+    k = max(1, -(-len(records) // keep))
+    out = records[::k]
+    if records and out[-1] is not records[-1]:
+        out.append(records[-1])
+    return [{key: (round(v, 6) if isinstance(v, float) else v) for key, v in r.items()}
+            for r in out]
+
+
+@torch.no_grad()
+def render_heldout(capture, frame: str, trainer: Trainer, out: Path) -> list[str]:
+    """Write <camera>_rgb.png, _normal.png, _ao.png and _depth.npy for the held-out cameras
+    (index % 8 == 0) at full input resolution; returns their ids."""
+    from core.data.images import write_png
+    from core.render import RenderCamera, render, safe_divide
+    from core.stages import plan
+
+    p = plan(trainer.config.schedule.iterations - 1, trainer.config.schedule)
+    bg = torch.tensor(trainer.config.background, dtype=torch.float32)
+    ids = []
+    for index, cam in enumerate(capture.cameras):
+        if index % 8:
+            continue
+        r = render(trainer.model, RenderCamera.from_camera(cam), sh_degree=p.sh_degree,
+                   beta=p.beta, geometry=True, tie_opacity=False, background=bg,
+                   eps2d=trainer.config.eps2d, antialiased=trainer.config.antialiased)
+        rgb = r.rgb.clamp(0, 1).numpy()
+        image = capture.image_path(frame, cam.id)
+        if image is not None and image.suffix.lower() == ".exr":
+            from core.synth.shading import linear_to_srgb  # the capture is linear: encode it
+
+            rgb = linear_to_srgb(rgb)
+        covered = (r.alpha_g > COVERAGE).numpy()
+        # Training leaves the normal map unnormalized (DESIGN.md 5); the picture shows directions.
+        n = torch.nn.functional.normalize(r.normal, dim=-1).numpy()
+        ao = safe_divide(r.visibility, r.alpha_g).clamp(0, 1).numpy()
+        to8 = lambda a: (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731
+        write_png(out / f"{cam.id}_rgb.png", to8(rgb))
+        write_png(out / f"{cam.id}_normal.png", to8(np.where(covered, (n + 1) / 2, 0.0)))
+        write_png(out / f"{cam.id}_ao.png", to8(np.where(covered, ao, 0.0)))
+        np.save(out / f"{cam.id}_depth.npy", r.depth[..., 0].numpy().astype(np.float32))
+        ids.append(cam.id)
+    return ids

@@ -1,0 +1,293 @@
+"""core.pipeline.reconstruct: the run directory of DESIGN.md 3.3, config overrides, frame
+selection, checkpoints and resume, progress only on a terminal."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from core.model import GaussianModel
+from core.pipeline import apply_overrides, parse_frames, reconstruct, resolve_config
+from core.synth import SynthConfig, synthesize
+from core.train import Trainer, train_config
+
+# A shortened `test` preset: every stage, densification, a reset and the AO bake in 100 steps
+# (fewer leave the geometry branch too transparent to picture).
+SHORT = {"train": {"schedule": {"iterations": 100, "stage2_start": 30, "stage3_start": 70,
+                                "densify_from": 5, "densify_until": 60, "densify_interval": 10,
+                                "reset_interval": 40, "sh_interval": 10},
+                   "init_points": 500},
+         "checkpoint_every": 10}
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """8 views of 32x32, two frames, masks and normal priors, ground truth under gt/."""
+    out = tmp_path_factory.mktemp("pipe") / "capture"
+    synthesize(out, SynthConfig(frames=2, views=8, width=32, height=32, seed=2, priors=True,
+                                ao_directions=8))
+    return out
+
+
+@pytest.fixture(scope="module")
+def short_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("cfg") / "short.json"
+    path.write_text(json.dumps(SHORT))
+    return path
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def run(capture: Path, short_config: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("run") / "run"
+    reconstruct(capture, out, preset="test", config_file=short_config, progress=False)
+    torch.set_num_threads(before)
+    return out
+
+
+def test_run_directory_layout(run: Path, capture: Path):
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["preset"] == "test" and cfg["capture"] == str(capture.resolve())
+    assert cfg["train"]["schedule"]["iterations"] == 100  # override applied
+    assert cfg["train"]["densify"]["max_gaussians"] == 4_000  # the rest is the preset
+    assert cfg["checkpoint_every"] == 10 and cfg["gop"] == 20
+    assert cfg["frames"] == ["000000", "000001"]
+    for frame in cfg["frames"]:
+        model = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
+        assert len(model) > 0
+        # Held-out camera of 8 is cam index 0 only; nothing rendered for training cameras.
+        names = sorted(p.name for p in (run / "renders" / frame).iterdir())
+        assert names == ["cam00_ao.png", "cam00_depth.npy", "cam00_normal.png", "cam00_rgb.png"]
+        rgb = np.asarray(Image.open(run / "renders" / frame / "cam00_rgb.png"))
+        assert rgb.shape == (32, 32, 3) and rgb.dtype == np.uint8 and rgb.max() > 50
+        normal = np.asarray(Image.open(run / "renders" / frame / "cam00_normal.png"))
+        n = normal.astype(np.float32) / 255 * 2 - 1
+        fg = normal.sum(-1) > 0
+        assert fg.mean() > 0.05 and not fg.all()  # the figure on a black background
+        assert np.allclose(np.linalg.norm(n[fg], axis=-1), 1.0, atol=0.03)  # unit normals
+        ao = np.asarray(Image.open(run / "renders" / frame / "cam00_ao.png"))
+        assert ao.ndim == 2 and ao.shape == (32, 32)
+        depth = np.load(run / "renders" / frame / "cam00_depth.npy")
+        assert depth.dtype == np.float32 and depth.shape == (32, 32)
+        # Cameras sit 3.2 m from the figure: covered pixels have plausible depths.
+        assert 1.5 < float(np.median(depth[fg])) < 5.0
+    assert not list((run / "checkpoints").glob("*.pt"))  # removed once a frame is finished
+    for name in ("loss.png", "psnr.png", "gaussians.png"):
+        assert Image.open(run / "plots" / name).size[0] > 100
+
+
+def test_metrics(run: Path):
+    m = json.loads((run / "metrics.json").read_text())
+    assert "later issue" in m["note"] and m["gop"] == 20
+    for frame in ("000000", "000001"):
+        f = m["frames"][frame]
+        assert f["iterations"] == 100 and f["seconds"] > 0 and f["gaussians"] > 0
+        assert {"photometric", "total", "visibility"} <= set(f["final_losses"])
+        assert 8 < f["train_psnr"] < 60 and f["normal_prior"] == "capture"
+        steps = [r["step"] for r in f["history"]]
+        assert steps == list(range(100))
+        # Training made progress: the running PSNR at the end beats the start.
+        ps = [r["psnr"] for r in f["history"]]
+        assert np.mean(ps[-10:]) > np.mean(ps[:10]) + 1.0
+
+
+def test_overrides_validate_keys_and_types(tmp_path: Path):
+    cfg = resolve_config("test")
+    assert cfg.checkpoint_every == 100 and cfg.train.schedule.iterations == 500
+    assert resolve_config("paper").checkpoint_every == 1000
+    out = apply_overrides(cfg, {"train": {"background": [1, 1, 1], "eps2d": 0}})
+    assert out.train.background == (1.0, 1.0, 1.0) and isinstance(out.train.eps2d, float)
+    with pytest.raises(ValueError, match=r"config.train: unknown key 'iters'"):
+        apply_overrides(cfg, {"train": {"iters": 3}})
+    with pytest.raises(ValueError, match="config.train.init_points"):
+        apply_overrides(cfg, {"train": {"init_points": "many"}})
+    with pytest.raises(ValueError, match="init_points"):
+        apply_overrides(cfg, {"train": {"init_points": 0}})  # the dataclass's own check
+    with pytest.raises(ValueError, match="unknown key 'preset'"):
+        apply_overrides(cfg, {"preset": "fast"})
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="bad.json"):
+        resolve_config("test", bad)
+    with pytest.raises(ValueError, match="preset"):
+        resolve_config("huge")
+
+
+def test_parse_frames():
+    frames = ["a", "b", "c", "d"]
+    assert parse_frames(None, frames) == frames
+    assert parse_frames("1:3", frames) == ["b", "c"]
+    assert parse_frames(":2", frames) == ["a", "b"]
+    assert parse_frames("-1:", frames) == ["d"]
+    assert parse_frames("0:4:2", frames) == ["a", "c"]
+    assert parse_frames("2", frames) == ["c"]
+    for bad in ("x:y", "5:9", "1:2:3:4", "7"):
+        with pytest.raises(ValueError, match="frames"):
+            parse_frames(bad, frames)
+
+
+def test_frames_subset_and_run_dir_checks(capture: Path, short_config: Path, tmp_path: Path):
+    out = tmp_path / "run"
+    reconstruct(capture, out, preset="test", frames="1:2", config_file=short_config,
+                progress=False)
+    assert [p.name for p in (out / "frames").iterdir()] == ["000001"]
+    with pytest.raises(ValueError, match="--resume"):
+        reconstruct(capture, out, preset="test", config_file=short_config, progress=False)
+    with pytest.raises(ValueError, match="another configuration"):
+        reconstruct(capture, out, preset="test", resume=True, progress=False)
+    (tmp_path / "junk").mkdir()
+    (tmp_path / "junk" / "x.txt").write_text("x")
+    with pytest.raises(ValueError, match="not a run directory"):
+        reconstruct(capture, tmp_path / "junk", preset="test", resume=True, progress=False)
+
+
+def test_resume_after_interruption(capture: Path, short_config: Path, tmp_path: Path,
+                                   monkeypatch: pytest.MonkeyPatch):
+    out = tmp_path / "run"
+    real_step = Trainer.train_step
+    calls = {"n": 0}
+
+    def crashing_step(self):
+        calls["n"] += 1
+        if calls["n"] == 100 + 85:  # frame 000001, step 84: after the AO bake (70) and the
+            # checkpoint at 80
+            raise RuntimeError("worker lost")
+        return real_step(self)
+
+    monkeypatch.setattr(Trainer, "train_step", crashing_step)
+    with pytest.raises(RuntimeError, match="worker lost"):
+        reconstruct(capture, out, preset="test", config_file=short_config, progress=False)
+    assert (out / "checkpoints" / "000001.pt").is_file()
+    done = out / "frames" / "000000" / "gaussians.ply"
+    stamp = done.stat().st_mtime_ns
+    monkeypatch.setattr(Trainer, "train_step", real_step)
+    m = reconstruct(capture, out, preset="test", config_file=short_config, resume=True,
+                    progress=False)
+    assert done.stat().st_mtime_ns == stamp  # the finished frame was skipped
+    f = m["frames"]["000001"]
+    assert f["resumed_at"] == 80
+    # The history before the interruption came back with the checkpoint, then continued.
+    assert [r["step"] for r in f["history"]] == list(range(100))
+    assert "visibility" in f["final_losses"]  # baked AO targets came back as well
+    assert (out / "frames" / "000001" / "gaussians.ply").is_file()
+
+
+def test_progress_bar_only_on_a_terminal(capture: Path, short_config: Path, tmp_path: Path,
+                                         capsys: pytest.CaptureFixture,
+                                         monkeypatch: pytest.MonkeyPatch):
+    reconstruct(capture, tmp_path / "a", preset="test", frames="0:1",
+                config_file=short_config)
+    assert capsys.readouterr().err == ""  # pytest's stderr is not a TTY
+    monkeypatch.setattr("sys.stderr.isatty", lambda: True)
+    reconstruct(capture, tmp_path / "b", preset="test", frames="0:1",
+                config_file=short_config)
+    err = capsys.readouterr().err
+    assert "frame 000000 (1/1)" in err and "100/100" in err and "gaussians=" in err
+    reconstruct(capture, tmp_path / "c", preset="test", frames="0:1",
+                config_file=short_config, progress=False)
+    assert capsys.readouterr().err == ""
+
+
+def test_train_config_presets_unchanged():
+    # The pipeline's resolved config is the preset when no file is given.
+    assert resolve_config("fast").train == train_config("fast")
+
+
+def _cli(capsys: pytest.CaptureFixture, *argv: str) -> tuple[int, str, str]:
+    from core.cli import main
+
+    rc = main([str(a) for a in argv])
+    out = capsys.readouterr()
+    return rc, out.out, out.err
+
+
+def test_cli_reconstruct_and_eval(capture: Path, short_config: Path, tmp_path: Path,
+                                  capsys: pytest.CaptureFixture):
+    run = tmp_path / "run"
+    rc, out, err = _cli(capsys, "reconstruct", capture, "--out", run, "--preset", "test",
+                        "--frames", "1:", "--gop", "5", "--config", short_config)
+    assert rc == 0, err
+    assert "reconstructed 1 frame(s)" in out and "dgs eval" in out
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["gop"] == 5 and cfg["frames"] == ["000001"]
+    assert json.loads((run / "metrics.json").read_text())["gop"] == 5
+    rc, out, err = _cli(capsys, "eval", run)
+    assert rc == 0, err
+    assert "PSNR" in out and "normal cosine" in out and (run / "eval.json").is_file()
+
+
+@pytest.mark.parametrize("case, expect", [
+    ("missing", "not a valid capture: "),
+    ("invalid", "capture.json"),
+    ("preset", "--preset: expected one of paper, fast, test, got 'huge'"),
+    ("frames", "frames: expected A:B"),
+    ("empty_frames", "selects no frame"),
+    ("exists", "already exists and is not empty; pass --resume"),
+    ("not_a_run", "is not a run directory"),
+    ("config_key", "unknown key 'bogus'"),
+    ("gop", "gop: expected >= 1"),
+])
+def test_cli_reconstruct_bad_input(case: str, expect: str, capture: Path, tmp_path: Path,
+                                   capsys: pytest.CaptureFixture):
+    cap, out, extra = capture, tmp_path / "run", []
+    if case == "missing":
+        cap = tmp_path / "nowhere"
+    elif case == "invalid":
+        cap = tmp_path / "bad"
+        cap.mkdir()
+        (cap / "capture.json").write_text("{broken")
+    elif case == "preset":
+        extra = ["--preset", "huge"]
+    elif case == "frames":
+        extra = ["--frames", "a:b"]
+    elif case == "empty_frames":
+        extra = ["--frames", "5:9"]
+    elif case in ("exists", "not_a_run"):
+        out.mkdir()
+        (out / "something.txt").write_text("x")
+        extra = ["--resume"] if case == "not_a_run" else []
+    elif case == "config_key":
+        (tmp_path / "c.json").write_text('{"bogus": 1}')
+        extra = ["--config", tmp_path / "c.json"]
+    elif case == "gop":
+        extra = ["--gop", "0"]
+    rc, _, err = _cli(capsys, "reconstruct", cap, "--out", out, "--preset", "test", *extra) \
+        if case != "preset" else _cli(capsys, "reconstruct", cap, "--out", out, *extra)
+    assert rc != 0
+    assert expect in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1, err
+    if case not in ("exists", "not_a_run"):
+        assert not out.exists()  # nothing written for bad input
+
+
+def test_cli_eval_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture):
+    rc, _, err = _cli(capsys, "eval", tmp_path)
+    assert rc != 0 and "not a run directory" in err and len(err.strip().splitlines()) == 1
+
+
+def test_demo_contact_sheet(run: Path, capture: Path, tmp_path: Path):
+    from core.commands_demo import COLUMNS, contact_sheet
+
+    out = contact_sheet(capture, run, "000000", ["cam00"], tmp_path / "sheet.png", scale=2)
+    sheet = np.asarray(Image.open(out).convert("RGB"))
+    assert sheet.shape == (16 + 64, len(COLUMNS) * 64, 3)
+    body = sheet[16:]
+    tiles = [body[:, i * 64:(i + 1) * 64] for i in range(len(COLUMNS))]
+    assert all(t.max() > 0 for t in tiles)  # every column shows something
+    # The render column is the run's rgb picture, upscaled 2x nearest.
+    rgb = np.asarray(Image.open(run / "renders" / "000000" / "cam00_rgb.png"))
+    assert np.array_equal(tiles[1][::2, ::2], rgb)
