@@ -7,6 +7,7 @@ import shutil
 from pathlib import Path
 
 import pytest
+import torch
 
 from core.synth import SynthConfig, synthesize
 
@@ -51,3 +52,13 @@ def tree_digest(root: Path) -> str:
         elif path.is_file():
             h.update(path.read_bytes())
     return h.hexdigest()
+
+
+@pytest.fixture
+def one_thread():
+    # Tiny tensors: a second intra-op thread only adds synchronisation (and on a shared machine
+    # a lot of it).
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -16,6 +16,9 @@ from core.pipeline import apply_overrides, parse_frames, reconstruct, resolve_co
 from core.synth import SynthConfig, synthesize
 from core.train import Trainer, train_config
 
+# Tiny tensors: a second intra-op thread only adds synchronisation.
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 # A shortened `test` preset: every stage, densification, a reset and the AO bake in 100 steps
 # (fewer leave the geometry branch too transparent to picture).
 SHORT = {"train": {"schedule": {"iterations": 100, "stage2_start": 30, "stage3_start": 70,
@@ -39,14 +42,6 @@ def short_config(tmp_path_factory: pytest.TempPathFactory) -> Path:
     path = tmp_path_factory.mktemp("cfg") / "short.json"
     path.write_text(json.dumps(SHORT))
     return path
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 @pytest.fixture(scope="module")

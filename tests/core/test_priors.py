@@ -18,6 +18,9 @@ from core.priors import TorchScriptNormalEstimator, fill_priors, load_estimator
 from core.synth import SynthConfig, synthesize
 from core.train import View, training_cameras
 
+# Tiny tensors: a second intra-op thread only adds synchronisation.
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 SHORT = {"train": {"schedule": {"iterations": 100, "stage2_start": 30, "stage3_start": 70,
                                 "densify_from": 5, "densify_until": 60, "densify_interval": 10,
                                 "reset_interval": 40, "sh_interval": 10}, "init_points": 500}}
@@ -49,14 +52,6 @@ def model_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
         warnings.simplefilter("ignore", DeprecationWarning)
         torch.jit.script(Facing()).save(str(path))
     return path
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
 
 
 def _views(capture: Path) -> list[View]:

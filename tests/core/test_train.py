@@ -44,16 +44,6 @@ def views(tiny_capture: Path) -> list[View]:
     return [View.from_sample(ds[i]) for i in range(len(ds))]
 
 
-@pytest.fixture
-def one_thread():
-    # Tiny tensors: a second intra-op thread only adds synchronisation (and on a shared machine
-    # a lot of it).
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_presets_resolve_to_json():
     for name in ("paper", "fast", "test"):
         cfg = train_config(name)
