@@ -62,16 +62,10 @@ class SynthConfig:
     """Also write normals/ with stand-in monocular normal priors."""
     ao_directions: int = 64
     """Directions used for the ambient-occlusion shadow maps."""
-    supersample: int = 3
-    """Odd k: images are rendered at k x k samples per pixel and box-averaged, like a sensor
-    integrating over its pixel (1 = one sample at the pixel centre, aliased). Depth, normal and
-    mask ground truth stay point samples at the pixel centres, which k odd includes exactly."""
     radius: float = 3.2
     """Camera distance from the figure's centre (metres)."""
 
     def check(self) -> None:
-        if self.supersample < 1 or self.supersample % 2 == 0:
-            raise ValueError(f"supersample: expected an odd integer >= 1, got {self.supersample}")
         for name in ("frames", "views", "width", "height", "ao_directions"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
@@ -123,14 +117,10 @@ def _to_u8(x: np.ndarray) -> np.ndarray:
 
 
 def _render_view(
-    mesh: FigureMesh, vis: np.ndarray, cam: Camera, palette: np.ndarray, supersample: int = 1
+    mesh: FigureMesh, vis: np.ndarray, cam: Camera, palette: np.ndarray
 ) -> dict[str, np.ndarray]:
-    k = supersample
-    # Continuous pixel coordinates scale by k, so pixel centre (u + 0.5) lands on the centre of
-    # sub-pixel k u + k // 2 when k is odd.
-    K = np.diag([k, k, 1.0]) @ cam.K
     frags = rasterize_perspective(
-        mesh.vertices, mesh.faces, K, cam.world_to_camera, cam.width * k, cam.height * k
+        mesh.vertices, mesh.faces, cam.K, cam.world_to_camera, cam.width, cam.height
     )
     m = frags.mask
     normals = interpolate(frags, mesh.faces, mesh.normals)
@@ -151,14 +141,6 @@ def _render_view(
         rgb = np.zeros_like(normals)
         rgb[m] = albedo[m] * visibility[m, None] * irradiance(normals[m], light.sh9())
         out[name] = rgb
-    if k == 1:
-        return out
-    c = k // 2
-    for name in ("mask", "depth", "normal"):  # geometric ground truth: point samples
-        out[name] = out[name][c::k, c::k]
-    for name in ("albedo", "visibility", *LIGHTS):  # images: the average over the pixel
-        a = out[name]
-        out[name] = a.reshape(cam.height, k, cam.width, k, *a.shape[2:]).mean(axis=(1, 3))
     return out
 
 
@@ -230,7 +212,7 @@ def synthesize(out: str | os.PathLike[str], config: SynthConfig = SynthConfig())
                 out,
                 frame,
                 cam,
-                _render_view(mesh, vis, cam, palette, config.supersample),
+                _render_view(mesh, vis, cam, palette),
                 prior_rng if config.priors else None,
             )
     _write_lights(gt)

@@ -111,18 +111,12 @@ def test_motion_is_non_rigid(synth_capture: Path) -> None:
 
 def test_relight_differs_and_priors_are_degraded(synth_capture: Path) -> None:
     from PIL import Image
-    from scipy.ndimage import binary_dilation
 
     img = np.asarray(Image.open(synth_capture / "images/000000/cam03.png"), dtype=float)
     rel = np.asarray(Image.open(synth_capture / "gt/relight/000000/cam03.png"), dtype=float)
     mask = np.asarray(Image.open(synth_capture / "masks/000000/cam03.png")) > 0
     assert np.abs(img - rel)[mask].mean() > 10
-    assert img[mask].mean() > 30
-    # Pixels are area averages (supersampling): colour reaches only the one-pixel ring of
-    # partly covered pixels around the point-sampled mask, and some of that ring is coloured.
-    ring = binary_dilation(mask, iterations=1) & ~mask
-    assert img[~binary_dilation(mask, iterations=1)].max() == 0
-    assert (img[ring].max(axis=1) > 0).mean() > 0.2
+    assert img[~mask].max() == 0 and img[mask].mean() > 30
     prior = (
         np.asarray(Image.open(synth_capture / "normals/000000/cam03.png"), dtype=float) / 255 * 2
         - 1
