@@ -52,6 +52,17 @@ __device__ __forceinline__ void stage(Staged<T>& s, int32_t gid, const T* means2
   for (int j = 0; j < 4; ++j) s.rect[j] = rects[4 * gid + j];
 }
 
+// Stages entries [b0, min(end, b0 + blockDim.x)) of a tile's list into shared memory, one per
+// thread, and returns how many there are; the callers place the barriers around it.
+template <typename T, typename Params>
+__device__ __forceinline__ int stage_batch(Staged<T>* batch, const Params& p, int64_t b0,
+                                           int64_t end) {
+  if (b0 + threadIdx.x < end)
+    stage(batch[threadIdx.x], p.flat_ids[b0 + threadIdx.x], p.means2d, p.conics, p.opacities,
+          p.depths, p.rects, p.geometry_branch);
+  return int(end - b0 < int64_t(blockDim.x) ? end - b0 : int64_t(blockDim.x));
+}
+
 // Whether the CPU kernel evaluates this Gaussian at pixel (u, v): inside its box and inside the
 // row span of its ellipse. Outside, alpha < 1/255 anyway; testing the same set keeps results equal.
 template <typename T>
@@ -156,11 +167,8 @@ __global__ void __launch_bounds__(kMaxThreads)
   for (int64_t b0 = start; b0 < end; b0 += blockDim.x) {
     // Also the barrier that lets the batch be overwritten.
     if (__syncthreads_count(done_c && done_g) == int(blockDim.x)) break;
-    if (b0 + threadIdx.x < end)
-      stage(batch[threadIdx.x], p.flat_ids[b0 + threadIdx.x], p.means2d, p.conics, p.opacities,
-            p.depths, p.rects, p.geometry_branch);
+    const int nb = stage_batch(batch, p, b0, end);
     __syncthreads();
-    const int nb = int(end - b0 < int64_t(blockDim.x) ? end - b0 : int64_t(blockDim.x));
     for (int j = 0; j < nb; ++j) {
       const Staged<T>& s = batch[j];
       const T dy = pv - s.my;
@@ -323,11 +331,8 @@ __global__ void __launch_bounds__(kMaxThreads)
 
   for (int64_t b0 = start; b0 < end; b0 += blockDim.x) {
     __syncthreads();  // the previous batch is no longer read
-    if (b0 + threadIdx.x < end)
-      stage(batch[threadIdx.x], p.flat_ids[b0 + threadIdx.x], p.means2d, p.conics, p.opacities,
-            p.depths, p.rects, p.geometry_branch);
+    const int nb = stage_batch(batch, p, b0, end);
     __syncthreads();
-    const int nb = int(end - b0 < int64_t(blockDim.x) ? end - b0 : int64_t(blockDim.x));
     for (int j = 0; j < nb; ++j) {
       const Staged<T>& s = batch[j];
       const int32_t k = int32_t(b0 - start) + j;
