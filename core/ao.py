@@ -49,7 +49,8 @@ def scaled_camera(camera: RenderCamera, scale: float) -> RenderCamera:
     w, h = max(1, round(camera.width * scale)), max(1, round(camera.height * scale))
     sx, sy = w / camera.width, h / camera.height
     K = camera.K.clone()
-    K[0, 0] *= sx; K[0, 2] *= sx; K[1, 1] *= sy; K[1, 2] *= sy  # noqa: E702
+    K[0] *= sx  # rows, as core.data.Camera.scaled does
+    K[1] *= sy
     return RenderCamera(camera.viewmat, K, w, h)
 
 
