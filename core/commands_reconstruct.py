@@ -23,6 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="frames per group of pictures (recorded; used once sequences land)")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="JSON file overriding fields of the preset (shape of RUN/config.json)")
+    p.add_argument("--downscale", type=float, default=None, metavar="F",
+                   help="train and score on the images reduced by F (e.g. 4 for 1/4 resolution; "
+                        "recorded in config.json)")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run in --out (finished frames are skipped)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -62,7 +65,9 @@ def _reconstruct(args: argparse.Namespace) -> int:
     try:
         metrics = reconstruct(args.capture, args.out, preset=args.preset, frames=args.frames,
                               config_file=args.config, resume=args.resume, gop=args.gop,
-                              progress=not args.no_progress)
+                              progress=not args.no_progress,
+                              overrides=None if args.downscale is None
+                              else {"downscale": args.downscale})
     except ValueError as exc:  # CaptureError is a ValueError
         return _fail("reconstruct", _one_line(exc))
     n = len(metrics["frames"])

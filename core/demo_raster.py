@@ -99,10 +99,13 @@ def run_raster_demo(out: str = "demo") -> int:
     renders = root / "renders"
     renders.mkdir(parents=True, exist_ok=True)
     rgb = r.color.numpy()
-    captured = np.asarray(Image.open(capture.view(frame, cam.id).image)).astype(np.float32) / 255
+    view = capture.view(frame, cam.id)
+    captured = np.asarray(Image.open(view.image)).astype(np.float32)[..., :3] / 255
+    if view.mask is not None:  # straight colour: composite on black as the camera saw it
+        captured = captured * (np.asarray(Image.open(view.mask), np.float32)[..., None] / 255)
     to_rgb = lambda d: np.repeat(d[..., None], 3, -1)  # noqa: E731
     dn = np.where(alpha > 0.5, (depth - depth[fg].min()) / max(np.ptp(depth[fg]), 1e-6), 1.0)
-    sheet = np.concatenate([captured[..., :3], rgb, np.where(fg[..., None], (normal + 1) / 2, 0),
+    sheet = np.concatenate([captured, rgb, np.where(fg[..., None], (normal + 1) / 2, 0),
                             (gt_normal + 1) / 2 * (gt_depth > 0)[..., None], to_rgb(1 - dn)], 1)
     _png(renders / f"{cam.id}_rgb.png", rgb)
     _png(renders / f"{cam.id}_normal.png", np.where(fg[..., None], (normal + 1) / 2, 0))

@@ -1,5 +1,7 @@
 """`dgs eval`: quality of a run on its held-out views (DESIGN.md 3.3 `eval.json`, section 5).
 
+- every view at the run's resolution (the capture reduced by RUN/config.json's `downscale`, the
+  ground-truth normals area-averaged to it);
 - rgb: PSNR over foreground pixels when the capture has masks (else the whole image; `psnr_full`
   is always over the whole image, comparable with papers that composite on black) and SSIM
   (11x11 Gaussian window, `core.losses.ssim`) on the whole image with the capture composited on
@@ -45,6 +47,20 @@ def normal_agreement(pred_png: np.ndarray, reference: np.ndarray,
     return float(cos.mean()), float(np.degrees(np.arccos(cos)).mean())
 
 
+def _reduce_normals(normal: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
+    """Unit normals (H, W, 3) area-averaged to `shape`; pixels less than half on the surface
+    (or whose normals cancel) become 0, as background is in the ground truth."""
+    import cv2
+
+    h, w = shape
+    mean = cv2.resize(normal.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
+    cover = cv2.resize((np.linalg.norm(normal, axis=-1) > 0.5).astype(np.float32), (w, h),
+                       interpolation=cv2.INTER_AREA)
+    norm = np.linalg.norm(mean, axis=-1, keepdims=True)
+    ok = (cover[..., None] >= 0.5) & (norm > 1e-3)
+    return np.where(ok, mean / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
+
+
 def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np.ndarray | None,
                   background: np.ndarray, linear: bool) -> dict:
     import torch
@@ -66,6 +82,8 @@ def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np
            "psnr_full": 100.0 if full <= 1e-10 else -10.0 * math.log10(full),
            "ssim": float(ssim(torch.from_numpy(rgb), torch.from_numpy(target)))}
     if gt_normal is not None:
+        if gt_normal.shape[:2] != image.shape[:2]:  # a downscaled run: average, renormalise
+            gt_normal = _reduce_normals(gt_normal, image.shape[:2])
         ref, source = gt_normal, "ground truth"
         region = np.linalg.norm(gt_normal, axis=-1) > 0.5
     elif sample.normal is not None:
@@ -113,8 +131,9 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     held = [c.id for i, c in enumerate(capture.cameras) if i % 8 == 0]
     background = np.asarray(config["train"]["background"], np.float32)
     per_frame, rows = [], []
+    downscale = float(config.get("downscale", 1.0))  # the run's scoring resolution
     for frame in frames:
-        ds = CaptureDataset(capture, frames=[frame], cameras=held)
+        ds = CaptureDataset(capture, frames=[frame], cameras=held, downscale=downscale)
         views = []
         for i in range(len(ds)):
             s = ds[i]

@@ -12,16 +12,18 @@ import json
 import os
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 import torch
 
 from core.train import Callback, CheckpointCallback, StepInfo, TrainConfig, Trainer, train_config
 
-__all__ = ["RunConfig", "apply_overrides", "parse_frames", "reconstruct", "render_heldout",
-           "resolve_config", "write_json"]
+__all__ = ["Progress", "RunConfig", "Stopped", "apply_overrides", "parse_frames", "reconstruct",
+           "render_heldout", "resolve_config", "write_json"]
 
 # Geometry coverage above which a pixel gets a normal and AO in the pictures (else black): low
 # enough that the soft edges of a short run still show, high enough that the direction of the
@@ -30,6 +32,42 @@ COVERAGE = 0.2
 
 SEQUENCE_NOTE = ("sequences with deformation (GoP) come in a later issue: every frame was "
                  "reconstructed independently with the full static stages")
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One event of a running reconstruction, for `reconstruct(on_progress=...)`."""
+
+    kind: Literal["frame_start", "step", "checkpoint", "frame_done"]
+    """What happened: a frame starts (or resumes), a step ended, a checkpoint is complete on disk
+    (`path`), a frame's outputs are written."""
+    frame: str
+    """The frame's name."""
+    frame_index: int
+    """Its position among the selected frames (0-based)."""
+    frames: int
+    """How many frames the run has."""
+    step: int
+    """Steps of this frame done so far (after the step for kind 'step')."""
+    iterations: int
+    """Steps per frame."""
+    stage: int
+    """Training stage of the last step (1, 2, 3; 0 before the first)."""
+    gaussians: int = 0
+    """Gaussians in the model."""
+    loss: float | None = None
+    """Total loss of the step (kind 'step')."""
+    path: str | None = None
+    """The checkpoint file (kind 'checkpoint') or the frame's folder (kind 'frame_done')."""
+
+
+class Stopped(Exception):
+    """`reconstruct` stopped because `should_stop()` said so; the frame's checkpoint was written
+    first, so `resume=True` continues from the step it stopped at."""
+
+    def __init__(self, frame: str, step: int):
+        super().__init__(f"stopped at step {step} of frame {frame} (checkpoint written)")
+        self.frame, self.step = frame, step
 
 
 @dataclass(frozen=True)
@@ -46,8 +84,13 @@ class RunConfig:
     """Model file (TorchScript, or .onnx with onnxruntime) for views without a normals/ prior."""
     normal_estimator_space: str = "camera"
     """'camera' or 'world': the space the estimator's normals are in."""
+    downscale: float = 1.0
+    """Train on the images reduced by this factor (area averaging, intrinsics scaled); held-out
+    views are rendered and scored at the same reduced size (as papers do with images_4)."""
 
     def __post_init__(self) -> None:
+        if not self.downscale >= 1.0:
+            raise ValueError(f"downscale: expected a factor >= 1, got {self.downscale}")
         if self.checkpoint_every < 1:
             raise ValueError(f"checkpoint_every: expected >= 1, got {self.checkpoint_every}")
         if self.gop < 1:
@@ -57,8 +100,15 @@ class RunConfig:
                              f"{self.normal_estimator_space!r}")
 
 
-def _convert(current: object, value: object, where: str) -> object:
-    """`value` from JSON in the type of `current` (tuples from lists, floats from ints)."""
+def _convert(current: object, value: object, where: str, annotation: str = "") -> object:
+    """`value` from JSON in the type of `current` (tuples from lists, floats from ints); for an
+    optional field (`annotation` such as 'int | None'), None or a value of the named type."""
+    optional = annotation.replace(" ", "").endswith("|None")
+    if optional and value is None:
+        return None
+    if optional and current is None:  # judge by the annotation's type instead
+        current = {"int": 0, "float": 0.0, "bool": False}.get(annotation.split("|")[0].strip(),
+                                                                "")
     if isinstance(current, bool) or isinstance(value, bool):
         ok = isinstance(current, bool) and isinstance(value, bool)
     elif isinstance(current, int):
@@ -81,7 +131,7 @@ def apply_overrides(obj, overrides: dict, where: str = "config"):
     wrong types raise ValueError naming the key."""
     if not isinstance(overrides, dict):
         raise ValueError(f"{where}: expected a JSON object, got {type(overrides).__name__}")
-    names = {f.name for f in fields(obj)}
+    names = {f.name: str(f.type) for f in fields(obj)}  # annotations are strings here
     changes = {}
     for key, value in overrides.items():
         if key not in names:
@@ -90,7 +140,7 @@ def apply_overrides(obj, overrides: dict, where: str = "config"):
         if is_dataclass(current):
             changes[key] = apply_overrides(current, value, f"{where}.{key}")
         else:
-            changes[key] = _convert(current, value, f"{where}.{key}")
+            changes[key] = _convert(current, value, f"{where}.{key}", names[key])
     try:
         return replace(obj, **changes)
     except ValueError as exc:
@@ -150,6 +200,42 @@ class _History(Callback):
                              "seconds": info.seconds, **info.losses})
 
 
+class _Hooks(Callback):
+    """Hands `Progress` events to the caller and stops (after a checkpoint) when asked to."""
+
+    def __init__(self, frame: str, index: int, frames: int,
+                 on_progress: Callable[[Progress], None] | None,
+                 should_stop: Callable[[], bool] | None):
+        self.frame, self.index, self.frames = frame, index, frames
+        self.on_progress, self.should_stop = on_progress, should_stop
+        self.saver: CheckpointCallback | None = None
+        self.trainer: Trainer | None = None
+        self.stage = 0
+        self.loss: float | None = None
+
+    def emit(self, kind: str, trainer: Trainer | None, path: str | None = None) -> None:
+        trainer = trainer or self.trainer
+        if self.on_progress is None or trainer is None:
+            return
+        self.on_progress(Progress(
+            kind=kind, frame=self.frame, frame_index=self.index, frames=self.frames,
+            step=trainer.step, iterations=trainer.config.schedule.iterations, stage=self.stage,
+            gaussians=len(trainer.model), loss=self.loss if kind == "step" else None, path=path))
+
+    def on_train_start(self, trainer: Trainer) -> None:
+        self.trainer = trainer
+        self.emit("frame_start", trainer)
+
+    def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
+        self.stage, self.loss = info.plan.stage, info.losses["total"]
+        self.emit("step", trainer)
+        last = trainer.step >= trainer.config.schedule.iterations
+        if self.should_stop is not None and not last and self.should_stop():
+            if self.saver is not None:
+                self.saver.save(trainer)
+            raise Stopped(self.frame, trainer.step)
+
+
 class _Tqdm(Callback):
     """A progress bar: stage, iteration, loss, Gaussians, ETA."""
 
@@ -199,12 +285,17 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
                 preset: str = "fast", frames: str | None = None,
                 config_file: str | os.PathLike[str] | None = None, resume: bool = False,
                 gop: int | None = None, overrides: dict | None = None,
-                progress: bool = True) -> dict:
+                progress: bool = True, on_progress: Callable[[Progress], None] | None = None,
+                should_stop: Callable[[], bool] | None = None) -> dict:
     """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
     `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
     run: finished frames are skipped, an unfinished one restarts from its checkpoint. `gop`
     overrides the configuration's group-of-pictures length (recorded only, for now);
-    `overrides` (same shape as a --config file) apply after the file."""
+    `overrides` (same shape as a --config file) apply after the file.
+
+    `progress` shows a bar on a terminal; `on_progress` receives `Progress` events (every step,
+    checkpoint and frame); `should_stop` is asked after every step and, when it returns True,
+    the frame's checkpoint is written and `Stopped` raised (a service's cooperative cancel)."""
     from core.data import check_capture
 
     capture_dir, run = Path(capture_dir), Path(run_dir)
@@ -236,9 +327,11 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
         if frame in metrics["frames"] and (run / "frames" / frame / "gaussians.ply").is_file():
             continue
         label = f"frame {frame} ({i + 1}/{len(chosen)})"
+        hooks = _Hooks(frame, i, len(chosen), on_progress, should_stop)
         metrics["frames"][frame] = _reconstruct_frame(capture, frame, run, cfg, estimator,
-                                                      label if show else None)
+                                                      label if show else None, hooks)
         write_json(metrics_path, metrics)
+        hooks.emit("frame_done", None, path=str(run / "frames" / frame))
         # The frame is finished (PLY and metrics on disk): its training state is no longer needed.
         (run / "checkpoints" / f"{frame}.pt").unlink(missing_ok=True)
     from core.plots import plot_run
@@ -248,17 +341,22 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
 
 
 def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator,
-                       label: str | None) -> dict:
+                       label: str | None, hooks: _Hooks) -> dict:
     from core.priors import fill_priors
 
     history = _History()
     ckpt_dir = run / "checkpoints"
-    callbacks: list[Callback] = [history, CheckpointCallback(
-        ckpt_dir, cfg.checkpoint_every, filename=f"{frame}.pt", extra=lambda: history.records)]
+    saver = CheckpointCallback(ckpt_dir, cfg.checkpoint_every, filename=f"{frame}.pt",
+                               extra=lambda: history.records,
+                               on_saved=lambda path: hooks.emit("checkpoint", None, path=str(path)))
+    hooks.saver = saver
+    callbacks: list[Callback] = [history, saver]
     if label is not None:
         callbacks.append(_Tqdm(label))
+    callbacks.append(hooks)  # last: a stop sees the step's history and checkpoint
     start = time.perf_counter()
-    trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks)
+    trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks,
+                                   downscale=cfg.downscale)
     priors = fill_priors(trainer.views, estimator)
     ckpt = ckpt_dir / f"{frame}.pt"
     resumed_at = 0
@@ -271,7 +369,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     tmp = out / "gaussians.ply.tmp"
     trainer.model.save_ply(tmp)
     os.replace(tmp, out / "gaussians.ply")
-    render_heldout(capture, frame, trainer, run / "renders" / frame)
+    render_heldout(capture, frame, trainer, run / "renders" / frame, cfg.downscale)
     last = history.records[-1] if history.records else {}
     return {
         "iterations": cfg.train.schedule.iterations,
@@ -299,9 +397,12 @@ def _thin(records: list[dict], keep: int = 2000) -> list[dict]:
 
 
 @torch.no_grad()
-def render_heldout(capture, frame: str, trainer: Trainer, out: Path) -> list[str]:
+def render_heldout(capture, frame: str, trainer: Trainer, out: Path,
+                   downscale: float = 1.0) -> list[str]:
     """Write <camera>_rgb.png, _normal.png, _ao.png and _depth.npy for the held-out cameras
-    (index % 8 == 0) at full input resolution; returns their ids."""
+    (index % 8 == 0) at the training resolution (the input reduced by `downscale`); returns
+    their ids."""
+    from core.data.dataset import CaptureDataset
     from core.data.images import write_png
     from core.render import RenderCamera, render, safe_divide
     from core.stages import plan
@@ -309,10 +410,11 @@ def render_heldout(capture, frame: str, trainer: Trainer, out: Path) -> list[str
     p = plan(trainer.config.schedule.iterations - 1, trainer.config.schedule)
     bg = torch.tensor(trainer.config.background, dtype=torch.float32)
     ids = []
+    served = CaptureDataset(capture, frames=[frame], downscale=downscale).served_camera
     for index, cam in enumerate(capture.cameras):
         if index % 8:
             continue
-        r = render(trainer.model, RenderCamera.from_camera(cam), sh_degree=p.sh_degree,
+        r = render(trainer.model, RenderCamera.from_camera(served(cam)), sh_degree=p.sh_degree,
                    beta=p.beta, geometry=True, tie_opacity=False, background=bg,
                    eps2d=trainer.config.eps2d, antialiased=trainer.config.antialiased)
         rgb = r.rgb.clamp(0, 1).numpy()

@@ -13,6 +13,10 @@ object with explicit state, in the manner of gsplat's `strategy/` (called after 
 - At each opacity reset: drop the rho fraction with the lowest contribution (max over views of
   alpha*T in either branch since the last reset) and those transparent in both branches; then
   rho *= 0.75 and opacities become min(o, 0.01) (3DGS reset).
+- From the first reset on, every densification and reset also drops Gaussians whose largest scale
+  exceeds 0.1 x the scene extent (3DGS densify_and_prune `big_points_ws`; gsplat
+  DefaultStrategy prune_scale3d 0.1): a sheet that large is a floater the training views cannot
+  see (e.g. dark against a dark background), not part of the subject.
 """
 
 from __future__ import annotations
@@ -54,6 +58,9 @@ class DensifyConfig:
     """Opacity reset: o = min(o, reset_value) (3DGS)."""
     max_gaussians: int | None = None
     """Stop growing beyond this many Gaussians (highest gradients densify first)."""
+    prune_scale: float | None = 0.1
+    """After the first reset, drop Gaussians whose largest scale exceeds this x the scene extent
+    (3DGS `0.1 * cameras_extent`); None keeps them."""
 
 
 @dataclass
@@ -155,9 +162,23 @@ class DensifyStrategy:
                 state.select(keep)
             for name in ("grad_c", "grad_g", "count", "max_radii"):
                 getattr(state, name).zero_()
-        record = {"cloned": int(clone.sum()), "split": int(split.sum()), "n": len(model)}
+            big = self._too_big(model, state)
+            if bool(big.all()):
+                big[:] = False  # never leave an empty model
+            if bool(big.any()):
+                model.keep(~big, optimizer)
+                state.select(~big)
+        record = {"cloned": int(clone.sum()), "split": int(split.sum()),
+                  "pruned_big": int(big.sum()), "n": len(model)}
         state.history.append(record)
         return record
+
+    def _too_big(self, model: GaussianModel, state: StrategyState) -> Tensor:
+        """(N,) Gaussians larger than prune_scale x extent, once a reset has happened (before it
+        the initial points may still be large)."""
+        if self.config.prune_scale is None or state.resets == 0:
+            return torch.zeros(len(model), dtype=torch.bool)
+        return model.scales.max(dim=1).values > self.config.prune_scale * self.extent
 
     @staticmethod
     def _branch_opacities(raw: Tensor, passed: Tensor, cfg: DensifyConfig) -> tuple[Tensor, Tensor]:
@@ -202,7 +223,7 @@ class DensifyStrategy:
             n = len(model)
             o_c = model.opacity_c
             o_g = o_c if tied else model.opacity_g
-            drop = (o_c < cfg.transparent) & (o_g < cfg.transparent)
+            drop = ((o_c < cfg.transparent) & (o_g < cfg.transparent)) | self._too_big(model, state)
             k = int(math.floor(state.rho * n))
             if k > 0:
                 drop[state.contribution.argsort(stable=True)[:k]] = True

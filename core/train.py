@@ -70,6 +70,12 @@ class TrainConfig:
     """Apply the Mip-Splatting opacity compensation."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Colour behind the Gaussians; masked-out target pixels take it too."""
+    random_background: bool = True
+    """Views with a mask train in front of a new uniformly random colour each step (render and
+    target alike), so the rendered coverage must match the mask: against a fixed background, a
+    Gaussian of the background's colour costs nothing where the mask says background and floats
+    into held-out views (3DGS trains masked synthetic scenes the same way, --random_background).
+    Views without a mask always use `background`."""
     seed: int = 0
     """Seeds initial points, view order and split samples."""
     bake_ao: bool = True
@@ -137,7 +143,8 @@ class StepInfo:
     n_gaussians: int
     seconds: float
     psnr: float | None = None
-    """PSNR (dB) of this step's training render against its target."""
+    """PSNR (dB) of this step's training render against its target, both on the configured
+    background (comparable between steps whatever the step's random background)."""
 
 
 class Callback:
@@ -173,24 +180,32 @@ class ProgressCallback(Callback):
 
 class CheckpointCallback(Callback):
     """Writes `folder/<filename>` (atomically) every `every` steps and at the end; `extra`
-    (a callable returning plain data) is stored beside the training state."""
+    (a callable returning plain data) is stored beside the training state; `on_saved(path)` runs
+    once the file is complete on disk (a service copies it off the machine there, so that a
+    crashed worker's successor can resume from it)."""
 
     def __init__(self, folder: str | os.PathLike[str], every: int = 1000,
-                 filename: str = "checkpoint.pt", extra: Callable[[], object] | None = None):
+                 filename: str = "checkpoint.pt", extra: Callable[[], object] | None = None,
+                 on_saved: Callable[[Path], None] | None = None):
         if every < 1:
             raise ValueError(f"every: expected >= 1, got {every}")
         self.folder, self.every, self.filename, self.extra = Path(folder), every, filename, extra
+        self.on_saved = on_saved
 
-    def _save(self, trainer: Trainer) -> None:
-        trainer.save_checkpoint(self.folder / self.filename,
-                                extra=None if self.extra is None else self.extra())
+    def save(self, trainer: Trainer) -> Path:
+        """Write the checkpoint now; returns its path."""
+        path = self.folder / self.filename
+        trainer.save_checkpoint(path, extra=None if self.extra is None else self.extra())
+        if self.on_saved is not None:
+            self.on_saved(path)
+        return path
 
     def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
         if (info.step + 1) % self.every == 0:
-            self._save(trainer)
+            self.save(trainer)
 
     def on_train_end(self, trainer: Trainer) -> None:
-        self._save(trainer)
+        self.save(trainer)
 
 
 def psnr(pred: Tensor, target: Tensor) -> float:
@@ -253,27 +268,34 @@ class Trainer:
             seed=self.config.seed)
         return GaussianModel.from_points(pts, cols)
 
-    def target(self, index: int) -> Tensor:
-        """The training image, composited on the background where a mask says background."""
+    def target(self, index: int, background: Tensor | None = None) -> Tensor:
+        """The training image composited on `background` (default the configured one) by its
+        mask: mask is coverage, the image straight colour (core.data.dataset)."""
         view = self.views[index]
         if view.mask is None:
             return view.image
-        return view.image * view.mask + self.background * (1 - view.mask)
+        bg = self.background if background is None else background
+        return view.image * view.mask + bg * (1 - view.mask)
 
-    def render_view(self, index: int, p: StagePlan):
+    def render_view(self, index: int, p: StagePlan, background: Tensor | None = None):
         return render(self.model, self.cameras[index], sh_degree=p.sh_degree, beta=p.beta,
                       geometry=p.geometry_branch, tie_opacity=p.tie_opacity,
-                      background=self.background, eps2d=self.config.eps2d,
-                      antialiased=self.config.antialiased)
+                      background=self.background if background is None else background,
+                      eps2d=self.config.eps2d, antialiased=self.config.antialiased)
+
+    def _step_background(self, index: int) -> Tensor:
+        if self.config.random_background and self.views[index].mask is not None:
+            return torch.rand(3, generator=self.generator)
+        return self.background
 
     def _next_view(self) -> int:
         if not self._order:  # every view once per epoch, in random order (3DGS viewpoint stack)
             self._order = torch.randperm(len(self.views), generator=self.generator).tolist()
         return self._order.pop()
 
-    def _losses(self, index: int, p: StagePlan, r) -> dict[str, Tensor]:
+    def _losses(self, index: int, p: StagePlan, r, background: Tensor) -> dict[str, Tensor]:
         w, view, cam = self.config.losses, self.views[index], self.cameras[index]
-        terms = {"photometric": photometric_loss(r.rgb, self.target(index), w)}
+        terms = {"photometric": photometric_loss(r.rgb, self.target(index, background), w)}
         if p.normal_prior and view.normal is not None:
             terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
         if p.consistency:
@@ -304,8 +326,9 @@ class Trainer:
         p = plan(self.step, self.config.schedule)
         self._before_step(p)
         index = self._next_view()
-        r = self.render_view(index, p)
-        terms = self._losses(index, p, r)
+        bg = self._step_background(index)
+        r = self.render_view(index, p, bg)
+        terms = self._losses(index, p, r, bg)
         total = sum(terms.values())
         total.backward()
         self.optimizer.step()
@@ -318,8 +341,10 @@ class Trainer:
             self.strategy.prune_and_reset(self.model, self.optimizer, self.state, p.tie_opacity)
         losses = {k: float(v.detach()) for k, v in terms.items()}
         losses["total"] = float(total.detach())
+        # The render in front of the configured background: rgb = blend + (1 - alpha_c) bg.
+        on_config = r.rgb.detach() + (1 - r.alpha_c.detach()) * (self.background - bg)
         info = StepInfo(self.step, p, losses, len(self.model), time.perf_counter() - start,
-                        psnr(r.rgb, self.target(index)))
+                        psnr(on_config, self.target(index)))
         self.step += 1
         return info
 
@@ -343,12 +368,16 @@ class Trainer:
         return sum(psnr(self.render_view(i, p).rgb, self.target(i)) for i in ids) / len(ids)
 
     def save_checkpoint(self, path: str | os.PathLike[str], extra: object = None) -> None:
-        """Parameters, optimizer and strategy state, the step, the baked AO targets (so a resumed
-        stage 3 keeps its visibility loss) and `extra` (plain data), written atomically."""
+        """Everything that decides the remaining steps, written atomically: parameters, optimizer
+        and strategy state, the step, the random generator (view order, split samples) and the
+        views still pending in this epoch, the baked AO targets (so a resumed stage 3 keeps its
+        visibility loss); and `extra` (plain data). Resuming from it repeats the uninterrupted
+        run exactly (bit for bit on CPU with the same thread count)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         blob = {"step": self.step, "params": {k: v.detach() for k, v in self.model.params.items()},
                 "optimizer": self.optimizer.state_dict(), "strategy": asdict(self.state),
+                "generator": self.generator.get_state(), "order": list(self._order),
                 "ao_targets": self.ao_targets, "notes": list(self.notes), "extra": extra}
         tmp = path.with_name(path.name + ".tmp")
         torch.save(blob, tmp)
@@ -362,6 +391,9 @@ class Trainer:
         self.optimizer.load_state_dict(blob["optimizer"])
         self.state = StrategyState(**blob["strategy"])
         self.step = int(blob["step"])
+        if "generator" in blob:  # absent from checkpoints written before resume was exact
+            self.generator.set_state(blob["generator"])
+            self._order = [int(i) for i in blob["order"]]
         self.ao_targets = blob.get("ao_targets")
         self.notes = list(blob.get("notes") or [])
         return blob.get("extra")

@@ -8,12 +8,20 @@ cache, so give workers ``cache_bytes / num_workers``.
 Conventions of the served tensors:
 - ``image`` (H, W, 3) float32, values as stored in the file scaled to 0..1 (PNG/JPEG therefore
   stay sRGB-encoded; EXR stays linear). Grey images are repeated to 3 channels.
-- ``mask`` (H, W, 1) float32 in 0..1 (fractional coverage once downscaled), from masks/ or else
-  from the image's alpha channel; None when neither exists.
+- ``mask`` (H, W, 1) float32 in 0..1: the fraction of the pixel covered by the foreground (alpha),
+  from masks/ or else from the image's alpha channel; None when neither exists. Where it is
+  fractional the image holds *straight* (unpremultiplied) colour, the colour of the foreground
+  part alone, as PNG alpha does, so that ``image * mask + bg * (1 - mask)`` is the pixel in front
+  of background ``bg`` (what the trainer and `dgs eval` compare with). A binary mask over an image
+  that shows the real background fits the convention as well. Seeding, the foreground of the
+  metrics and the masked losses count a pixel as foreground when its mask is > 0.5.
 - ``normal`` (H, W, 3) float32 world-space normals (PNG decoded as 2 v - 1; camera-space priors
   rotated to world); None when the view has no prior.
 When the camera has distortion and ``undistort`` is on, all three are resampled to the ideal pinhole
-with the same K, and the served camera has ``distortion=None``. Downscaling happens after that.
+with the same K, and the served camera has ``distortion=None``. Downscaling (area averaging)
+happens after that. Both keep the convention: the mask is resampled as coverage and the image
+weighted by it (premultiplied, resampled, divided again), so the foreground colour of an edge
+pixel does not take in the background that the mask removes.
 """
 
 from __future__ import annotations
@@ -179,9 +187,9 @@ class CaptureDataset(torch.utils.data.Dataset):
         elif raw.shape[2] in (2, 4):
             mask = raw[:, :, -1:].copy()
         normal = self._read_normal(view.normal, cam) if view.normal is not None else None
-        image = self._resample(image, cam, nearest=False)
-        mask = self._resample(mask, cam, nearest=True)  # keep masks binary
-        normal = self._resample(normal, cam, nearest=False)
+        image = self._resample(image, cam, weight=mask)
+        mask = self._resample(mask, cam)
+        normal = self._resample(normal, cam)
         if normal is not None:
             norm = np.linalg.norm(normal, axis=2, keepdims=True)
             # Near-zero vectors mark "no prior" (8-bit PNG stores 0 as 128/255, norm ~0.007).
@@ -200,20 +208,29 @@ class CaptureDataset(torch.utils.data.Dataset):
             n = n @ cam.R.astype(np.float32)
         return np.ascontiguousarray(n, dtype=np.float32)
 
-    def _resample(self, arr: np.ndarray | None, cam: Camera, nearest: bool) -> np.ndarray | None:
-        import cv2
-
+    def _resample(self, arr: np.ndarray | None, cam: Camera,
+                  weight: np.ndarray | None = None) -> np.ndarray | None:
+        """Undistort (bilinear) and downscale (area) `arr`; with `weight` (the mask) the straight
+        colour of the weighted part: resample(arr * weight) / resample(weight), and the plain
+        resampled value where no weight is left."""
         if arr is None:
             return None
+        served = self.served_camera(cam)
+        moves = (self.undistort and cam.distortion is not None) or (
+            (served.width, served.height) != (arr.shape[1], arr.shape[0]))
+        if weight is not None and moves:
+            num, den = self._resample(arr * weight, cam), self._resample(weight, cam)
+            plain = self._resample(arr, cam)
+            # 1/1024 of a pixel: below that the division only amplifies rounding.
+            return np.ascontiguousarray(
+                np.where(den > 1 / 1024, num / np.maximum(den, 1 / 1024), plain), dtype=np.float32)
+        import cv2
+
         if self.undistort and cam.distortion is not None:
             map_x, map_y = self._undistort_maps(cam)
-            interp = cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR
-            arr = cv2.remap(arr, map_x, map_y, interp, borderMode=cv2.BORDER_CONSTANT)
-        served = self.served_camera(cam)
+            arr = cv2.remap(arr, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
         if (served.width, served.height) != (arr.shape[1], arr.shape[0]):
-            # Area averaging for masks too: a downscaled mask is the fraction of foreground.
-            interp = cv2.INTER_AREA
-            arr = cv2.resize(arr, (served.width, served.height), interpolation=interp)
+            arr = cv2.resize(arr, (served.width, served.height), interpolation=cv2.INTER_AREA)
         if arr.ndim == 2:
             arr = arr[:, :, None]
         return np.ascontiguousarray(arr, dtype=np.float32)

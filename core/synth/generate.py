@@ -3,8 +3,8 @@
 Layout written (capture content per DESIGN.md 3.1, ground truth beside it under ``gt/``)::
 
     OUT/capture.json
-    OUT/images/<frame>/<cam>.png           sRGB 8-bit, black background
-    OUT/masks/<frame>/<cam>.png
+    OUT/images/<frame>/<cam>.png           sRGB 8-bit, straight colour (see below), black background
+    OUT/masks/<frame>/<cam>.png            coverage 0..1 as 8-bit (fraction of the pixel on the figure)
     OUT/normals/<frame>/<cam>.png          only with priors: degraded world normals, (n + 1) / 2
     OUT/gt/meshes/<frame>.ply              posed mesh, world coordinates
     OUT/gt/depth/<frame>/<cam>.npy         (H, W) float32 camera z, 0 on background
@@ -13,6 +13,15 @@ Layout written (capture content per DESIGN.md 3.1, ground truth beside it under 
     OUT/gt/visibility/<frame>/<cam>.png    ambient visibility 0..1, linear 8-bit
     OUT/gt/relight/<frame>/<cam>.png       the same view under the second light
     OUT/gt/lights.json, OUT/gt/envmaps/<light>.exr
+
+Pixels integrate over their area, as a sensor does: every view is rendered at k x k samples per
+pixel (`SynthConfig.supersample`). The mask stores coverage (the fraction of samples on the
+figure) and the images store *straight* (unpremultiplied) colour, the mean of the stored (sRGB)
+values over the figure's samples, so that ``image * mask + bg * (1 - mask)`` is exactly the area
+average of the pixel in front of any background ``bg`` (the convention of core.data.dataset; PNG
+alpha is straight too). Albedo, visibility and relight images follow the same convention with the
+same mask. Geometric ground truth (depth, normals, the support of the priors) stays point-sampled
+at the pixel centres, which an odd k includes exactly.
 """
 
 from __future__ import annotations
@@ -64,8 +73,13 @@ class SynthConfig:
     """Directions used for the ambient-occlusion shadow maps."""
     radius: float = 3.2
     """Camera distance from the figure's centre (metres)."""
+    supersample: int = 3
+    """Odd k: k x k samples per pixel for images and coverage masks (1: one sample at the pixel
+    centre, aliased edges and texture, binary masks)."""
 
     def check(self) -> None:
+        if self.supersample < 1 or self.supersample % 2 == 0:
+            raise ValueError(f"supersample: expected an odd integer >= 1, got {self.supersample}")
         for name in ("frames", "views", "width", "height", "ao_directions"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
@@ -117,30 +131,41 @@ def _to_u8(x: np.ndarray) -> np.ndarray:
 
 
 def _render_view(
-    mesh: FigureMesh, vis: np.ndarray, cam: Camera, palette: np.ndarray
+    mesh: FigureMesh, vis: np.ndarray, cam: Camera, palette: np.ndarray, supersample: int = 1
 ) -> dict[str, np.ndarray]:
-    frags = rasterize_perspective(
-        mesh.vertices, mesh.faces, cam.K, cam.world_to_camera, cam.width, cam.height
-    )
+    """Point samples at the pixel centres ("mask", "depth", "normal"), coverage ("coverage") and
+    straight stored-value colour ("albedo", "visibility" and one image per light, encoded as
+    they are written: sRGB for colours, linear for visibility)."""
+    k, W, H = supersample, cam.width, cam.height
+    # Continuous pixel coordinates scale by k, so the centre (u + 0.5) of pixel u is the centre of
+    # sub-pixel k u + k // 2 when k is odd.
+    K = np.diag([k, k, 1.0]) @ cam.K
+    frags = rasterize_perspective(mesh.vertices, mesh.faces, K, cam.world_to_camera, W * k, H * k)
     m = frags.mask
     normals = interpolate(frags, mesh.faces, mesh.normals)
     normals[m] /= np.linalg.norm(normals[m], axis=1, keepdims=True)
     rest = interpolate(frags, mesh.faces, mesh.rest)
-    visibility = interpolate(frags, mesh.faces, vis[:, None])[:, :, 0]
+    visibility = interpolate(frags, mesh.faces, vis[:, None])
     part = mesh.part[mesh.faces[frags.triangle[m], 0]]
     albedo = np.zeros_like(normals)
     albedo[m] = albedo_at(rest[m], part, palette)
-    out = {
-        "mask": m,
-        "depth": frags.depth,
-        "normal": normals,
-        "albedo": albedo,
-        "visibility": visibility,
-    }
+    stored = {"albedo": linear_to_srgb(albedo), "visibility": visibility}
     for name, light in LIGHTS.items():
         rgb = np.zeros_like(normals)
-        rgb[m] = albedo[m] * visibility[m, None] * irradiance(normals[m], light.sh9())
-        out[name] = rgb
+        rgb[m] = albedo[m] * visibility[m] * irradiance(normals[m], light.sh9())
+        stored[name] = linear_to_srgb(rgb)
+    c = k // 2
+    blocks = lambda a: a.reshape(H, k, W, k, -1)  # noqa: E731  (pixel, sub-row, sub-column)
+    count = blocks(m.astype(np.float64)).sum(axis=(1, 3))  # (H, W, 1) figure samples per pixel
+    out = {
+        "mask": m[c::k, c::k],
+        "depth": frags.depth[c::k, c::k],
+        "normal": normals[c::k, c::k],
+        "coverage": count[..., 0] / (k * k),
+    }
+    for name, value in stored.items():
+        mean = blocks(value * m[..., None]).sum(axis=(1, 3)) / np.maximum(count, 1)
+        out[name] = mean[..., 0] if name == "visibility" else mean
     return out
 
 
@@ -212,7 +237,7 @@ def synthesize(out: str | os.PathLike[str], config: SynthConfig = SynthConfig())
                 out,
                 frame,
                 cam,
-                _render_view(mesh, vis, cam, palette),
+                _render_view(mesh, vis, cam, palette, config.supersample),
                 prior_rng if config.priors else None,
             )
     _write_lights(gt)
@@ -224,15 +249,15 @@ def synthesize(out: str | os.PathLike[str], config: SynthConfig = SynthConfig())
 
 def _write_view(out: Path, frame: str, cam: Camera, r: dict[str, np.ndarray], prior_rng) -> None:
     name = f"{frame}/{cam.id}"
-    write_png(out / "images" / f"{name}.png", _to_u8(linear_to_srgb(r["capture"])))
-    write_png(out / "masks" / f"{name}.png", (r["mask"] * 255).astype(np.uint8))
+    write_png(out / "images" / f"{name}.png", _to_u8(r["capture"]))
+    write_png(out / "masks" / f"{name}.png", _to_u8(r["coverage"]))
     gt = out / "gt"
     for sub in ("depth", "normals"):
         (gt / sub / frame).mkdir(parents=True, exist_ok=True)
     np.save(gt / "depth" / f"{name}.npy", r["depth"].astype(np.float32))
     np.save(gt / "normals" / f"{name}.npy", r["normal"].astype(np.float32))
-    write_png(gt / "relight" / f"{name}.png", _to_u8(linear_to_srgb(r["relight"])))
-    write_png(gt / "albedo" / f"{name}.png", _to_u8(linear_to_srgb(r["albedo"])))
+    write_png(gt / "relight" / f"{name}.png", _to_u8(r["relight"]))
+    write_png(gt / "albedo" / f"{name}.png", _to_u8(r["albedo"]))
     write_png(gt / "visibility" / f"{name}.png", _to_u8(r["visibility"]))
     if prior_rng is not None:
         prior = degrade_normals(r["normal"], r["mask"], prior_rng)

@@ -21,12 +21,16 @@ def test_serves_views_as_tensors(synth_capture: Path) -> None:
     assert (s.frame, s.camera_id) == ("000001", "cam05")
     assert s.image.shape == (48, 48, 3) and s.image.dtype == torch.float32
     assert 0.0 <= float(s.image.min()) and float(s.image.max()) <= 1.0
-    assert s.mask.shape == (48, 48, 1) and set(s.mask.unique().tolist()) <= {0.0, 1.0}
-    # Priors are world-space unit vectors on the figure, zero on the background.
+    # Masks are coverage: 0 off the figure, 1 inside, fractions on its silhouette.
+    m = s.mask[:, :, 0]
+    assert s.mask.shape == (48, 48, 1) and float(m.min()) == 0.0 and float(m.max()) == 1.0
+    assert bool(((m > 0) & (m < 1)).any())
+    # Priors are world-space unit vectors where the pixel centre is on the figure, zero where
+    # nothing of the figure is.
     norms = s.normal.norm(dim=2)
-    fg = s.mask[:, :, 0] > 0
+    fg = torch.from_numpy(np.load(synth_capture / "gt/depth/000001/cam05.npy") > 0)
     assert torch.allclose(norms[fg], torch.ones(()), atol=1e-4)
-    assert float(norms[~fg].max()) == 0.0
+    assert float(norms[m == 0].max()) == 0.0
     gt = np.load(synth_capture / "gt/normals/000001/cam05.npy")
     cos = (s.normal.numpy() * gt).sum(axis=2)[fg.numpy()]
     assert 0.8 < float(np.median(cos)) < 0.9999  # close to truth, but degraded
@@ -43,6 +47,34 @@ def test_downscale_scales_intrinsics(synth_capture: Path) -> None:
     # A 3D point lands on the same relative image position at both scales.
     point = np.array([[0.0, 0.0, 1.0]])
     np.testing.assert_allclose(s.camera.project(point)[0], cam.project(point)[0] / 2, atol=1e-9)
+
+
+def test_downscale_keeps_straight_colour(tmp_path: Path) -> None:
+    """Image in straight colour with a coverage mask: after area downscaling, image * mask is
+    still the area average of the premultiplied colour, and the served colour of an edge pixel is
+    the foreground's alone (the black beside it does not darken it)."""
+    from core.data import Camera, Capture, save_capture
+
+    K = np.array([[8.0, 0, 4.0], [0, 8.0, 4.0], [0, 0, 1]])
+    cam = Camera("c0", 8, 8, K, np.eye(4), None)
+    rng = np.random.default_rng(0)
+    image = rng.integers(40, 255, size=(8, 8, 3)).astype(np.uint8)
+    mask = np.zeros((8, 8), np.uint8)
+    mask[:, :3] = 255
+    mask[:, 3] = 102  # 0.4 coverage
+    image[mask == 0] = 0
+    write_png(tmp_path / "cap/images/f0/c0.png", image)
+    write_png(tmp_path / "cap/masks/f0/c0.png", mask)
+    save_capture(Capture(tmp_path / "cap", (cam,), ("f0",), (0, -1, 0)))
+    s = CaptureDataset(load_capture(tmp_path / "cap"), downscale=2)[0]
+    c, a = image / 255.0, mask[:, :, None] / 255.0
+    pre = (c * a).reshape(4, 2, 4, 2, 3).mean(axis=(1, 3))
+    cover = a.reshape(4, 2, 4, 2, 1).mean(axis=(1, 3))
+    np.testing.assert_allclose(s.mask.numpy(), cover, atol=1e-6)
+    np.testing.assert_allclose((s.image * s.mask).numpy(), pre, atol=1e-5)
+    straight = c[:, 2:4].reshape(4, 2, 2, 3) * a[:, 2:4].reshape(4, 2, 2, 1)
+    edge = straight.sum(axis=(1, 2)) / a[:, 2:4].reshape(4, 4).sum(axis=1)[:, None]
+    np.testing.assert_allclose(s.image[:, 1].numpy(), edge, atol=1e-5)
 
 
 def test_memory_bound(synth_capture: Path) -> None:

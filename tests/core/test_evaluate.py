@@ -57,7 +57,9 @@ def test_perfect_renders_score_perfectly(capture: Path, tmp_path: Path):
     assert result == json.loads((tmp_path / "run" / "eval.json").read_text())
     assert result["views"] == 2 and [v["camera"] for v in result["per_frame"][0]["views"]] == [
         "cam00", "cam08"]
-    assert result["psnr"] == 100.0 and result["ssim"] == pytest.approx(1.0, abs=1e-5)
+    # The capture is straight colour times coverage; an 8-bit render of that product is off by
+    # at most half a level on the silhouette (54 dB), and exact elsewhere.
+    assert result["psnr"] > 54 and result["ssim"] == pytest.approx(1.0, abs=1e-4)
     assert result["normal_reference"] == "ground truth"
     assert result["normal_cos"] > 0.995 and result["normal_deg"] < 5.0  # 8-bit quantisation
     assert result["lpips"] is None and result["chamfer"] is None
@@ -86,7 +88,7 @@ def test_normal_reference_falls_back_to_priors_then_null(capture: Path, tmp_path
     shutil.rmtree(no_gt / "normals")
     result = evaluate_run(run, no_gt)
     assert result["normal_cos"] is None and result["normal_deg"] is None
-    assert result["psnr"] == 100.0
+    assert result["psnr"] > 54
 
 
 def test_bad_inputs(capture: Path, tmp_path: Path):

@@ -12,7 +12,14 @@ import torch
 from PIL import Image
 
 from core.model import GaussianModel
-from core.pipeline import apply_overrides, parse_frames, reconstruct, resolve_config
+from core.pipeline import (
+    Progress,
+    Stopped,
+    apply_overrides,
+    parse_frames,
+    reconstruct,
+    resolve_config,
+)
 from core.synth import SynthConfig, synthesize
 from core.train import Trainer, train_config
 
@@ -122,6 +129,25 @@ def test_overrides_validate_keys_and_types(tmp_path: Path):
         resolve_config("huge")
 
 
+def test_overrides_of_optional_fields():
+    """Fields that may be None take None or a value of their type, whatever the preset holds."""
+    fast = resolve_config("fast")
+    assert fast.train.densify.max_gaussians is None
+    out = apply_overrides(fast, {"train": {"densify": {"max_gaussians": 9000,
+                                                       "prune_scale": None}}})
+    assert out.train.densify.max_gaussians == 9000 and out.train.densify.prune_scale is None
+    back = apply_overrides(out, {"train": {"densify": {"max_gaussians": None,
+                                                       "prune_scale": 1}}})
+    assert back.train.densify.max_gaussians is None and back.train.densify.prune_scale == 1.0
+    assert apply_overrides(fast, {"normal_estimator": "m.pt"}).normal_estimator == "m.pt"
+    with pytest.raises(ValueError, match="max_gaussians"):
+        apply_overrides(fast, {"train": {"densify": {"max_gaussians": "lots"}}})
+    with pytest.raises(ValueError, match="max_gaussians"):
+        apply_overrides(fast, {"train": {"densify": {"max_gaussians": 2.5}}})
+    with pytest.raises(ValueError, match="checkpoint_every"):
+        apply_overrides(fast, {"checkpoint_every": None})  # not optional
+
+
 def test_parse_frames():
     frames = ["a", "b", "c", "d"]
     assert parse_frames(None, frames) == frames
@@ -179,6 +205,45 @@ def test_resume_after_interruption(capture: Path, short_config: Path, tmp_path: 
     assert [r["step"] for r in f["history"]] == list(range(100))
     assert "visibility" in f["final_losses"]  # baked AO targets came back as well
     assert (out / "frames" / "000001" / "gaussians.ply").is_file()
+
+
+def test_progress_events_and_cooperative_stop(capture: Path, short_config: Path, tmp_path: Path):
+    """A service watches every step, learns of each checkpoint once it is on disk, and stops a
+    run between two steps; the run resumes from the step it stopped at."""
+    out = tmp_path / "run"
+    events: list[Progress] = []
+
+    def watch(event: Progress) -> None:
+        if event.kind == "checkpoint":
+            assert Path(event.path).is_file()  # complete on disk when announced
+        events.append(event)
+
+    def stop() -> bool:
+        return sum(e.kind == "step" for e in events) >= 45
+
+    with pytest.raises(Stopped) as info:
+        reconstruct(capture, out, preset="test", config_file=short_config, progress=False,
+                    on_progress=watch, should_stop=stop)
+    assert (info.value.frame, info.value.step) == ("000000", 45)
+    steps = [e.step for e in events if e.kind == "step"]
+    assert steps == list(range(1, 46)) and events[0].kind == "frame_start"
+    assert {e.iterations for e in events} == {100} and {e.frames for e in events} == {2}
+    assert [e.stage for e in events if e.kind == "step"][-1] == 2  # stage 2 starts at 30
+    saved = [e.step for e in events if e.kind == "checkpoint"]
+    assert saved == [10, 20, 30, 40, 45]  # every 10 steps, then the one written by the stop
+    blob = torch.load(out / "checkpoints" / "000000.pt", weights_only=True)
+    assert blob["step"] == 45
+
+    events.clear()
+    reconstruct(capture, out, preset="test", config_file=short_config, progress=False,
+                resume=True, on_progress=watch)
+    first = events[0]
+    assert (first.kind, first.frame, first.step) == ("frame_start", "000000", 45)
+    done = [e for e in events if e.kind == "frame_done"]
+    assert [(e.frame, e.frame_index) for e in done] == [("000000", 0), ("000001", 1)]
+    assert all(Path(e.path, "gaussians.ply").is_file() for e in done)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["frames"]["000000"]["resumed_at"] == 45
 
 
 def test_progress_bar_only_on_a_terminal(capture: Path, short_config: Path, tmp_path: Path,

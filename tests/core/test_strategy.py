@@ -79,7 +79,7 @@ def test_clone_and_split_opacities_and_adam_state():
     st.count[:] = 1.0
     st.contribution[:] = torch.tensor([0.3, 0.6, 0.9])
     rec = s.densify(m, opt, st, generator=torch.Generator().manual_seed(0))
-    assert rec == {"cloned": 1, "split": 1, "n": 5}
+    assert rec == {"cloned": 1, "split": 1, "pruned_big": 0, "n": 5}
     assert len(m) == 5
     # Rows: 0 (clone original), 2 (untouched), 3 (clone copy), 4 and 5 -> 3, 4 (split samples).
     o_c, o_g = m.opacity_c.detach(), m.opacity_g.detach()
@@ -127,7 +127,33 @@ def test_nothing_passes_nothing_changes():
     st = s.initialize_state(3)
     st.grad_c[:] = 1e-4
     st.count[:] = 1.0
-    assert s.densify(m, opt, st) == {"cloned": 0, "split": 0, "n": 3}
+    assert s.densify(m, opt, st) == {"cloned": 0, "split": 0, "pruned_big": 0, "n": 3}
+
+
+def test_too_large_gaussians_go_once_a_reset_has_happened():
+    """Scales 0.005, 0.5, 0.3 against 0.1 x extent 4 = 0.4: the 0.5 one is a floater-sized
+    sheet; it stays while the first reset has not happened, then goes at a densification and at
+    a reset (with its Adam state)."""
+    m = tiny_model(6)
+    opt = _stepped_optimizer(m)
+    s = DensifyStrategy(DensifyConfig(rho=0.0), extent=4.0)
+    st = s.initialize_state(6)
+    assert s.densify(m, opt, st)["pruned_big"] == 0 and len(m) == 6
+    s.prune_and_reset(m, opt, st)
+    assert len(m) == 6 and st.resets == 1  # the reset that counts is the one before
+    rec = s.densify(m, opt, st)
+    assert rec["pruned_big"] == 2 and len(m) == 4
+    assert float(m.scales.max()) < 0.4 and len(st.contribution) == 4
+    assert all(opt.state[g["params"][0]]["exp_avg"].shape[0] == 4 for g in opt.param_groups)
+    with torch.no_grad():
+        m.params["scales"][0] = math.log(2.0)
+    s.prune_and_reset(m, opt, st)
+    assert len(m) == 3
+    off = DensifyStrategy(DensifyConfig(rho=0.0, prune_scale=None), extent=4.0)
+    m2 = tiny_model(6)
+    st2 = off.initialize_state(6)
+    st2.resets = 1
+    assert off.densify(m2, None, st2)["pruned_big"] == 0 and len(m2) == 6
 
 
 def test_max_gaussians_caps_growth():

@@ -67,8 +67,11 @@ def test_depth_back_projects_onto_mesh(synth_capture: Path) -> None:
         dists = []
         for cam in cap.cameras:
             depth = np.load(synth_capture / "gt" / "depth" / frame / f"{cam.id}.npy")
-            mask = np.asarray(__import__("PIL.Image").Image.open(cap.mask_path(frame, cam.id))) > 0
-            np.testing.assert_array_equal(depth > 0, mask)
+            cover = np.asarray(__import__("PIL.Image").Image.open(cap.mask_path(frame, cam.id)))
+            # Depth is point-sampled at pixel centres, the mask is coverage: a centre on the
+            # figure means some coverage, full coverage means the centre is on it.
+            assert np.all(cover[depth > 0] > 0) and np.all(depth[cover == 255] > 0)
+            mask = depth > 0
             v, u = np.nonzero(mask)
             rays = (
                 np.stack([u + 0.5, v + 0.5, np.ones_like(u, dtype=float)], 1)
@@ -114,16 +117,21 @@ def test_relight_differs_and_priors_are_degraded(synth_capture: Path) -> None:
 
     img = np.asarray(Image.open(synth_capture / "images/000000/cam03.png"), dtype=float)
     rel = np.asarray(Image.open(synth_capture / "gt/relight/000000/cam03.png"), dtype=float)
-    mask = np.asarray(Image.open(synth_capture / "masks/000000/cam03.png")) > 0
+    cover = np.asarray(Image.open(synth_capture / "masks/000000/cam03.png"))
+    mask = cover > 0
     assert np.abs(img - rel)[mask].mean() > 10
     assert img[~mask].max() == 0 and img[mask].mean() > 30
+    # Straight colour: silhouette pixels are as bright as the figure's inside, not darkened
+    # by the black background their coverage leaves out.
+    edge, inside = (cover > 0) & (cover < 255), cover == 255
+    assert edge.sum() > 20 and img[edge].mean() > 0.8 * img[inside].mean()
     prior = (
         np.asarray(Image.open(synth_capture / "normals/000000/cam03.png"), dtype=float) / 255 * 2
         - 1
     )
     gt = np.load(synth_capture / "gt/normals/000000/cam03.npy")
     prior /= np.linalg.norm(prior, axis=2, keepdims=True)
-    angle = np.degrees(np.arccos(np.clip((prior * gt).sum(2), -1, 1)))[mask]
+    angle = np.degrees(np.arccos(np.clip((prior * gt).sum(2), -1, 1)))[cover == 255]
     assert 2.0 < np.median(angle) < 25.0
 
 
@@ -193,7 +201,37 @@ def test_cli_synth(tmp_path: Path, capsys) -> None:
     assert "not an empty folder" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("bad", [{"views": 0}, {"width": 4}])
-def test_config_is_checked(bad: dict, tmp_path: Path) -> None:
-    with pytest.raises(ValueError, match=next(iter(bad)) if "views" in bad else "size"):
+def test_coverage_is_the_area_average(tmp_path: Path) -> None:
+    """Supersampled masks and images agree with a 3x larger capture averaged over 3x3 blocks
+    (same cameras, intrinsics scaled), i.e. masks are coverage and image * mask the premultiplied
+    area average."""
+    from PIL import Image
+
+    base = SynthConfig(frames=1, views=2, width=16, height=16, seed=4, ao_directions=4)
+    synthesize(tmp_path / "ss", base)
+    cap = load_capture(tmp_path / "ss")
+    big = cap.cameras[1].scaled(48, 48)
+    from core.synth.figure import Figure
+    from core.synth.generate import _render_view
+    from core.synth.shading import vertex_visibility
+
+    rng = np.random.default_rng(base.seed)
+    figure = Figure(seed=int(rng.integers(2**31)))
+    palette = rng.uniform(0.25, 0.85, size=(figure.n_parts, 3))
+    mesh = figure.pose(0.0)
+    vis = vertex_visibility(mesh.vertices, mesh.normals, mesh.faces, base.ao_directions)
+    point = _render_view(mesh, vis, big, palette, supersample=1)
+    cover = point["mask"].reshape(16, 3, 16, 3).mean(axis=(1, 3))
+    pre = (point["capture"] * point["mask"][..., None]).reshape(16, 3, 16, 3, 3).mean(axis=(1, 3))
+    mask = np.asarray(Image.open(tmp_path / "ss/masks/000000/cam01.png")) / 255.0
+    img = np.asarray(Image.open(tmp_path / "ss/images/000000/cam01.png")) / 255.0
+    assert ((cover > 0) & (cover < 1)).sum() > 10
+    np.testing.assert_allclose(mask, cover, atol=0.5 / 255 + 1e-9)
+    np.testing.assert_allclose(img * mask[..., None], pre, atol=1.5 / 255)
+
+
+@pytest.mark.parametrize(("bad", "named"), [({"views": 0}, "views"), ({"width": 4}, "size"),
+                                           ({"supersample": 2}, "supersample")])
+def test_config_is_checked(bad: dict, named: str, tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match=named):
         synthesize(tmp_path / "x", SynthConfig(**bad))
