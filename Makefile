@@ -13,7 +13,7 @@ venv: $(STAMP)
 $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install --disable-pip-version-check -q torch==2.13.0
-	$(PIP) install --disable-pip-version-check -q -e ".[dev,service,worker]" "torch==2.13.0"
+	$(PIP) install --disable-pip-version-check -q -e ".[train,dev,service,worker]" "torch==2.13.0"
 	touch $(STAMP)
 
 test: $(STAMP)

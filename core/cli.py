@@ -2,7 +2,9 @@
 
 Each command family lives in its own module exposing ``register(subparsers)``; the modules are
 listed in ``_COMMAND_MODULES`` and imported only when the command line starts, so ``import core``
-stays cheap.
+stays cheap. Packages above core (the service and the workers: ``dgs serve``, ``dgs worker``,
+``dgs keys``) add theirs through the ``dgs.commands`` entry-point group, so core never imports
+them (imports go one way, DESIGN.md section 2).
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from importlib.metadata import entry_points
 from collections.abc import Sequence
 
 __all__ = ["main", "build_parser"]
@@ -31,6 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in _COMMAND_MODULES:
         importlib.import_module(name).register(sub)
+    for entry in sorted(entry_points(group="dgs.commands"), key=lambda e: e.name):
+        entry.load().register(sub)
     return parser
 
 

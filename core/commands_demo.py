@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import shutil
 import time
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +52,19 @@ def _tile(path: Path, size: tuple[int, int]) -> np.ndarray:
     return np.asarray(img)
 
 
+def _capture_tile(capture_dir: Path, frame: str, cam: str, size: tuple[int, int]) -> np.ndarray:
+    """The captured view as the camera saw it: straight colour times its coverage mask (on the
+    black of the synthetic studio)."""
+    from PIL import Image
+
+    image = _tile(capture_dir / "images" / frame / f"{cam}.png", size).astype(np.float32)
+    mask = capture_dir / "masks" / frame / f"{cam}.png"
+    if mask.is_file():
+        cover = np.asarray(Image.open(mask).convert("L").resize(size, Image.NEAREST)) / 255.0
+        image = image * cover[..., None]
+    return (image + 0.5).astype(np.uint8)
+
+
 def contact_sheet(capture_dir: Path, run_dir: Path, frame: str, cameras: list[str],
                   out: Path, scale: int = 2) -> Path:
     """One row per held-out camera: capture | render | normal | AO | ground-truth normal,
@@ -63,7 +77,7 @@ def contact_sheet(capture_dir: Path, run_dir: Path, frame: str, cameras: list[st
         size = (first.width * scale, first.height * scale)
         r = run_dir / "renders" / frame
         gt = capture_dir / "gt" / "normals" / frame / f"{cam}.npy"
-        tiles = [_tile(capture_dir / "images" / frame / f"{cam}.png", size),
+        tiles = [_capture_tile(capture_dir, frame, cam, size),
                  _tile(r / f"{cam}_rgb.png", size), _tile(r / f"{cam}_normal.png", size),
                  _tile(r / f"{cam}_ao.png", size)]
         if gt.is_file():
@@ -87,6 +101,14 @@ def contact_sheet(capture_dir: Path, run_dir: Path, frame: str, cameras: list[st
     return out
 
 
+def _synth_config(capture_dir: Path) -> dict | None:
+    """The `dgs synth` configuration recorded in a capture (None if another source)."""
+    import json
+
+    record = json.loads((capture_dir / "capture.json").read_text()).get("synth") or {}
+    return record.get("config")
+
+
 def run_demo(out: str = "demo") -> int:
     from core.data import check_capture
     from core.evaluate import evaluate_run
@@ -96,11 +118,13 @@ def run_demo(out: str = "demo") -> int:
     root = Path(out)
     capture_dir, run_dir = root / "capture", root / "run"
     t0 = time.perf_counter()
+    config = SynthConfig(frames=1, views=16, width=128, height=128, seed=0, priors=True)
+    if (capture_dir / "capture.json").exists() and _synth_config(capture_dir) != asdict(config):
+        shutil.rmtree(capture_dir)  # made by an earlier `dgs synth` (other images): make it again
     if not (capture_dir / "capture.json").exists():
         print(f"[1/4] dgs synth -> {capture_dir} (16 views, 128x128, 1 frame, normal priors)",
               flush=True)
-        synthesize(capture_dir, SynthConfig(frames=1, views=16, width=128, height=128, seed=0,
-                                            priors=True))
+        synthesize(capture_dir, config)
     capture = check_capture(capture_dir)
     print(f"[1/4] capture: {len(capture.cameras)} cameras x {len(capture.frames)} frame(s) "
           f"({time.perf_counter() - t0:.0f} s)", flush=True)

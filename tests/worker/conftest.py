@@ -1,0 +1,62 @@
+"""Fixtures for the worker tests: job stores on SQLite and PostgreSQL, a tiny capture, and real
+`dgs worker` processes (helpers in worker_harness.py)."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+from worker_harness import WorkerProcess
+
+from worker.db import migrate
+from worker.store import JobStore
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def store_url(request, tmp_path: Path) -> str:
+    """A migrated, empty job store on each backend."""
+    if request.param == "sqlite":
+        url = f"sqlite:///{tmp_path / 'dgs.sqlite3'}"
+        migrate(url)
+        return url
+    url = request.getfixturevalue("pg_url")
+    migrate(url)
+    from sqlalchemy import text
+
+    from worker.db import engine_for
+
+    with engine_for(url).begin() as c:  # one database per session: start each test empty
+        c.execute(text("TRUNCATE api_keys, captures, uploads, jobs, job_events, job_logs, "
+                       "artifacts, assets"))
+    return url
+
+
+@pytest.fixture
+def store(store_url: str) -> JobStore:
+    return JobStore(store_url)
+
+
+@pytest.fixture(scope="session")
+def tiny_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """8 views of 32x32, one frame, masks and ground truth (2 held-out cameras)."""
+    from core.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("worker-capture") / "capture"
+    synthesize(out, SynthConfig(frames=1, views=8, width=32, height=32, seed=2, ao_directions=8))
+    return out
+
+
+@pytest.fixture
+def worker_factory(tmp_path: Path) -> Callable[[dict[str, str]], WorkerProcess]:
+    """Makes real worker processes; stops them after the test."""
+    started: list[WorkerProcess] = []
+
+    def make(env: dict[str, str]) -> WorkerProcess:
+        w = WorkerProcess(env, tmp_path / "worker.log")
+        started.append(w)
+        return w
+
+    yield make
+    for w in started:
+        w.stop()

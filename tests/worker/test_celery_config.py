@@ -1,0 +1,36 @@
+"""The Celery settings DESIGN.md section 4 asks for, on both brokers."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from worker.celery_app import make_celery
+from worker.pipelines import get_pipeline
+from worker.settings import WorkerSettings
+
+
+def test_reliability_settings(tmp_path: Path):
+    app = make_celery(WorkerSettings(data_dir=tmp_path))
+    c = app.conf
+    assert c.task_acks_late and c.task_reject_on_worker_lost
+    assert c.worker_prefetch_multiplier == 1 and c.worker_max_tasks_per_child == 1
+    assert c.task_ignore_result and c.accept_content == ["json"]
+    assert app.conf.broker_url.startswith("sqla+sqlite:///") and str(tmp_path) in c.broker_url
+
+
+def test_redis_visibility_timeout_outlasts_the_longest_job(tmp_path: Path):
+    settings = WorkerSettings(data_dir=tmp_path, broker_url="redis://127.0.0.1:6379/0",
+                              redis_key_prefix="deploy-a:")
+    options = make_celery(settings).conf.broker_transport_options
+    soft, hard = get_pipeline("reconstruct").limits(settings)
+    assert soft < hard < options["visibility_timeout"]
+    assert options["global_keyprefix"] == "deploy-a:"
+
+
+def test_defaults_live_in_the_data_folder(tmp_path: Path, monkeypatch):
+    monkeypatch.setenv("DGS_DATA_DIR", str(tmp_path / "d"))
+    monkeypatch.setenv("DGS_RETENTION_DAYS", "")  # empty counts as unset (docker-compose)
+    s = WorkerSettings()
+    assert s.database == f"sqlite:///{tmp_path / 'd' / 'dgs.sqlite3'}"
+    assert s.storage == (tmp_path / "d" / "store").as_uri() and s.embedded_broker
+    assert s.scratch == tmp_path / "d" / "work" and s.retention_days is None

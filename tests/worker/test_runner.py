@@ -1,0 +1,164 @@
+"""The runner and its heartbeat, without Celery: failures are recorded with the right code, a
+job that does not reach a step boundary after a cancel has its process ended, a worker that
+lost its lease writes nothing more, the sweeper deletes what expired."""
+
+from __future__ import annotations
+
+import datetime as dt
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
+
+import pytest
+from sqlalchemy import update
+from worker_harness import add_capture, tiny_config, wait_for
+
+from worker.blobs import LocalBlobStore
+from worker.models import Asset, Capture, Job, utcnow
+from worker.progress import JobLink
+from worker.runner import Runner
+from worker.settings import WorkerSettings
+from worker.store import JobStore, Owner
+from worker.sweeper import Sweeper
+
+
+@pytest.fixture
+def setup(tmp_path: Path, store_url: str):
+    settings = WorkerSettings(data_dir=tmp_path / "data", database_url=store_url,
+                              heartbeat_seconds=0.2, lease_seconds=5, cancel_grace_seconds=1)
+    store = JobStore(store_url)
+    blobs = LocalBlobStore(settings.data_dir / "store")
+    return settings, store, blobs
+
+
+def test_bad_parameters_and_missing_capture_fail_clearly(setup, tiny_capture: Path):
+    settings, store, blobs = setup
+    runner = Runner(settings, store, blobs)
+    cap = add_capture(store, blobs, tiny_capture)
+    bad = store.create("t1", "reconstruct", {"preset": "huge"}, capture_id=cap)
+    assert runner.run(bad.id).status == "failed"
+    err = store.get(bad.id).error
+    assert err["code"] == "invalid_input" and not err["retryable"] and "preset" in err["message"]
+
+    unknown = store.create("t1", "reconstruct", {"preset": "test", "config": {"nope": 1}},
+                           capture_id=cap)
+    assert runner.run(unknown.id).status == "failed"
+    assert "unknown key 'nope'" in store.get(unknown.id).error["message"]
+
+    gone = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=None)
+    assert runner.run(gone.id).status == "failed"
+    assert "capture" in store.get(gone.id).error["message"]
+    assert runner.run(gone.id).status == "terminal"  # a second delivery changes nothing
+    assert runner.run("job_missing").status == "missing"
+
+
+def test_a_job_leased_elsewhere_is_tried_later(setup):
+    settings, store, blobs = setup
+    job = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=None)
+    store.claim(job.id, Owner.current(), 5, 3)
+    outcome = Runner(settings, store, blobs).run(job.id)
+    assert outcome.status == "leased" and 1.0 <= outcome.retry_in <= 5.0
+
+
+def test_a_worker_that_lost_its_lease_stops_without_writing(setup, tiny_capture: Path):
+    settings, store, blobs = setup
+    cap = add_capture(store, blobs, tiny_capture)
+    job = store.create("t1", "reconstruct", {"preset": "test", "config": tiny_config(3000)},
+                       capture_id=cap)
+    runner = Runner(settings, store, blobs)
+    thief = Owner.current()
+
+    def steal() -> None:  # another worker took over (this one was presumed dead)
+        wait_for(lambda: store.get(job.id).iteration > 3, 60, "the job to start")
+        with store.session() as s:
+            s.execute(update(Job).where(Job.id == job.id).values(lease_owner=str(thief)))
+
+    import threading
+
+    t = threading.Thread(target=steal)
+    t.start()
+    assert runner.run(job.id).status == "lost"
+    t.join()
+    after = store.get(job.id)
+    assert after.state == "running" and after.lease_owner == str(thief)
+    assert store.finish(job.id, thief, "succeeded")
+
+
+WEDGED = textwrap.dedent("""
+    import sys, time
+    from worker.models import Job
+    from worker.progress import JobLink
+    from worker.settings import WorkerSettings
+    from worker.store import JobStore, Owner
+    settings = WorkerSettings(database_url=sys.argv[1], heartbeat_seconds=0.2,
+                              cancel_grace_seconds=1.0, lease_seconds=30)
+    store = JobStore(sys.argv[1])
+    owner = Owner.current()
+    claim = store.claim(sys.argv[2], owner, 30, 3)
+    JobLink(store, claim.job, owner, settings).start()
+    print("running", flush=True)
+    time.sleep(120)  # a long native call that never reaches a step boundary
+""")
+
+
+def test_cancel_ends_a_wedged_process(setup, tmp_path: Path):
+    settings, store, blobs = setup
+    job = store.create("t1", "reconstruct", {}, capture_id=None)
+    proc = subprocess.Popen([sys.executable, "-c", WEDGED, settings.database, job.id],
+                            stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "running"
+    asked = time.monotonic()
+    store.request_cancel(job.id, "t1")
+    proc.wait(timeout=10)
+    assert proc.returncode == -9 and time.monotonic() - asked < 10
+    after = store.get(job.id)
+    assert after.state == "cancelled" and "process ended" in after.message
+    assert any("did not stop within" in r.line for r in store.logs(job.id, 0, 100))
+
+
+def test_joblink_progress_is_monotonic_with_an_eta(setup):
+    settings, store, blobs = setup
+    job = store.create("t1", "reconstruct", {}, capture_id=None)
+    owner = Owner.current()
+    claim = store.claim(job.id, owner, 5, 3)
+    link = JobLink(store, claim.job, owner, settings)
+    link._start = (time.monotonic() - 10.0, 0.0)  # ten seconds into the run
+    link.update(fraction=0.25, stage="appearance", iteration=25, iterations=100)
+    link.update(fraction=0.2, stage="appearance", iteration=20, iterations=100)  # a resume
+    link.log("hello")
+    link.close()
+    now = store.get(job.id)
+    assert now.fraction == 0.25 and now.iteration == 20
+    assert now.eta_s == pytest.approx(30.0, rel=0.05)  # 10 s for a quarter: 30 s to go
+    assert [r.line[9:] for r in store.logs(job.id, 0, 10)] == ["hello"]
+
+
+def test_sweeper_deletes_what_expired_and_nothing_else(setup, tiny_capture: Path):
+    settings, store, blobs = setup
+    sweeper = Sweeper(settings, lambda job_id: None, store=store, blobs=blobs)
+    past, future = utcnow() - dt.timedelta(days=1), utcnow() + dt.timedelta(days=1)
+    old_cap = add_capture(store, blobs, tiny_capture, capture_id="cap_old")
+    busy_cap = add_capture(store, blobs, tiny_capture, capture_id="cap_busy")
+    old_job = store.create("t1", "reconstruct", {}, capture_id=old_cap, expires_at=past)
+    owner = Owner.current()
+    store.claim(old_job.id, owner, 5, 3)
+    store.finish(old_job.id, owner, "succeeded")
+    active = store.create("t1", "reconstruct", {}, capture_id=busy_cap, expires_at=past)
+    kept = store.create("t1", "reconstruct", {}, capture_id=old_cap, expires_at=future)
+    store.claim(kept.id, owner, 5, 3)
+    store.finish(kept.id, owner, "failed")
+    (tmp := settings.data_dir / "x.bin").write_bytes(b"x")
+    blobs.put_file(f"jobs/{old_job.id}/artifacts/eval.json", tmp)
+    blobs.put_file("assets/ast_old/env.exr", tmp)
+    with store.session() as s:
+        s.execute(update(Capture).values(expires_at=past))
+        s.add(Asset(id="ast_old", tenant="t1", kind="envmap", filename="env.exr", size=1,
+                    sha256="0" * 64, content_type="image/x-exr", expires_at=past))
+    gone = sweeper.expire()
+    assert gone == {"jobs": [old_job.id], "captures": [old_cap], "assets": ["ast_old"]}
+    assert store.get(old_job.id) is None and blobs.list(f"jobs/{old_job.id}") == []
+    assert blobs.list("captures/cap_old") == [] and blobs.list("assets") == []
+    assert store.get(active.id).state == "queued" and blobs.list("captures/cap_busy")
+    assert store.get(kept.id).capture_id is None  # its capture went; the job stays

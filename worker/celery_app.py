@@ -1,0 +1,55 @@
+"""The Celery application, configured from settings (DESIGN.md section 4), and dispatch.
+
+Torch-free: the API builds the same app to send jobs (`dispatch`) without importing the tasks;
+`worker.app` is the module `celery -A worker.app worker` loads, with the tasks registered.
+"""
+
+from __future__ import annotations
+
+from celery import Celery
+
+from worker.pipelines import get_pipeline
+from worker.settings import WorkerSettings
+
+__all__ = ["TASK_NAME", "dispatch", "make_celery"]
+
+TASK_NAME = "dgs.run_job"
+
+
+def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> Celery:
+    """A Celery app on the settings' broker: acks late, requeue when the worker process is lost
+    (the redelivery cap is counted in the job store), one task prefetched, one task per child
+    process, no result backend (the job store holds every outcome)."""
+    app = Celery("dgs", broker=settings.broker, include=list(include))
+    transport: dict = {}
+    if settings.broker.startswith(("redis://", "rediss://")):
+        transport["visibility_timeout"] = settings.visibility_timeout
+        if settings.redis_key_prefix:
+            transport["global_keyprefix"] = settings.redis_key_prefix
+    elif settings.broker.startswith("sqla+sqlite"):
+        # Kombu hands these to create_engine: wait for the API's writes instead of failing.
+        transport["connect_args"] = {"timeout": 30}
+    app.conf.update(
+        task_acks_late=True,
+        task_reject_on_worker_lost=True,
+        worker_prefetch_multiplier=1,
+        worker_max_tasks_per_child=1,
+        task_default_queue=settings.queue,
+        task_ignore_result=True,
+        task_serializer="json",
+        accept_content=["json"],
+        broker_transport_options=transport,
+        broker_connection_retry_on_startup=True,
+        worker_hijack_root_logger=False,
+        worker_send_task_events=False,
+        task_send_sent_event=False,
+        enable_utc=True,
+    )
+    return app
+
+
+def dispatch(app: Celery, settings: WorkerSettings, job_id: str, pipeline: str) -> None:
+    """Send a job to the workers (ids only; the task loads everything from the job store)."""
+    soft, hard = get_pipeline(pipeline).limits(settings)
+    app.send_task(TASK_NAME, args=[job_id], queue=settings.queue, soft_time_limit=soft,
+                  time_limit=hard)

@@ -1,0 +1,123 @@
+"""A running job's link to the job store: a heartbeat thread that renews the lease, writes the
+latest progress and log lines every `heartbeat_seconds`, and watches for a cancel.
+
+The training loop only updates in-memory state (`update`, `log`) and asks `should_stop()` after
+each step, so it never waits on the database. A cancel (or a lost lease) sets the stop flag;
+the loop then stops at its next step. If it has not stopped `cancel_grace_seconds` later (a
+long native call), the heartbeat thread records the cancel and ends its own process: the
+worker is freed within seconds either way.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from typing import Any
+
+from worker.models import Job
+from worker.settings import WorkerSettings
+from worker.store import JobStore, Owner
+
+__all__ = ["JobLink"]
+
+
+class JobLink:
+    """Progress, logs, lease and cancel of one claimed job."""
+
+    def __init__(self, store: JobStore, job: Job, owner: Owner, settings: WorkerSettings):
+        self.store, self.job_id, self.owner, self.settings = store, job.id, owner, settings
+        self.stop = threading.Event()
+        self.lost = False
+        """The lease went to someone else: stop and write nothing more."""
+        self.cancelled = False
+        self.shutdown = False
+        """This worker is shutting down: stop, checkpoint, and give the job back."""
+        self._lock = threading.Lock()
+        self._logs: list[str] = []
+        self._pending: dict[str, Any] | None = None
+        self._fraction = job.fraction
+        self._start = (time.monotonic(), job.fraction)
+        self._cancel_seen: float | None = None
+        self._done = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"heartbeat-{job.id}",
+                                        daemon=True)
+
+    # -- called by the job's main thread ----------------------------------------------------------
+    def start(self) -> JobLink:
+        self._thread.start()
+        return self
+
+    def log(self, line: str) -> None:
+        stamp = time.strftime("%H:%M:%S")
+        with self._lock:
+            self._logs.append(f"{stamp} {line}")
+
+    def update(self, *, fraction: float, **fields: Any) -> None:
+        """New progress (stage, frame, frames, iteration, iterations, message): kept in memory,
+        written by the next heartbeat. The fraction never goes back; the ETA extrapolates the
+        rate of this run (a resumed job measures its own speed, not the lost worker's)."""
+        now = time.monotonic()
+        with self._lock:
+            self._fraction = max(self._fraction, min(float(fraction), 1.0))
+            t0, f0 = self._start
+            done = self._fraction - f0
+            eta = None
+            if done > 1e-3 and now - t0 > 2.0:
+                eta = round((now - t0) / done * (1.0 - self._fraction), 1)
+            self._pending = {**(self._pending or {}), **fields, "fraction": self._fraction,
+                             "eta_s": eta}
+
+    def should_stop(self) -> bool:
+        return self.stop.is_set()
+
+    def close(self) -> None:
+        """Flush what is pending and stop the heartbeat (call before finishing the job)."""
+        self._done.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=30)
+        self._flush()
+
+    # -- the heartbeat thread ---------------------------------------------------------------------
+    def _flush(self) -> tuple[bool, bool]:
+        with self._lock:
+            logs, self._logs = self._logs, []
+            progress, self._pending = self._pending, None
+        if logs:
+            self.store.append_logs(self.job_id, logs)
+        if self.lost:
+            return False, False
+        return self.store.heartbeat(self.job_id, self.owner, self.settings.lease_seconds,
+                                    progress)
+
+    def _run(self) -> None:
+        while not self._done.wait(self.settings.heartbeat_seconds):
+            try:
+                owned, cancel = self._flush()
+            except Exception as exc:  # the database is briefly away: keep the job running
+                self.log(f"heartbeat failed ({type(exc).__name__}: {exc}); retrying")
+                continue
+            if not owned and not self.lost:
+                self.lost = True
+                self.stop.set()
+            if cancel and not self.cancelled:
+                self.cancelled = True
+                self._cancel_seen = time.monotonic()
+                self.log("cancel requested: stopping after the current step")
+                self.stop.set()
+            if (self._cancel_seen is not None and not self._done.is_set()
+                    and time.monotonic() - self._cancel_seen > self.settings.cancel_grace_seconds):
+                self._kill_self()
+
+    def _kill_self(self) -> None:
+        """The job did not reach a step boundary in time: record the cancel and end this process
+        (a prefork child; the worker starts a fresh one)."""
+        self.log(f"job did not stop within {self.settings.cancel_grace_seconds:.0f} s of the "
+                 "cancel; ending the worker process")
+        try:
+            self._flush()
+            self.store.finish(self.job_id, self.owner, "cancelled", None,
+                              "cancelled (worker process ended)")
+        finally:
+            os.kill(os.getpid(), signal.SIGKILL)

@@ -1,0 +1,118 @@
+"""Settings shared by the API and the workers: one object per process, from DGS_* variables.
+
+The embedded default needs nothing set: a data folder holds the SQLite job store, the SQLite
+broker (Kombu's SQLAlchemy transport) and the local artifact store. A deployment sets
+DGS_DATABASE_URL (PostgreSQL), DGS_BROKER_URL (Redis) and DGS_STORAGE_URL (s3://bucket/prefix)
+and the same code runs distributed (DESIGN.md section 4).
+"""
+
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+from pydantic import Field, field_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+__all__ = ["WorkerSettings", "get_settings"]
+
+
+def _default_data_dir() -> Path:
+    import os
+
+    base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
+    return Path(base) / "dgs"
+
+
+class WorkerSettings(BaseSettings):
+    """Where state lives and how jobs run. Environment variables: DGS_<FIELD> (upper case)."""
+
+    # Empty variables count as unset (docker-compose passes `DGS_RETENTION_DAYS=` through).
+    model_config = SettingsConfigDict(env_prefix="DGS_", extra="ignore", env_ignore_empty=True)
+
+    data_dir: Path = Field(default_factory=_default_data_dir)
+    """Folder of the embedded default: job store, broker, uploads, artifacts, worker scratch."""
+    database_url: str | None = None
+    """SQLAlchemy URL of the job store (postgresql+psycopg://... in deployment); default
+    sqlite:///<data_dir>/dgs.sqlite3."""
+    broker_url: str | None = None
+    """Celery broker (redis://... in deployment); default the Kombu SQLAlchemy transport on
+    <data_dir>/broker.sqlite3, and `dgs serve` then supervises an embedded worker."""
+    storage_url: str | None = None
+    """Artifact store: s3://bucket/prefix for S3-compatible storage, default the local folder
+    <data_dir>/store."""
+    s3_endpoint_url: str | None = None
+    """Endpoint of an S3-compatible store (MinIO, Ceph, ...); None: AWS. Credentials come from
+    the standard AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY variables."""
+    s3_region: str | None = None
+    """Region name passed to boto3 (some S3-compatible stores want one)."""
+    queue: str = "dgs"
+    """Celery queue the jobs go to (one per deployment; tests use their own)."""
+    worker_name: str | None = None
+    """Celery node name suffix of `dgs worker` (dgs-<name>@<host>); one per GPU on a machine."""
+    redis_key_prefix: str = ""
+    """Prefix of every Redis key the broker uses (several deployments on one Redis)."""
+    scratch_dir: Path | None = None
+    """Worker working folder (captures fetched from S3, run directories); default
+    <data_dir>/work. With local storage it must be on the machine that holds data_dir."""
+    lease_seconds: float = Field(60.0, gt=0)
+    """A running job's lease: a worker that stops renewing it for this long is considered
+    dead and the job is handed to another worker (resuming from its checkpoint)."""
+    heartbeat_seconds: float = Field(1.0, gt=0)
+    """How often a worker writes progress, logs and its lease renewal to the job store."""
+    max_attempts: int = Field(3, ge=1)
+    """Redelivery cap: a job whose worker was lost this many times fails (retryable)."""
+    cancel_grace_seconds: float = Field(5.0, gt=0)
+    """After a cancel, how long a worker waits for the job to stop between two steps before it
+    ends its own process."""
+    requeue_after_seconds: float = Field(6 * 3600.0, gt=0)
+    """A queued job never picked up for this long is sent to the broker again (a message lost
+    with a worker that died holding it)."""
+    reconstruct_soft_limit_seconds: float = Field(48 * 3600.0, gt=0)
+    """Soft time limit of a reconstruction job (it fails cleanly, checkpoint kept)."""
+    hard_limit_margin_seconds: float = Field(600.0, gt=0)
+    """The hard limit (process killed) is the soft limit plus this margin."""
+    retention_days: float | None = None
+    """Default lifetime of captures, jobs and assets (expires_at); None keeps them until
+    deleted. Expiry is shown on every object and logged when it happens."""
+
+    @field_validator("data_dir", "scratch_dir", mode="after")
+    @classmethod
+    def _absolute(cls, value: Path | None) -> Path | None:
+        return None if value is None else value.expanduser().resolve()
+
+    @property
+    def database(self) -> str:
+        """The job store URL, defaults applied."""
+        return self.database_url or f"sqlite:///{self.data_dir / 'dgs.sqlite3'}"
+
+    @property
+    def broker(self) -> str:
+        """The broker URL, defaults applied."""
+        return self.broker_url or f"sqla+sqlite:///{self.data_dir / 'broker.sqlite3'}"
+
+    @property
+    def embedded_broker(self) -> bool:
+        """True when no broker is configured (the SQLite transport of the embedded default)."""
+        return self.broker_url is None
+
+    @property
+    def storage(self) -> str:
+        """The artifact store URL, defaults applied (file:// or s3://)."""
+        return self.storage_url or (self.data_dir / "store").as_uri()
+
+    @property
+    def scratch(self) -> Path:
+        return self.scratch_dir or self.data_dir / "work"
+
+    @property
+    def visibility_timeout(self) -> float:
+        """Redis visibility timeout: longer than the longest hard limit (DESIGN.md section 4),
+        so a long job's message is never handed to a second worker while the first runs."""
+        return 2 * (self.reconstruct_soft_limit_seconds + self.hard_limit_margin_seconds)
+
+
+@functools.lru_cache(maxsize=1)
+def get_settings() -> WorkerSettings:
+    """The process's settings (read once from the environment)."""
+    return WorkerSettings()

@@ -1,0 +1,351 @@
+"""The job store: every state change of a job, made by the API or by a worker, goes through here.
+
+A job is run by whoever holds its lease. A worker claims the lease atomically (a conditional
+UPDATE), renews it with every heartbeat, and loses it when it stops renewing; only the holder may
+write progress or finish the job. So a message delivered twice, a worker that was presumed dead,
+or two sweepers racing can never run one job twice at the same time (DESIGN.md section 4).
+
+States: queued -> running -> succeeded | failed | cancelled; `retry` puts a failed or cancelled
+job back to queued (it resumes from its checkpoint). Every change appends a JobEvent, the stream
+that the API serves as server-sent events.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import secrets
+import socket
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from sqlalchemy import func, select, update
+from sqlalchemy.exc import IntegrityError
+from sqlalchemy.orm import Session
+
+from worker.db import session_scope
+from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
+
+__all__ = [
+    "ACTIVE",
+    "TERMINAL",
+    "Claim",
+    "JobStore",
+    "Owner",
+    "new_id",
+    "progress_of",
+]
+
+ACTIVE = ("queued", "running")
+TERMINAL = ("succeeded", "failed", "cancelled")
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+
+
+def new_id(prefix: str) -> str:
+    """An unguessable id like `job_3f9c0a1b2d4e5f60a7b8` (80 random bits)."""
+    return f"{prefix}_{secrets.token_hex(10)}"
+
+
+def _process_start(pid: int) -> str | None:
+    """The kernel's start time of `pid` (clock ticks since boot), to tell a dead process from a
+    new one that reused its pid; None where /proc does not exist."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            stat = f.read().decode(errors="replace")
+        return stat.rsplit(")", 1)[1].split()[19]
+    except (OSError, IndexError):
+        return None
+
+
+@dataclass(frozen=True)
+class Owner:
+    """Who holds a lease: host, process id and its start time, and a random token."""
+
+    host: str
+    pid: int
+    started: str
+    token: str
+
+    @classmethod
+    def current(cls) -> Owner:
+        pid = os.getpid()
+        return cls(socket.gethostname(), pid, _process_start(pid) or "?", secrets.token_hex(4))
+
+    def __str__(self) -> str:
+        return f"{self.host}/{self.pid}/{self.started}/{self.token}"
+
+    @classmethod
+    def parse(cls, text: str) -> Owner | None:
+        parts = text.split("/")
+        if len(parts) != 4 or not parts[1].isdigit():
+            return None
+        return cls(parts[0], int(parts[1]), parts[2], parts[3])
+
+    def is_dead_here(self) -> bool:
+        """True when this owner ran on this machine and its process is gone (a lease it holds can
+        be taken over at once instead of waiting for it to expire)."""
+        if self.host != socket.gethostname() or self.started == "?":
+            return False
+        return _process_start(self.pid) != self.started
+
+
+@dataclass(frozen=True)
+class Claim:
+    """The outcome of `JobStore.claim`."""
+
+    status: Literal["claimed", "leased", "terminal", "missing", "exhausted"]
+    """claimed: run it; leased: another live worker holds it (try again in `retry_in`);
+    terminal: it finished or was cancelled meanwhile; missing: deleted; exhausted: the
+    redelivery cap was reached (the job is now failed)."""
+    job: Job | None = None
+    retry_in: float = 0.0
+
+
+def progress_of(job: Job) -> dict[str, Any]:
+    """The progress object of the API (DESIGN.md 3.5)."""
+    return {"stage": job.stage, "frame": job.frame, "frames": job.frames,
+            "iteration": job.iteration, "iterations": job.iterations,
+            "fraction": round(job.fraction, 6), "eta_s": job.eta_s, "message": job.message}
+
+
+class JobStore:
+    """Job lifecycle operations on the database at `url`."""
+
+    def __init__(self, url: str):
+        self.url = url
+
+    def session(self, write: bool = True):
+        return session_scope(self.url, write)
+
+    @staticmethod
+    def _event(s: Session, job_id: str, kind: str, data: dict[str, Any]) -> None:
+        s.add(JobEvent(job_id=job_id, kind=kind, data=data))
+
+    def _state_event(self, s: Session, job: Job) -> None:
+        self._event(s, job.id, "state", {"state": job.state, "error": job.error,
+                                         "attempts": job.attempts, **progress_of(job)})
+
+    # -- created and changed by the API -------------------------------------------------------
+    def create(self, tenant: str, pipeline: str, params: dict[str, Any], *,
+               capture_id: str | None, name: str = "",
+               expires_at: dt.datetime | None = None) -> Job:
+        with self.session() as s:
+            job = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
+                      params=params, name=name, state="queued", stage="queued",
+                      expires_at=expires_at)
+            s.add(job)
+            s.flush()
+            self._state_event(s, job)
+            return job
+
+    def get(self, job_id: str, tenant: str | None = None) -> Job | None:
+        """The job, or None when it does not exist or belongs to another tenant."""
+        with self.session(write=False) as s:
+            job = s.get(Job, job_id)
+            if job is None or (tenant is not None and job.tenant != tenant):
+                return None
+            return job
+
+    def mark_dispatched(self, job_id: str, *, before: dt.datetime | None = None) -> bool:
+        """Record a dispatch to the broker; with `before`, only if the last dispatch was earlier
+        (so concurrent sweepers send one message, not two). True when this caller may send."""
+        with self.session() as s:
+            q = update(Job).where(Job.id == job_id, Job.state.in_(ACTIVE))
+            if before is not None:
+                q = q.where((Job.dispatched_at.is_(None)) | (Job.dispatched_at < before))
+            res = s.execute(q.values(dispatched_at=utcnow(), dispatches=Job.dispatches + 1)
+                            .execution_options(synchronize_session=False))
+            return res.rowcount == 1
+
+    def request_cancel(self, job_id: str, tenant: str) -> Job | None:
+        """Cancel: a queued job is cancelled at once; a running one is flagged and its worker
+        stops between two steps (and ends its process if that takes too long)."""
+        with self.session() as s:
+            job = s.get(Job, job_id, with_for_update=True)
+            if job is None or job.tenant != tenant:
+                return None
+            if job.state == "queued" and job.lease_owner is None:
+                job.state, job.stage, job.finished_at = "cancelled", "cancelled", utcnow()
+                job.eta_s = None
+                self._state_event(s, job)
+            elif job.state in ACTIVE and not job.cancel_requested:
+                job.cancel_requested = True
+                self._event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
+            return job
+
+    def retry(self, job_id: str, tenant: str) -> Job | None:
+        """Put a failed or cancelled job back in the queue; the caller dispatches it. Returns the
+        job (unchanged when it was not failed or cancelled)."""
+        with self.session() as s:
+            job = s.get(Job, job_id, with_for_update=True)
+            if job is None or job.tenant != tenant:
+                return None
+            if job.state in ("failed", "cancelled"):
+                job.state, job.stage, job.error, job.message = "queued", "queued", None, ""
+                job.attempts, job.cancel_requested, job.finished_at = 0, False, None
+                job.lease_owner = job.lease_expires_at = job.eta_s = None
+                self._state_event(s, job)
+            return job
+
+    # -- used by workers ---------------------------------------------------------------------
+    def claim(self, job_id: str, owner: Owner, lease_seconds: float, max_attempts: int) -> Claim:
+        """Take the job's lease (and count an attempt) unless a live worker holds it."""
+        now = utcnow()
+        with self.session() as s:
+            job = s.get(Job, job_id, with_for_update=True)
+            if job is None:
+                return Claim("missing")
+            if job.state in TERMINAL:
+                return Claim("terminal", job)
+            if job.cancel_requested:
+                self._finish(s, job, "cancelled", None, "cancelled before it resumed")
+                return Claim("terminal", job)
+            if job.lease_owner is not None and job.lease_expires_at and job.lease_expires_at > now:
+                holder = Owner.parse(job.lease_owner)
+                if holder is None or not holder.is_dead_here():
+                    return Claim("leased", job, (job.lease_expires_at - now).total_seconds())
+            if job.attempts >= max_attempts:
+                self._finish(s, job, "failed", {
+                    "code": "worker_lost", "retryable": True,
+                    "message": f"the worker running this job was lost {job.attempts} times "
+                               f"(redelivery cap {max_attempts}); retry resumes from the last "
+                               "checkpoint"}, "")
+                return Claim("exhausted", job)
+            job.attempts += 1
+            job.lease_owner, job.lease_expires_at = str(owner), now + dt.timedelta(
+                seconds=lease_seconds)
+            job.state = "running"
+            job.started_at = job.started_at or now
+            job.run_started_at, job.run_start_fraction = now, job.fraction
+            job.stage, job.eta_s = "starting", None
+            self._state_event(s, job)
+            return Claim("claimed", job)
+
+    def heartbeat(self, job_id: str, owner: Owner, lease_seconds: float,
+                  progress: dict[str, Any] | None = None) -> tuple[bool, bool]:
+        """Renew the lease and write `progress` (fraction never decreases; an event is appended
+        when progress is given). Returns (still the owner, cancel requested)."""
+        with self.session() as s:
+            job = s.get(Job, job_id, with_for_update=True)
+            if job is None or job.lease_owner != str(owner) or job.state != "running":
+                return False, bool(job is None or job.cancel_requested)
+            job.lease_expires_at = utcnow() + dt.timedelta(seconds=lease_seconds)
+            if progress:
+                fraction = float(progress.get("fraction", job.fraction))
+                for key in ("stage", "frame", "frames", "iteration", "iterations", "message"):
+                    if key in progress:
+                        setattr(job, key, progress[key])
+                job.fraction = min(1.0, max(job.fraction, fraction))
+                job.eta_s = progress.get("eta_s", job.eta_s)
+                self._event(s, job.id, "progress", progress_of(job))
+            return True, job.cancel_requested
+
+    def finish(self, job_id: str, owner: Owner, state: JobState,
+               error: dict[str, Any] | None = None, message: str = "") -> bool:
+        """End the job (only its lease holder may); False when the lease was lost."""
+        with self.session() as s:
+            job = s.get(Job, job_id, with_for_update=True)
+            if job is None or job.lease_owner != str(owner):
+                return False
+            self._finish(s, job, state, error, message)
+            return True
+
+    def _finish(self, s: Session, job: Job, state: JobState, error: dict[str, Any] | None,
+                message: str) -> None:
+        job.state, job.error, job.finished_at = state, error, utcnow()
+        job.lease_owner = job.lease_expires_at = None
+        job.eta_s = None
+        job.stage = state
+        if message:
+            job.message = message[:512]
+        if state == "succeeded":
+            job.fraction = 1.0
+        self._state_event(s, job)
+
+    def release(self, job_id: str, owner: Owner, message: str) -> bool:
+        """Give the job back to the queue without ending it (its worker is shutting down).
+        It is marked as never dispatched, so the next sweeper pass of any other process (the
+        API's, another worker's) sends it, and another worker resumes it from its checkpoint;
+        the worker going down must not send it itself, or it may take the job back while its
+        consumer is still open. The attempt does not count towards the redelivery cap. False
+        when the lease was lost."""
+        with self.session() as s:
+            job = s.get(Job, job_id, with_for_update=True)
+            if job is None or job.lease_owner != str(owner) or job.state != "running":
+                return False
+            job.state, job.stage, job.message = "queued", "queued", message[:512]
+            job.lease_owner = job.lease_expires_at = job.eta_s = job.dispatched_at = None
+            job.attempts = max(job.attempts - 1, 0)
+            self._state_event(s, job)
+            return True
+
+    def append_logs(self, job_id: str, lines: Sequence[str]) -> None:
+        """Append lines to the job's log (seq continues where it ends)."""
+        if not lines:
+            return
+        for _ in range(5):  # two writers racing for the same seq: the loser retries
+            try:
+                with self.session() as s:
+                    last = s.scalar(select(func.max(JobLog.seq)).where(JobLog.job_id == job_id))
+                    start = -1 if last is None else last
+                    s.add_all(JobLog(job_id=job_id, seq=start + 1 + i, line=line[:4000])
+                              for i, line in enumerate(lines))
+                return
+            except IntegrityError:
+                continue
+        raise RuntimeError(f"job {job_id}: could not append to the log")
+
+    def add_artifact(self, job_id: str, path: str, *, kind: str, size: int, sha256: str,
+                     content_type: str, frame: str | None = None) -> None:
+        """Record (or replace) one artifact of the job."""
+        with self.session() as s:
+            row = s.scalar(select(Artifact).where(Artifact.job_id == job_id,
+                                                  Artifact.path == path))
+            if row is None:
+                s.add(Artifact(job_id=job_id, path=path, kind=kind, size=size, sha256=sha256,
+                               content_type=content_type, frame=frame))
+            else:
+                row.kind, row.size, row.sha256 = kind, size, sha256
+                row.content_type, row.frame, row.created_at = content_type, frame, utcnow()
+
+    # -- read by the API ---------------------------------------------------------------------
+    def events_after(self, job_id: str, after: int, limit: int = 500) -> list[JobEvent]:
+        with self.session(write=False) as s:
+            return list(s.scalars(select(JobEvent).where(JobEvent.job_id == job_id,
+                                                         JobEvent.id > after)
+                                  .order_by(JobEvent.id).limit(limit)))
+
+    def logs(self, job_id: str, offset: int, limit: int) -> list[JobLog]:
+        with self.session(write=False) as s:
+            return list(s.scalars(select(JobLog).where(JobLog.job_id == job_id,
+                                                       JobLog.seq >= offset)
+                                  .order_by(JobLog.seq).limit(limit)))
+
+    # -- housekeeping ------------------------------------------------------------------------
+    def stranded(self, *, requeue_after: float) -> list[str]:
+        """Jobs whose worker is gone: running with an expired lease, or queued and never
+        dispatched (released by a worker that shut down) or last dispatched more than
+        `requeue_after` seconds ago."""
+        now = utcnow()
+        with self.session(write=False) as s:
+            running = select(Job.id).where(
+                Job.state == "running",
+                (Job.lease_owner.is_(None)) | (Job.lease_expires_at < now))
+            queued = select(Job.id).where(
+                Job.state == "queued", Job.lease_owner.is_(None),
+                (Job.dispatched_at.is_(None))
+                | (Job.dispatched_at < now - dt.timedelta(seconds=requeue_after)))
+            return list(s.scalars(running)) + list(s.scalars(queued))
+
+    def redispatch_stranded(self, send: Callable[[str], None], *, requeue_after: float,
+                            min_gap: float) -> list[str]:
+        """Send every stranded job to the broker again (at most once per `min_gap` seconds per
+        job, whoever else sweeps); returns the ids sent."""
+        sent = []
+        before = utcnow() - dt.timedelta(seconds=min_gap)
+        for job_id in self.stranded(requeue_after=requeue_after):
+            if self.mark_dispatched(job_id, before=before):
+                send(job_id)
+                sent.append(job_id)
+        return sent

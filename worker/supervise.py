@@ -1,0 +1,178 @@
+"""Starting workers: `run_worker` (what `dgs worker` runs) and `EmbeddedWorker`, the worker
+subprocess that `dgs serve` supervises when no broker is configured (DESIGN.md section 4)."""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+from celery import Celery
+
+from worker.celery_app import dispatch
+from worker.settings import WorkerSettings, get_settings
+from worker.store import JobStore
+
+__all__ = ["EmbeddedWorker", "job_sender", "run_worker"]
+
+log = logging.getLogger("dgs.worker")
+
+
+def job_sender(app: Celery, settings: WorkerSettings) -> Callable[[str], None]:
+    """send(job_id): dispatch a job already in the store (its pipeline decides the limits)."""
+    store = JobStore(settings.database)
+
+    def send(job_id: str) -> None:
+        job = store.get(job_id)
+        if job is not None:
+            dispatch(app, settings, job_id, job.pipeline)
+
+    return send
+
+
+def run_worker(*, concurrency: int = 1, loglevel: str = "INFO", hostname: str | None = None,
+               sweeper: bool = True) -> int:
+    """Migrate the job store, start the sweeper thread, run the Celery worker (blocks)."""
+    from worker.db import migrate
+
+    settings = get_settings()
+    logging.basicConfig(level=loglevel.upper(), format="%(asctime)s %(name)s %(message)s")
+    migrate(settings.database)
+    from worker.app import app
+
+    if sweeper:
+        from worker.sweeper import Sweeper
+
+        _RUNNING["sweeper"] = Sweeper(settings, job_sender(app, settings)).start()
+    from celery.signals import worker_shutting_down
+
+    worker_shutting_down.connect(_drain, weak=False)
+    # Gossip, mingle and worker heartbeats need broadcast, which the SQLite transport lacks;
+    # the job store's leases do that work here.
+    argv = ["worker", f"--concurrency={concurrency}", "--pool=prefork", f"--loglevel={loglevel}",
+            "-Q", settings.queue, "-n", hostname or _node_name(settings),
+            "--without-gossip", "--without-mingle", "--without-heartbeat"]
+    app.worker_main(argv)
+    return 0
+
+
+def _children(pid: int) -> list[int]:
+    """Process ids whose parent is `pid` (Linux /proc; empty elsewhere)."""
+    out = []
+    for entry in Path("/proc").glob("[0-9]*"):
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
+            out.append(int(entry.name))
+    return out
+
+
+_RUNNING: dict[str, object] = {}
+
+
+def _drain(sig=None, how=None, exitcode=None, **_) -> None:
+    """A warm shutdown (SIGTERM to the worker) waits for running tasks; tell each task process
+    to stop at its next step, checkpoint and put its job back in the queue, so the shutdown
+    takes seconds and another worker resumes the job (worker.runner). This worker's sweeper
+    stops first: the job must be sent by someone else, not taken back by this worker."""
+    sweeper = _RUNNING.pop("sweeper", None)
+    if sweeper is not None:
+        sweeper.stop()
+    for child in _children(os.getpid()):
+        try:
+            os.kill(child, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+
+
+def _node_name(settings: WorkerSettings) -> str:
+    suffix = f"-{settings.worker_name}" if settings.worker_name else ""
+    return f"dgs{suffix}@{socket.gethostname()}"
+
+
+def _die_with_parent() -> None:
+    """In the embedded worker (before exec): receive SIGTERM when `dgs serve` dies, however it
+    dies, so no orphaned worker keeps consuming the queue (Linux prctl PR_SET_PDEATHSIG; a
+    no-op elsewhere). SIGTERM drains the worker: its job goes back to the queue."""
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+class EmbeddedWorker:
+    """Keeps one `dgs worker` subprocess running (restarted with back-off if it dies), with
+    the same DGS_* settings as this process; its output goes to <data_dir>/logs/worker.log."""
+
+    def __init__(self, settings: WorkerSettings, env: dict[str, str] | None = None):
+        self.settings = settings
+        self.env = {**os.environ, **(env or {})}
+        self.proc: subprocess.Popen | None = None
+        self.restarts = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="dgs-embedded-worker",
+                                        daemon=True)
+
+    @property
+    def log_path(self) -> Path:
+        return self.settings.data_dir / "logs" / "worker.log"
+
+    def start(self) -> EmbeddedWorker:
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self._thread.start()
+        return self
+
+    def _spawn(self) -> subprocess.Popen:
+        out = open(self.log_path, "ab")
+        try:
+            return subprocess.Popen([sys.executable, "-m", "core.cli", "worker"],
+                                    env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                    start_new_session=True, preexec_fn=_die_with_parent)
+        finally:
+            out.close()
+
+    def _loop(self) -> None:
+        delay = 1.0
+        while not self._stop.is_set():
+            started = time.monotonic()
+            self.proc = self._spawn()
+            code = self.proc.wait()
+            if self._stop.is_set():
+                return
+            self.restarts += 1
+            if time.monotonic() - started > 60:
+                delay = 1.0
+            log.warning("embedded worker exited with %s; restarting in %.0f s (see %s)", code,
+                        delay, self.log_path)
+            if self._stop.wait(delay):
+                return
+            delay = min(delay * 2, 30.0)
+
+    def stop(self, grace: float = 10.0) -> None:
+        """Warm shutdown (the running job stops at its next checkpoint or is resumed later),
+        then a kill after `grace` seconds."""
+        self._stop.set()
+        proc = self.proc
+        if proc is None or proc.poll() is not None:
+            return
+        try:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(timeout=grace)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+        except ProcessLookupError:
+            pass
+        self._thread.join(timeout=5)
