@@ -1,3 +1,28 @@
-"""HTTP service (FastAPI). Filled in by the service issue; it never imports torch."""
+"""HTTP service (FastAPI): captures and resumable uploads, jobs, artifacts, assets, renders,
+auth. It never imports torch (tests/test_layering.py); `create_app` is in service.app."""
 
-__all__: list[str] = []
+__all__ = [
+    "app",
+    "archive",
+    "auth",
+    "commands",
+    "commit",
+    "deps",
+    "envmap",
+    "errors",
+    "events",
+    "manifest",
+    "middleware",
+    "openapi",
+    "pagination",
+    "ranges",
+    "records",
+    "routers",
+    "schemas",
+    "serve",
+    "settings",
+    "staging",
+    "tus",
+    "uploads",
+    "zipstream",
+]

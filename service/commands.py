@@ -1,0 +1,98 @@
+"""`dgs serve` and `dgs keys create|list|revoke` (registered through the dgs.commands entry
+point, so core never imports the service)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+__all__ = ["register"]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="run the HTTP API (and an embedded worker by default)")
+    p.add_argument("--host", default=None, help="interface (default 127.0.0.1; anything else "
+                                                "needs an API key to exist)")
+    p.add_argument("--port", type=int, default=None, help="TCP port (default 8000)")
+    p.add_argument("--data-dir", type=Path, default=None,
+                   help="where the embedded default keeps its state (default DGS_DATA_DIR or "
+                        "~/.local/share/dgs)")
+    p.add_argument("--no-worker", action="store_true",
+                   help="do not start the embedded worker (run `dgs worker` yourself)")
+    p.set_defaults(func=_serve)
+
+    k = sub.add_parser("keys", help="create, list and revoke API keys")
+    ksub = k.add_subparsers(dest="keys_command", metavar="SUBCOMMAND")
+    ksub.required = True
+    c = ksub.add_parser("create", help="create a key (printed once, never stored)")
+    c.add_argument("--tenant", required=True, help="whose captures and jobs the key reaches")
+    c.add_argument("--name", default="", help="a note: who or what uses the key")
+    c.set_defaults(func=_create)
+    ksub.add_parser("list", help="list keys (never their secrets)").set_defaults(func=_list)
+    r = ksub.add_parser("revoke", help="revoke a key at once")
+    r.add_argument("key_id", help="the id column of `dgs keys list`")
+    r.set_defaults(func=_revoke)
+
+
+def _settings(args: argparse.Namespace):
+    from service.settings import ServiceSettings
+
+    overrides = {k: v for k, v in (("host", getattr(args, "host", None)),
+                                   ("port", getattr(args, "port", None)),
+                                   ("data_dir", getattr(args, "data_dir", None)))
+                 if v is not None}
+    return ServiceSettings(**overrides)
+
+
+def _serve(args: argparse.Namespace) -> int:
+    from service.serve import serve
+
+    return serve(_settings(args), worker=not args.no_worker)
+
+
+def _database(args: argparse.Namespace) -> str:
+    from worker.db import migrate
+
+    url = _settings(args).database
+    migrate(url)
+    return url
+
+
+def _create(args: argparse.Namespace) -> int:
+    from service.auth import create_key
+
+    try:
+        row, key = create_key(_database(args), args.tenant, args.name)
+    except ValueError as exc:
+        print(f"dgs keys create: {exc}", file=sys.stderr)
+        return 2
+    print(f"created key {row.id} for tenant {row.tenant}. Store it now; it is not shown "
+          f"again:\n{key}")
+    return 0
+
+
+def _when(value) -> str:
+    return value.strftime("%Y-%m-%d %H:%M:%SZ") if value is not None else "-"
+
+
+def _list(args: argparse.Namespace) -> int:
+    from service.auth import list_keys
+
+    rows = list_keys(_database(args))
+    print(f"{'id':16}  {'tenant':16}  {'name':20}  {'created':20}  {'last used':20}  revoked")
+    for r in rows:
+        print(f"{r.id:16}  {r.tenant:16}  {r.name[:20]:20}  {_when(r.created_at):20}  "
+              f"{_when(r.last_used_at):20}  {_when(r.revoked_at)}")
+    return 0
+
+
+def _revoke(args: argparse.Namespace) -> int:
+    from service.auth import revoke_key
+
+    row = revoke_key(_database(args), args.key_id)
+    if row is None:
+        print(f"dgs keys revoke: no key {args.key_id!r} (see `dgs keys list`)", file=sys.stderr)
+        return 1
+    print(f"revoked key {row.id} (tenant {row.tenant})")
+    return 0

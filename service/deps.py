@@ -1,0 +1,60 @@
+"""What every request handler reaches through `Depends`: the process's services (settings, job
+store, artifact store, Celery client, upload staging) held on app.state, and URL helpers."""
+
+from __future__ import annotations
+
+import datetime as dt
+from dataclasses import dataclass
+from typing import Annotated, Any
+
+from celery import Celery
+from fastapi import Depends, Request
+
+from service.errors import ApiError
+from service.settings import ServiceSettings
+from service.staging import ManifestCache, Staging
+from service.tus import HashCache
+from worker.blobs import BlobStore
+from worker.models import utcnow
+from worker.store import JobStore
+
+__all__ = ["Services", "ServicesDep", "absolute_url", "default_expiry", "get_services"]
+
+
+@dataclass
+class Services:
+    settings: ServiceSettings
+    store: JobStore
+    blobs: BlobStore
+    celery: Celery
+    staging: Staging
+    manifests: ManifestCache
+    hashes: HashCache
+    """SHA-256 state of uploads in progress (service.tus)."""
+    committer: Any = None
+    """service.commit.Committer: this process's background commits."""
+
+
+def get_services(request: Request) -> Services:
+    return request.app.state.services
+
+
+ServicesDep = Annotated[Services, Depends(get_services)]
+
+
+def absolute_url(request: Request, services: Services, path: str) -> str:
+    """`path` (starting with /) as an absolute URL: under public_url when configured, else under
+    the request's own scheme and host."""
+    base = services.settings.public_url or str(request.base_url)
+    return base.rstrip("/") + path
+
+
+def default_expiry(services: Services, given: dt.datetime | None) -> dt.datetime | None:
+    """The expiry of a new object: the client's, else now + retention_days (None: kept)."""
+    if given is not None:
+        if given <= utcnow():
+            raise ApiError(422, f"expires_at: {given.isoformat()} is in the past",
+                           details=[{"path": "expires_at", "message": "must be in the future"}])
+        return given.astimezone(dt.UTC)
+    days = services.settings.retention_days
+    return None if days is None else utcnow() + dt.timedelta(days=days)

@@ -1,0 +1,140 @@
+"""Every error the API answers is `{"error": {"code", "message", "retryable", "details"}}` with a
+real HTTP status (DESIGN.md 3.5): raised as `ApiError` by the routers, and converted here from
+FastAPI's validation errors, Starlette's 404/405 and any unhandled exception (500)."""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+__all__ = [
+    "COMMON",
+    "ApiError",
+    "ErrorDetail",
+    "ErrorInfo",
+    "ErrorOut",
+    "error_responses",
+    "install_error_handlers",
+]
+
+log = logging.getLogger("dgs.service")
+
+# The code of errors raised without one, by status.
+CODES = {400: "invalid_request", 401: "unauthorized", 403: "forbidden", 404: "not_found",
+         405: "method_not_allowed", 409: "conflict", 411: "length_required",
+         412: "precondition_failed", 413: "payload_too_large", 415: "unsupported_media_type",
+         416: "range_not_satisfiable", 422: "invalid_request", 460: "checksum_mismatch",
+         500: "internal", 501: "not_implemented", 503: "unavailable",
+         507: "insufficient_storage"}
+TUS_PREFIX = "/v1/uploads"
+COMMON = (400, 401, 404, 422, 500)
+"""Errors any /v1 operation may answer (malformed input, no key, not found, invalid, bug)."""
+
+
+class ErrorDetail(BaseModel):
+    """One problem of several: the file, field or path it concerns and what is wrong."""
+
+    path: str | None = Field(None, description="File, field or header the problem concerns.")
+    message: str
+
+
+class ErrorInfo(BaseModel):
+    code: str = Field(description="Stable machine-readable code, e.g. not_found, conflict, "
+                                  "invalid_capture, checksum_mismatch.")
+    message: str = Field(description="What went wrong and what to do about it.")
+    retryable: bool = Field(description="True when the same request may succeed later.")
+    details: list[ErrorDetail] = Field(default_factory=list)
+
+
+class ErrorOut(BaseModel):
+    error: ErrorInfo
+
+
+class ApiError(Exception):
+    """An error answer: status, code, message, retryable, optional details and headers."""
+
+    def __init__(self, status: int, message: str, *, code: str | None = None,
+                 retryable: bool = False, details: list[dict[str, Any]] | None = None,
+                 headers: dict[str, str] | None = None):
+        super().__init__(message)
+        self.status, self.message = status, message
+        self.code = code or CODES.get(status, "error")
+        self.retryable, self.details, self.headers = retryable, details or [], headers or {}
+
+    def body(self) -> dict[str, Any]:
+        return {"error": {"code": self.code, "message": self.message,
+                          "retryable": self.retryable, "details": self.details}}
+
+
+def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries for these error statuses (all share ErrorOut)."""
+    return {status: {"model": ErrorOut, "description": CODES.get(status, "error")}
+            for status in statuses}
+
+
+def _respond(request: Request, error: ApiError) -> JSONResponse:
+    headers = dict(error.headers)
+    if request.url.path.startswith(TUS_PREFIX):
+        headers.setdefault("Tus-Resumable", "1.0.0")
+    if error.status == 401:
+        headers.setdefault("WWW-Authenticate", 'Bearer realm="dgs"')
+    return JSONResponse(error.body(), status_code=error.status, headers=headers)
+
+
+async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
+    return _respond(request, exc)
+
+
+async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+    message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    if exc.status_code == 404 and message == "Not Found":
+        message = f"no such endpoint: {request.method} {request.url.path}"
+    headers = dict(exc.headers or {})
+    if exc.status_code == 405:
+        allowed = _allowed(request)
+        headers["Allow"] = ", ".join(allowed)
+        message = f"{request.method} is not allowed on {request.url.path}; use {headers['Allow']}"
+    return _respond(request, ApiError(exc.status_code, message, headers=headers,
+                                      retryable=exc.status_code >= 500))
+
+
+def _allowed(request: Request) -> list[str]:
+    """Every method some route serves at this path (Starlette names only the first route's)."""
+    from starlette.routing import Match
+
+    scope = {"type": "http", "path": request.url.path, "root_path": ""}
+    return [m for m in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+            if any(r.matches({**scope, "method": m})[0] == Match.FULL
+                   for r in request.app.routes)]
+
+
+def _where(loc: tuple[Any, ...] | list[Any]) -> str:
+    return ".".join(str(part) for part in loc)
+
+
+async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
+    details = [{"path": _where(e.get("loc", ())), "message": e.get("msg", "invalid")}
+               for e in exc.errors()]
+    first = details[0] if details else {"path": "", "message": "invalid request"}
+    more = f" (and {len(details) - 1} more)" if len(details) > 1 else ""
+    return _respond(request, ApiError(422, f"{first['path']}: {first['message']}{more}",
+                                      details=details))
+
+
+async def _unhandled(request: Request, exc: Exception) -> JSONResponse:
+    log.exception("unhandled error in %s %s", request.method, request.url.path)
+    return _respond(request, ApiError(500, "internal error; it is logged on the server",
+                                      retryable=True))
+
+
+def install_error_handlers(app: FastAPI) -> None:
+    app.add_exception_handler(ApiError, _api_error)
+    app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(RequestValidationError, _validation_error)
+    app.add_exception_handler(Exception, _unhandled)

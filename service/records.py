@@ -1,0 +1,50 @@
+"""Tenant-scoped lookups: every object a request names is fetched here, filtered by the caller's
+tenant, and answers 404 (never 403) when it belongs to another, so ids cannot be probed."""
+
+from __future__ import annotations
+
+from sqlalchemy import select
+from sqlalchemy.orm import defer
+
+from service.errors import ApiError
+from worker.models import Asset, Capture, Job, Upload
+from worker.store import JobStore
+
+__all__ = ["get_asset", "get_capture", "get_job", "get_upload", "missing"]
+
+
+def missing(kind: str, ident: str) -> ApiError:
+    return ApiError(404, f"no {kind} {ident!r}", code="not_found")
+
+
+def get_capture(store: JobStore, capture_id: str, tenant: str) -> Capture:
+    """The capture (its manifest not loaded: see staging.ManifestCache)."""
+    with store.session(write=False) as s:
+        row = s.scalar(select(Capture).options(defer(Capture.manifest))
+                       .where(Capture.id == capture_id, Capture.tenant == tenant))
+    if row is None:
+        raise missing("capture", capture_id)
+    return row
+
+
+def get_job(store: JobStore, job_id: str, tenant: str) -> Job:
+    job = store.get(job_id, tenant)
+    if job is None:
+        raise missing("job", job_id)
+    return job
+
+
+def get_upload(store: JobStore, upload_id: str, tenant: str) -> Upload:
+    with store.session(write=False) as s:
+        row = s.scalar(select(Upload).where(Upload.id == upload_id, Upload.tenant == tenant))
+    if row is None or row.state == "terminated":
+        raise missing("upload", upload_id)
+    return row
+
+
+def get_asset(store: JobStore, asset_id: str, tenant: str) -> Asset:
+    with store.session(write=False) as s:
+        row = s.scalar(select(Asset).where(Asset.id == asset_id, Asset.tenant == tenant))
+    if row is None:
+        raise missing("asset", asset_id)
+    return row

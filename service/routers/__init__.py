@@ -1,0 +1,3 @@
+"""One router per resource (STYLE.md 11)."""
+
+__all__ = ["artifacts", "assets", "captures", "info", "jobs", "renders", "uploads"]

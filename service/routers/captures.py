@@ -1,0 +1,280 @@
+"""/v1/captures: declare a capture's files (manifest), follow which arrived, commit it (validate
+and freeze), delete it; or upload a small one as a single zip (/v1/captures/archive)."""
+
+from __future__ import annotations
+
+import secrets
+from typing import Annotated, Literal
+
+from fastapi import APIRouter, Query, Request, Response
+from fastapi.responses import JSONResponse
+from pydantic import AwareDatetime
+from sqlalchemy import select, update
+from sqlalchemy.orm import defer
+from starlette.concurrency import run_in_threadpool as run
+
+from service.archive import extract, inspect_zip, spool
+from service.auth import TenantDep
+from service.commit import OWNER_KEY, begin_commit, run_commit
+from service.deps import Services, ServicesDep, absolute_url, default_expiry
+from service.errors import COMMON, ApiError, ErrorInfo, error_responses
+from service.manifest import check_manifest
+from service.pagination import decode_cursor, encode_cursor, newest_first
+from service.records import get_capture
+from service.schemas import (
+    CaptureFilesOut, CaptureIn, CaptureItem, CaptureOut, CapturePage, CaptureSummary, FileOut,
+    FilePage, Format, ManifestPatchIn, manifest_entries)
+from service.staging import Manifest, file_states
+from worker.models import Capture, Job, Upload
+from worker.store import ACTIVE, Owner, new_id
+
+__all__ = ["router"]
+
+router = APIRouter(prefix="/v1/captures", tags=["captures"],
+                   responses=error_responses(*COMMON))
+FIRST_PATHS = 20
+
+
+def _links(capture_id: str) -> dict[str, str]:
+    base = f"/v1/captures/{capture_id}"
+    return {"self": base, "files": f"{base}/files", "commit": f"{base}/commit",
+            "uploads": "/v1/uploads"}
+
+
+def _item(c: Capture) -> CaptureItem:
+    summary = CaptureSummary(**c.summary) if c.state == "ready" and c.summary else None
+    return CaptureItem(id=c.id, name=c.name, format=c.format, state=c.state,
+                       total_bytes=c.total_bytes, summary=summary, created_at=c.created_at,
+                       committed_at=c.committed_at, expires_at=c.expires_at, links=_links(c.id))
+
+
+def _files(services: Services, c: Capture, manifest: Manifest) -> CaptureFilesOut:
+    if c.state == "ready":
+        states = dict.fromkeys(manifest.files, "received")
+    else:
+        states = file_states(services.store, c.id)
+    missing, corrupt, received_bytes = [], [], 0
+    for path, (size, _) in manifest.files.items():
+        state = states.get(path)
+        if state == "received":
+            received_bytes += size
+            continue
+        missing.append(path)
+        if state == "corrupt":
+            corrupt.append(path)
+    return CaptureFilesOut(
+        declared=len(manifest.files), declared_bytes=c.total_bytes,
+        received=len(manifest.files) - len(missing), received_bytes=received_bytes,
+        missing=len(missing), missing_paths=missing[:FIRST_PATHS], corrupt=len(corrupt),
+        corrupt_paths=corrupt[:FIRST_PATHS])
+
+
+def capture_out(services: Services, c: Capture) -> CaptureOut:
+    manifest = services.manifests.get(c.id) or Manifest({})
+    error = ErrorInfo(**c.error) if c.error and c.state == "uploading" else None
+    return CaptureOut(**_item(c).model_dump(), files=_files(services, c, manifest), error=error)
+
+
+def _created(request: Request, services: Services, out: CaptureOut) -> JSONResponse:
+    return JSONResponse(out.model_dump(mode="json"), status_code=201, headers={
+        "Location": absolute_url(request, services, out.links["self"])})
+
+
+@router.post("", status_code=201, response_model=CaptureOut, responses=error_responses(400, 413))
+def create_capture(body: CaptureIn, request: Request, services: ServicesDep,
+                   tenant: TenantDep) -> JSONResponse:
+    """Declare a capture by its manifest; then upload each file with tus and commit."""
+    files = body.manifest.files
+    total = check_manifest(((f.path, f.size) for f in files), body.format, services.settings)
+    manifest = manifest_entries(files)
+    row = Capture(id=new_id("cap"), tenant=tenant, name=body.name, format=body.format,
+                  state="uploading", manifest=manifest, total_bytes=total,
+                  expires_at=default_expiry(services, body.expires_at))
+    with services.store.session() as s:
+        s.add(row)
+    services.manifests.put(row.id, Manifest({f["path"]: (f["size"], f["sha256"])
+                                             for f in manifest}, row.updated_at))
+    return _created(request, services, capture_out(services, row))
+
+
+@router.get("", response_model=CapturePage)
+def list_captures(services: ServicesDep, tenant: TenantDep,
+                  state: Literal["uploading", "committing", "ready"] | None = None,
+                  cursor: Annotated[str | None, Query(max_length=512)] = None,
+                  limit: Annotated[int, Query(ge=1, le=200)] = 50) -> CapturePage:
+    """The caller's captures, newest first."""
+    q = select(Capture).options(defer(Capture.manifest)).where(Capture.tenant == tenant)
+    if state is not None:
+        q = q.where(Capture.state == state)
+    with services.store.session(write=False) as s:
+        rows = list(s.scalars(newest_first(q, Capture.created_at, Capture.id, cursor, limit)))
+    more = len(rows) > limit
+    rows = rows[:limit]
+    return CapturePage(items=[_item(c) for c in rows], next_cursor=encode_cursor(
+        rows[-1].created_at, rows[-1].id) if more else None)
+
+
+@router.get("/{capture_id}", response_model=CaptureOut)
+def read_capture(capture_id: str, services: ServicesDep, tenant: TenantDep) -> CaptureOut:
+    """State, received / missing / corrupt files, and the summary once ready."""
+    return capture_out(services, get_capture(services.store, capture_id, tenant))
+
+
+@router.get("/{capture_id}/files", response_model=FilePage)
+def list_files(capture_id: str, services: ServicesDep, tenant: TenantDep,
+               state: Literal["missing", "received", "corrupt"] | None = None,
+               cursor: Annotated[str | None, Query(max_length=512)] = None,
+               limit: Annotated[int, Query(ge=1, le=10_000)] = 1000) -> FilePage:
+    """The manifest's files with their state, in manifest order; `missing` means not received
+    (corrupt ones included)."""
+    c = get_capture(services.store, capture_id, tenant)
+    manifest = services.manifests.get(c.id) or Manifest({})
+    states = (dict.fromkeys(manifest.files, "received") if c.state == "ready"
+              else file_states(services.store, c.id))
+    start = decode_cursor(cursor, (int,))[0] if cursor else 0
+    items, index = [], start
+    paths = list(manifest.files)
+    while index < len(paths) and len(items) < limit:
+        path = paths[index]
+        index += 1
+        fstate = states.get(path, "missing")
+        if state is None or fstate == state or (state == "missing" and fstate == "corrupt"):
+            size, digest = manifest.files[path]
+            items.append(FileOut(path=path, size=size, sha256=digest, state=fstate))
+    return FilePage(items=items, next_cursor=encode_cursor(index) if index < len(paths) else None)
+
+
+@router.patch("/{capture_id}/manifest", response_model=CaptureOut,
+              responses=error_responses(400, 409, 413))
+def amend_manifest(capture_id: str, body: ManifestPatchIn, services: ServicesDep,
+                   tenant: TenantDep) -> CaptureOut:
+    """Add, replace or remove manifest entries while uploading (to fix what a failed commit
+    reported without uploading the rest again). A replaced or removed file's received copy is
+    dropped."""
+    with services.store.session() as s:
+        c = s.scalar(select(Capture).where(Capture.id == capture_id, Capture.tenant == tenant))
+        if c is None:
+            raise ApiError(404, f"no capture {capture_id!r}")
+        if c.state != "uploading":
+            raise ApiError(409, f"capture {capture_id} is {c.state}; its manifest is frozen")
+        files = {f["path"]: f for f in c.manifest}
+        unknown = [p for p in body.remove if p not in files]
+        if unknown:
+            raise ApiError(422, f"remove: {unknown[0]!r} is not in the manifest",
+                           details=[{"path": p, "message": "not in the manifest"}
+                                    for p in unknown[:100]])
+        changed = set(body.remove)
+        for path in body.remove:
+            del files[path]
+        for f in manifest_entries(body.files):
+            old = files.get(f["path"])
+            if old is not None and (old["size"], old["sha256"]) != (f["size"], f["sha256"]):
+                changed.add(f["path"])
+            files[f["path"]] = f
+        c.total_bytes = check_manifest(((p, f["size"]) for p, f in files.items()), c.format,
+                                       services.settings)
+        c.manifest = list(files.values())
+        stale = list(s.scalars(select(Upload.id).where(
+            Upload.capture_id == capture_id, Upload.path.in_(changed),
+            Upload.state.in_(("receiving", "received", "corrupt"))))) if changed else []
+        if stale:
+            s.execute(update(Upload).where(Upload.id.in_(stale)).values(state="terminated"))
+    for path in changed:
+        services.staging.file(capture_id, path).unlink(missing_ok=True)
+    for upload_id in stale:
+        services.staging.part(capture_id, upload_id).unlink(missing_ok=True)
+    return capture_out(services, get_capture(services.store, capture_id, tenant))
+
+
+@router.post("/{capture_id}/commit", response_model=CaptureOut,
+             responses={202: {"model": CaptureOut, "description": "Still validating"},
+                        **error_responses(409)})
+def commit_capture(capture_id: str, services: ServicesDep, tenant: TenantDep) -> JSONResponse:
+    """Validate and freeze: 200 ready, 202 still validating (poll the capture), 409 files
+    missing, 422 not a valid capture (the problems name each file; fix and commit again)."""
+    c = get_capture(services.store, capture_id, tenant)
+    committer = services.committer
+    if begin_commit(services, c) or c.state == "committing":
+        done = committer.start(c.id) if c.state != "committing" else committer.running(c.id)
+        if done is not None:
+            done.wait(services.settings.commit_wait_seconds)
+    c = get_capture(services.store, capture_id, tenant)
+    out = capture_out(services, c)
+    if c.state == "uploading" and c.error:
+        status = 422 if c.error.get("code") == "invalid_capture" else 500
+        raise ApiError(status, c.error["message"], code=c.error["code"],
+                       retryable=c.error.get("retryable", False),
+                       details=c.error.get("details", []))
+    return JSONResponse(out.model_dump(mode="json"), status_code=200 if c.state == "ready" else 202)
+
+
+@router.delete("/{capture_id}", status_code=204, responses={204: {"description": "Deleted"},
+                                                            **error_responses(409)})
+def delete_capture(capture_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
+    """Delete the capture, its staged files and its frozen copy (409 while a job uses it or it
+    is being validated). Jobs made from it keep their results."""
+    with services.store.session() as s:
+        c = s.scalar(select(Capture).options(defer(Capture.manifest))
+                     .where(Capture.id == capture_id, Capture.tenant == tenant))
+        if c is None:
+            raise ApiError(404, f"no capture {capture_id!r}")
+        busy = s.scalar(select(Job.id).where(Job.capture_id == capture_id,
+                                             Job.state.in_(ACTIVE)).limit(1))
+        if busy is not None:
+            raise ApiError(409, f"job {busy} uses capture {capture_id}; cancel it first")
+        if c.state == "committing":
+            raise ApiError(409, f"capture {capture_id} is being validated; delete it after",
+                           retryable=True)
+        s.delete(c)
+    services.blobs.delete_prefix(f"captures/{capture_id}")
+    services.staging.remove(capture_id)
+    services.manifests.forget(capture_id)
+    return Response(status_code=204)
+
+
+@router.post("/archive", status_code=201, response_model=CaptureOut,
+             responses=error_responses(400, 409, 413, 507),
+             openapi_extra={"requestBody": {"required": True, "content": {
+                 "application/zip": {"schema": {"type": "string", "format": "binary"}}}}})
+async def upload_archive(request: Request, services: ServicesDep, tenant: TenantDep,
+                         format: Format = "auto",
+                         name: Annotated[str, Query(max_length=256)] = "",
+                         expires_at: AwareDatetime | None = None) -> JSONResponse:
+    """A whole (small) capture as one zip body: checked, extracted, committed. 201 with the
+    ready capture, or 4xx with nothing kept."""
+    expiry = default_expiry(services, expires_at)
+    tmp = services.staging.tmp_dir() / f"{secrets.token_hex(8)}.zip"
+    try:
+        await spool(request, tmp, services.settings.max_archive_bytes, "archive")
+        out = await run(_commit_archive, services, tenant, tmp, format, name, expiry)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return _created(request, services, out)
+
+
+def _commit_archive(services: Services, tenant: str, archive, fmt: str, name: str,
+                    expires_at) -> CaptureOut:
+    members = inspect_zip(archive, fmt, services.settings)
+    capture_id = new_id("cap")
+    try:
+        manifest = extract(archive, members, services.staging.files_dir(capture_id))
+        with services.store.session() as s:
+            s.add(Capture(id=capture_id, tenant=tenant, name=name, format=fmt,
+                          state="committing", manifest=manifest,
+                          total_bytes=sum(f["size"] for f in manifest), expires_at=expires_at,
+                          summary={OWNER_KEY: str(Owner.current())}))
+        run_commit(services, capture_id)
+        c = get_capture(services.store, capture_id, tenant)
+        if c.state != "ready":
+            error = c.error or {"code": "internal", "message": "commit failed"}
+            raise ApiError(422 if error["code"] == "invalid_capture" else 500, error["message"],
+                           code=error["code"], retryable=error.get("retryable", False),
+                           details=error.get("details", []))
+        return capture_out(services, c)
+    except BaseException:
+        with services.store.session() as s:
+            s.execute(Capture.__table__.delete().where(Capture.id == capture_id))
+        services.staging.remove(capture_id)
+        services.blobs.delete_prefix(f"captures/{capture_id}")
+        services.manifests.forget(capture_id)
+        raise

@@ -1,0 +1,204 @@
+"""/v1/jobs: run a pipeline on a ready capture, follow it (polling, server-sent events, logs),
+cancel it, retry it from its last checkpoint, delete it."""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from typing import Annotated
+
+from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi.responses import JSONResponse, StreamingResponse
+from pydantic import ValidationError
+from sqlalchemy import select, update
+from sqlalchemy.exc import IntegrityError
+
+from service.auth import TenantDep
+from service.deps import Services, ServicesDep, absolute_url, default_expiry
+from service.errors import COMMON, ApiError, ErrorInfo, error_responses
+from service.events import job_events
+from service.pagination import encode_cursor, newest_first
+from service.records import get_capture, get_job
+from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressOut
+from worker.celery_app import dispatch
+from worker.models import Job
+from worker.pipelines import get_pipeline
+from worker.store import ACTIVE, TERMINAL, progress_of
+
+__all__ = ["job_out", "router"]
+
+log = logging.getLogger("dgs.service")
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=error_responses(*COMMON))
+
+
+def job_out(job: Job) -> JobOut:
+    base = f"/v1/jobs/{job.id}"
+    return JobOut(
+        id=job.id, name=job.name, capture_id=job.capture_id, pipeline=job.pipeline,
+        params=job.params, state=job.state, progress=ProgressOut(**progress_of(job)),
+        error=ErrorInfo(**job.error) if job.error else None, attempts=job.attempts,
+        cancel_requested=job.cancel_requested, created_at=job.created_at,
+        updated_at=job.updated_at, started_at=job.started_at, finished_at=job.finished_at,
+        expires_at=job.expires_at,
+        links={"self": base, "events": f"{base}/events", "logs": f"{base}/logs",
+               "artifacts": f"{base}/artifacts", "archive": f"{base}/artifacts.zip",
+               "cancel": f"{base}/cancel", "retry": f"{base}/retry"})
+
+
+def _accepted(request: Request, services: Services, job: Job) -> JSONResponse:
+    out = job_out(job)
+    return JSONResponse(out.model_dump(mode="json"), status_code=202, headers={
+        "Location": absolute_url(request, services, out.links["self"])})
+
+
+def _send(services: Services, job: Job) -> None:
+    """Hand the job to the broker. When the broker is away the job stays queued and
+    undispatched; the sweeper sends it once the broker is back."""
+    services.store.mark_dispatched(job.id)
+    try:
+        dispatch(services.celery, services.settings, job.id, job.pipeline)
+    except Exception:
+        log.exception("job %s: the broker refused it; the sweeper will send it again", job.id)
+        with services.store.session() as s:
+            s.execute(update(Job).where(Job.id == job.id).values(dispatched_at=None))
+
+
+def _params(pipeline_name: str, params: dict) -> dict:
+    try:
+        pipeline = get_pipeline(pipeline_name)
+    except ValueError as exc:
+        raise ApiError(422, str(exc), details=[{"path": "pipeline", "message": str(exc)}]) from None
+    try:
+        return pipeline.params.model_validate(params).model_dump(mode="json")
+    except ValidationError as exc:
+        details = [{"path": ".".join(["params", *map(str, e["loc"])]), "message": e["msg"]}
+                   for e in exc.errors()]
+        raise ApiError(422, f"{details[0]['path']}: {details[0]['message']}",
+                       details=details) from None
+
+
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409))
+def create_job(body: JobIn, request: Request, services: ServicesDep,
+               tenant: TenantDep) -> JSONResponse:
+    """Queue a pipeline run on a ready capture (202; Location is the job)."""
+    capture = get_capture(services.store, body.capture_id, tenant)
+    if capture.state != "ready":
+        raise ApiError(409, f"capture {capture.id} is {capture.state}; commit it first "
+                            "(POST /v1/captures/{id}/commit)")
+    params = _params(body.pipeline, body.params)
+    try:
+        job = services.store.create(tenant, body.pipeline, params, capture_id=capture.id,
+                                    name=body.name,
+                                    expires_at=default_expiry(services, body.expires_at))
+    except IntegrityError:  # the capture was deleted meanwhile
+        raise ApiError(404, f"no capture {body.capture_id!r}") from None
+    _send(services, job)
+    return _accepted(request, services, job)
+
+
+@router.get("", response_model=JobPage)
+def list_jobs(services: ServicesDep, tenant: TenantDep, state: JobState | None = None,
+              cursor: Annotated[str | None, Query(max_length=512)] = None,
+              limit: Annotated[int, Query(ge=1, le=200)] = 50) -> JobPage:
+    """The caller's jobs, newest first; pass next_cursor to read the next page."""
+    q = select(Job).where(Job.tenant == tenant)
+    if state is not None:
+        q = q.where(Job.state == state)
+    with services.store.session(write=False) as s:
+        rows = list(s.scalars(newest_first(q, Job.created_at, Job.id, cursor, limit)))
+    more = len(rows) > limit
+    rows = rows[:limit]
+    return JobPage(items=[job_out(j) for j in rows], next_cursor=encode_cursor(
+        rows[-1].created_at, rows[-1].id) if more else None)
+
+
+@router.get("/{job_id}", response_model=JobOut)
+def read_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JobOut:
+    return job_out(get_job(services.store, job_id, tenant))
+
+
+@router.get("/{job_id}/events", response_class=StreamingResponse,
+            responses={200: {"description": "Server-sent events: state, progress, artifact",
+                             "content": {"text/event-stream": {"schema": {"type": "string"}}}},
+                       **error_responses(400)})
+def job_event_stream(job_id: str, services: ServicesDep, tenant: TenantDep,
+                     last_event_id: Annotated[str | None, Header()] = None) -> StreamingResponse:
+    """Progress as server-sent events; reconnect with Last-Event-ID to resume."""
+    get_job(services.store, job_id, tenant)
+    after = None
+    if last_event_id is not None and last_event_id.strip():
+        if not last_event_id.strip().isdigit() or len(last_event_id.strip()) > 18:
+            raise ApiError(400, f"Last-Event-ID: expected an event id, got {last_event_id!r}")
+        after = int(last_event_id)
+    s = services.settings
+    stream = job_events(services.store, job_id, after, poll=s.sse_poll_seconds,
+                        keepalive=s.sse_keepalive_seconds)
+    return StreamingResponse(stream, media_type="text/event-stream", headers={
+        "Cache-Control": "no-store", "X-Accel-Buffering": "no"})
+
+
+@router.get("/{job_id}/logs", response_model=LogsOut)
+def job_logs(job_id: str, services: ServicesDep, tenant: TenantDep,
+             offset: Annotated[int, Query(ge=0, le=2**31 - 1)] = 0,
+             limit: Annotated[int, Query(ge=1, le=10_000)] = 1000) -> LogsOut:
+    """Log lines from `offset`; poll with next_offset until complete."""
+    job = get_job(services.store, job_id, tenant)
+    rows = services.store.logs(job.id, offset, limit + 1)
+    more = len(rows) > limit
+    rows = rows[:limit]
+    next_offset = rows[-1].seq + 1 if rows else offset
+    return LogsOut(lines=[r.line for r in rows], offset=offset, next_offset=next_offset,
+                   complete=job.state in TERMINAL and not more)
+
+
+@router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,
+             responses=error_responses(409))
+def cancel_job(job_id: str, request: Request, services: ServicesDep,
+               tenant: TenantDep) -> JSONResponse:
+    """Cancel: a queued job at once, a running one at its next step (its worker process is
+    ended if it does not stop within seconds). 409 when it has already ended."""
+    job = get_job(services.store, job_id, tenant)
+    if job.state in TERMINAL:
+        raise ApiError(409, f"job {job_id} already {job.state}")
+    job = services.store.request_cancel(job_id, tenant)
+    if job is None:
+        raise ApiError(404, f"no job {job_id!r}")
+    return _accepted(request, services, job)
+
+
+@router.post("/{job_id}/retry", status_code=202, response_model=JobOut,
+             responses=error_responses(409))
+def retry_job(job_id: str, request: Request, services: ServicesDep,
+              tenant: TenantDep) -> JSONResponse:
+    """Queue a failed or cancelled job again; it resumes from its last checkpoint."""
+    job = get_job(services.store, job_id, tenant)
+    if job.state not in ("failed", "cancelled"):
+        raise ApiError(409, f"job {job_id} is {job.state}; only failed or cancelled jobs are "
+                            "retried")
+    if job.capture_id is None:
+        raise ApiError(409, f"job {job_id}'s capture was deleted; it cannot run again")
+    job = services.store.retry(job_id, tenant)
+    if job is None:
+        raise ApiError(404, f"no job {job_id!r}")
+    if job.state != "queued":
+        raise ApiError(409, f"job {job_id} is {job.state}; only failed or cancelled jobs are "
+                            "retried")
+    _send(services, job)
+    return _accepted(request, services, job)
+
+
+@router.delete("/{job_id}", status_code=204, responses={204: {"description": "Deleted"},
+                                                        **error_responses(409)})
+def delete_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
+    """Delete a finished job with its artifacts, logs and events (409 while queued or
+    running: cancel it first)."""
+    with services.store.session() as s:
+        job = s.scalar(select(Job).where(Job.id == job_id, Job.tenant == tenant))
+        if job is None:
+            raise ApiError(404, f"no job {job_id!r}")
+        if job.state in ACTIVE:
+            raise ApiError(409, f"job {job_id} is {job.state}; cancel it first")
+        s.delete(job)
+    services.blobs.delete_prefix(f"jobs/{job_id}")
+    shutil.rmtree(services.settings.scratch / "jobs" / job_id, ignore_errors=True)
+    return Response(status_code=204)

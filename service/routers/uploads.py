@@ -1,0 +1,207 @@
+"""/v1/uploads: tus 1.0.0 resumable uploads, one per manifest file (core, creation,
+termination, checksum), so standard clients (tuspy, tus-js-client, Uppy) upload and resume.
+
+Creation metadata: `capture` (the capture id) and `path` (the manifest path; `filename` is
+accepted instead). Bodies are written in chunks of about 1 MiB from a worker thread, so a slow
+disk never blocks the event loop.
+"""
+
+from __future__ import annotations
+
+import base64
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Header, Request, Response
+from starlette.concurrency import run_in_threadpool as run
+from starlette.requests import ClientDisconnect
+
+from service.auth import TenantDep
+from service.deps import Services, ServicesDep, absolute_url
+from service.errors import COMMON, ApiError, error_responses
+from service.records import get_upload
+from service.tus import (
+    ALGORITHMS, EXTENSIONS, OFFSET_TYPE, TUS_VERSION, PartLock, PartWriter, parse_checksum,
+    parse_length, parse_metadata, tus_headers)
+from service.uploads import (
+    complete_upload, create_upload, record_offset, require_uploading, terminate_upload)
+from worker.models import Upload
+
+__all__ = ["router"]
+
+WRITE_CHUNK = 1 << 20
+
+
+def require_tus(tenant: TenantDep,
+                tus_resumable: Annotated[str | None, Header()] = None) -> None:
+    """412 unless the client speaks tus 1.0.0 (after authentication: who asks comes first)."""
+    if tus_resumable != TUS_VERSION:
+        raise ApiError(412, f"Tus-Resumable: this server speaks tus {TUS_VERSION}, got "
+                            f"{tus_resumable!r}", headers={"Tus-Version": TUS_VERSION})
+
+
+router = APIRouter(prefix="/v1/uploads", tags=["uploads"],
+                   responses=error_responses(*COMMON, 412))
+Tus = Depends(require_tus)
+NO_CONTENT = {"description": "Done (tus headers only)", "content": None}
+
+
+@router.options("", status_code=204, responses={204: NO_CONTENT})
+def tus_options(services: ServicesDep) -> Response:
+    """What this tus server supports (no key needed, like a CORS pre-flight)."""
+    return Response(status_code=204, headers=tus_headers(
+        Tus_Version=TUS_VERSION, Tus_Extension=",".join(EXTENSIONS),
+        Tus_Max_Size=services.settings.max_file_bytes,
+        Tus_Checksum_Algorithm=",".join(sorted(ALGORITHMS))))
+
+
+@router.post("", status_code=201, dependencies=[Tus],
+             responses={201: NO_CONTENT, **error_responses(409, 413, 422, 460)})
+def tus_create(request: Request, services: ServicesDep, tenant: TenantDep,
+           upload_length: Annotated[str | None, Header()] = None,
+           upload_metadata: Annotated[str | None, Header()] = None) -> Response:
+    """Start the upload of one manifest file; Location is where to PATCH its bytes."""
+    if request.headers.get("upload-defer-length"):
+        raise ApiError(400, "Upload-Defer-Length is not supported; the manifest knows the size")
+    length = parse_length(upload_length, "Upload-Length")
+    meta = parse_metadata(upload_metadata)
+    capture_id = meta.get("capture")
+    path = meta.get("path") or meta.get("filename")
+    if not capture_id or not path:
+        raise ApiError(400, "Upload-Metadata must name the capture ('capture') and the file's "
+                            "manifest path ('path')")
+    upload = create_upload(services, tenant, capture_id, path, length)
+    url = absolute_url(request, services, f"/v1/uploads/{upload.id}")
+    return Response(status_code=201, headers=tus_headers(Location=url, Upload_Offset=0))
+
+
+def _metadata(upload: Upload) -> str:
+    enc = [(k, base64.b64encode(v.encode()).decode())
+           for k, v in (("capture", upload.capture_id), ("path", upload.path))]
+    return ",".join(f"{k} {v}" for k, v in enc)
+
+
+@router.head("/{upload_id}", status_code=200, dependencies=[Tus],
+             responses={200: {"description": "Upload-Offset and Upload-Length", "content": None}})
+def tus_head(upload_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
+    """How far the upload got: resume with PATCH at Upload-Offset."""
+    upload = get_upload(services.store, upload_id, tenant)
+    if upload.state == "corrupt":
+        raise ApiError(404, f"upload {upload_id} failed its checksum and was dropped; create a "
+                            "new upload")
+    offset = upload.length if upload.state in ("received", "duplicate") else upload.offset
+    return Response(status_code=200, headers=tus_headers(
+        Upload_Offset=offset, Upload_Length=upload.length, Cache_Control="no-store",
+        Upload_Metadata=_metadata(upload)))
+
+
+@router.patch("/{upload_id}", status_code=204, dependencies=[Tus],
+              responses={204: NO_CONTENT, **error_responses(409, 413, 415, 460)},
+              openapi_extra={"requestBody": {"required": True, "content": {
+                  OFFSET_TYPE: {"schema": {"type": "string", "format": "binary"}}}}})
+async def tus_patch(upload_id: str, request: Request, services: ServicesDep, tenant: TenantDep,
+                    upload_offset: Annotated[str | None, Header()] = None,
+                    upload_checksum: Annotated[str | None, Header()] = None) -> Response:
+    """Append bytes at Upload-Offset; with Upload-Checksum they are kept only if they match."""
+    if (request.headers.get("content-type") or "").split(";")[0].strip() != OFFSET_TYPE:
+        raise ApiError(415, f"Content-Type must be {OFFSET_TYPE}")
+    offset = parse_length(upload_offset, "Upload-Offset")
+    checksum = parse_checksum(upload_checksum)
+    upload = await run(get_upload, services.store, upload_id, tenant)
+    lock = PartLock(services.staging.lock(upload.capture_id, upload.id))
+    await run(lock.acquire)
+    try:
+        upload = await run(get_upload, services.store, upload_id, tenant)  # as of the lock
+        new_offset = await _receive(request, services, upload, offset, checksum, tenant)
+    finally:
+        lock.release()
+    return Response(status_code=204, headers=tus_headers(Upload_Offset=new_offset))
+
+
+def _check_patch(request: Request, upload: Upload, offset: int) -> None:
+    if upload.state == "corrupt":
+        raise ApiError(409, f"upload {upload.id} failed its checksum; create a new upload")
+    if upload.state != "receiving":
+        raise ApiError(409, f"upload {upload.id} is complete ({upload.length} bytes)",
+                       headers=tus_headers(Upload_Offset=upload.length))
+    if offset != upload.offset:
+        raise ApiError(409, f"Upload-Offset {offset} does not match the upload's offset "
+                            f"{upload.offset}; HEAD it and resume from there",
+                       headers=tus_headers(Upload_Offset=upload.offset))
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and offset + int(declared) > upload.length:
+        raise ApiError(413, f"{declared} bytes at offset {offset} would pass Upload-Length "
+                            f"{upload.length}")
+
+
+async def _receive(request: Request, services: Services, upload: Upload, offset: int,
+                   checksum: tuple[str, bytes] | None, tenant: str) -> int:
+    """Write the body at `offset`; returns the new offset. Raises ApiError 460 for a bad
+    checksum (the body is dropped) and completes the upload at its last byte."""
+    if upload.state in ("received", "duplicate") and offset == upload.length:
+        return upload.length  # a repeated last PATCH whose answer was lost
+    _check_patch(request, upload, offset)
+    await run(require_uploading, services, upload.capture_id, tenant)
+    part = services.staging.part(upload.capture_id, upload.id)
+    sha = await run(services.hashes.take, upload.id, offset, part)
+    start_sha = sha.copy() if checksum else None
+    check = ALGORITHMS[checksum[0]]() if checksum else None
+    writer = await run(PartWriter, part, offset, sha, check)
+    try:
+        await _stream_body(request, services, upload, writer, checksum is not None)
+        if checksum is not None:
+            await run(writer.flush)
+            if check.digest() != checksum[1]:
+                await run(writer.rewind, offset)
+                services.hashes.keep(upload.id, offset, start_sha)
+                raise ApiError(460, f"Upload-Checksum: the {checksum[0]} of the "
+                                    f"{writer.received} bytes sent does not match; they were "
+                                    "dropped, send them again", retryable=True)
+        new_offset = await run(writer.sync)
+    except ClientDisconnect:
+        # The client is gone: keep what arrived (unless it cannot be checked), so it resumes.
+        if checksum is not None:
+            await run(writer.rewind, offset)
+            sha, new_offset = start_sha, offset
+        else:
+            new_offset = await run(writer.sync)
+    except BaseException:
+        # Also on cancellation, where awaiting is not possible: a truncate and a close are
+        # quick enough to run here.
+        writer.rewind(writer.synced)
+        raise
+    finally:
+        writer.close()
+    if new_offset == upload.length:
+        await run(complete_upload, services, upload, sha.hexdigest())
+        return new_offset
+    await run(record_offset, services, upload.id, new_offset)
+    services.hashes.keep(upload.id, new_offset, sha)
+    return new_offset
+
+
+async def _stream_body(request: Request, services: Services, upload: Upload,
+                       writer: PartWriter, checked: bool) -> None:
+    sync_every = services.settings.upload_sync_bytes
+    async for chunk in request.stream():
+        if writer.offset + len(writer.buf) + len(chunk) > upload.length:
+            raise ApiError(413, f"the body passes Upload-Length {upload.length}; the request "
+                                "was refused (HEAD gives the offset kept)")
+        writer.add(chunk)
+        if len(writer.buf) >= WRITE_CHUNK:
+            await run(writer.flush)
+        if not checked and writer.offset - writer.synced >= sync_every:
+            await run(record_offset, services, upload.id, await run(writer.sync))
+
+
+@router.delete("/{upload_id}", status_code=204, dependencies=[Tus],
+               responses={204: NO_CONTENT, **error_responses(409)})
+def tus_delete(upload_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
+    """tus termination: the upload's bytes are removed (a received file stays: 409)."""
+    upload = get_upload(services.store, upload_id, tenant)
+    lock = PartLock(services.staging.lock(upload.capture_id, upload.id))
+    lock.acquire()
+    try:
+        terminate_upload(services, get_upload(services.store, upload_id, tenant))
+    finally:
+        lock.release()
+    return Response(status_code=204, headers=tus_headers())

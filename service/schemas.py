@@ -1,0 +1,276 @@
+"""Request (…In) and response (…Out) bodies of the API; inputs and outputs never share a model
+(STYLE.md 11), so a field added to a response can never become settable by clients."""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any, Literal
+
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field
+
+from service.errors import ErrorInfo
+
+__all__ = [
+    "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
+    "CaptureItem", "CaptureOut", "CapturePage", "CaptureSummary", "FileOut", "FilePage",
+    "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut", "JobPage", "JobState",
+    "LightIn", "LimitsOut", "LogsOut", "ManifestFileIn", "ManifestIn", "ManifestPatchIn", "PipelineOut",
+    "ProgressOut", "ReadyOut", "RenderIn", "TusOut", "manifest_entries",
+]
+
+Format = Literal["canonical", "transforms", "colmap", "actorshq", "auto"]
+JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+CaptureState = Literal["uploading", "committing", "ready", "failed"]
+FileState = Literal["received", "missing", "corrupt"]
+SHA256 = r"^[0-9a-fA-F]{64}$"
+
+
+class _In(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+# -- captures ------------------------------------------------------------------------------------
+class ManifestFileIn(_In):
+    path: str = Field(min_length=1, max_length=1024, description=(
+        "Relative POSIX path inside the capture, e.g. images/000000/cam00.png."))
+    size: int = Field(ge=0, le=2**63 - 1, description="Size in bytes.")
+    sha256: str = Field(pattern=SHA256, description="SHA-256 of the file, hexadecimal.")
+
+
+class ManifestIn(_In):
+    files: list[ManifestFileIn] = Field(min_length=1)
+
+
+def manifest_entries(files: list[ManifestFileIn]) -> list[dict[str, Any]]:
+    """The stored form of manifest entries (digests in lower case)."""
+    return [{"path": f.path, "size": f.size, "sha256": f.sha256.lower()} for f in files]
+
+
+class ManifestPatchIn(_In):
+    files: list[ManifestFileIn] = Field(default_factory=list, max_length=10_000, description=(
+        "Entries to add, or to replace (same path): a replaced file must be uploaded again."))
+    remove: list[str] = Field(default_factory=list, max_length=10_000,
+                              description="Paths to drop.")
+
+
+class CaptureIn(_In):
+    name: str = Field("", max_length=256)
+    format: Format = Field(description=(
+        "canonical (DESIGN.md 3.1), an importer's format, or auto (detected at commit)."))
+    manifest: ManifestIn
+    expires_at: AwareDatetime | None = Field(None, description=(
+        "When the capture is deleted; default: the server's retention (none: kept)."))
+
+
+class CaptureFilesOut(BaseModel):
+    declared: int
+    declared_bytes: int
+    received: int
+    received_bytes: int
+    missing: int = Field(description="Files not received yet (corrupt ones included).")
+    missing_paths: list[str] = Field(description="The first missing files, manifest order.")
+    corrupt: int = Field(description="Files whose last upload did not match the manifest.")
+    corrupt_paths: list[str]
+
+
+class ImageSize(BaseModel):
+    width: int
+    height: int
+    cameras: int
+
+
+class CaptureSummary(BaseModel):
+    frames: int
+    cameras: int
+    views: int
+    image_sizes: list[ImageSize]
+    masks: int = Field(description="Views with a foreground mask.")
+    normals: int = Field(description="Views with a normal prior.")
+    source_format: str
+
+
+class CaptureItem(BaseModel):
+    id: str
+    name: str
+    format: str
+    state: CaptureState
+    total_bytes: int = Field(description="Sum of the manifest's sizes.")
+    summary: CaptureSummary | None = Field(description="Once ready: what the capture holds.")
+    created_at: dt.datetime
+    committed_at: dt.datetime | None
+    expires_at: dt.datetime | None
+    links: dict[str, str]
+
+
+class CaptureOut(CaptureItem):
+    files: CaptureFilesOut
+    error: ErrorInfo | None = Field(description="Why the last commit failed (state uploading).")
+
+
+class CapturePage(BaseModel):
+    items: list[CaptureItem]
+    next_cursor: str | None
+
+
+class FileOut(BaseModel):
+    path: str
+    size: int
+    sha256: str
+    state: FileState
+
+
+class FilePage(BaseModel):
+    items: list[FileOut]
+    next_cursor: str | None
+
+
+# -- jobs ----------------------------------------------------------------------------------------
+class JobIn(_In):
+    capture_id: str = Field(min_length=1, max_length=64)
+    pipeline: str = Field("reconstruct", min_length=1, max_length=32,
+                          description="A pipeline of GET /v1/pipelines.")
+    params: dict[str, Any] = Field(default_factory=dict, description=(
+        "The pipeline's parameters (its JSON Schema is in GET /v1/pipelines)."))
+    name: str = Field("", max_length=256)
+    expires_at: AwareDatetime | None = None
+
+
+class ProgressOut(BaseModel):
+    stage: str
+    frame: int
+    frames: int
+    iteration: int
+    iterations: int
+    fraction: float = Field(description="0..1; never decreases, also across a resume.")
+    eta_s: float | None
+    message: str
+
+
+class JobOut(BaseModel):
+    id: str
+    name: str
+    capture_id: str | None
+    pipeline: str
+    params: dict[str, Any]
+    state: JobState
+    progress: ProgressOut
+    error: ErrorInfo | None
+    attempts: int
+    cancel_requested: bool
+    created_at: dt.datetime
+    updated_at: dt.datetime
+    started_at: dt.datetime | None
+    finished_at: dt.datetime | None
+    expires_at: dt.datetime | None
+    links: dict[str, str]
+
+
+class JobPage(BaseModel):
+    items: list[JobOut]
+    next_cursor: str | None
+
+
+class LogsOut(BaseModel):
+    lines: list[str]
+    offset: int
+    next_offset: int = Field(description="Pass as offset to read on.")
+    complete: bool = Field(description="The job has ended and no line follows next_offset.")
+
+
+# -- artifacts and assets ------------------------------------------------------------------------
+class ArtifactOut(BaseModel):
+    path: str
+    kind: str
+    frame: str | None
+    size: int
+    sha256: str
+    content_type: str
+    created_at: dt.datetime
+    url: str
+
+
+class ArtifactPage(BaseModel):
+    items: list[ArtifactOut]
+    next_cursor: str | None
+
+
+class AssetOut(BaseModel):
+    id: str
+    kind: str
+    filename: str
+    size: int
+    sha256: str
+    content_type: str
+    width: int
+    height: int
+    channels: int
+    created_at: dt.datetime
+    expires_at: dt.datetime | None
+    links: dict[str, str]
+
+
+class AssetPage(BaseModel):
+    items: list[AssetOut]
+    next_cursor: str | None
+
+
+class LightIn(_In):
+    direction: list[float] = Field(min_length=3, max_length=3, description=(
+        "Direction towards the light, world coordinates."))
+    color: list[float] = Field([1.0, 1.0, 1.0], min_length=3, max_length=3)
+    intensity: float = Field(1.0, ge=0, le=1e6)
+
+
+class RenderIn(_In):
+    job_id: str = Field(min_length=1, max_length=64, description="A succeeded reconstruction.")
+    envmap: str | None = Field(None, max_length=64, description="An envmap asset id.")
+    lights: list[LightIn] = Field(default_factory=list, max_length=64)
+    cameras: str = Field("heldout", max_length=4096, description="heldout, all or ID,ID,...")
+    frames: str | None = Field(None, pattern=r"^-?\d*(:-?\d*){0,2}$", max_length=32)
+
+
+# -- info ----------------------------------------------------------------------------------------
+class LimitsOut(BaseModel):
+    max_file_bytes: int
+    max_capture_bytes: int
+    max_capture_files: int
+    max_path_bytes: int
+    max_archive_bytes: int
+    max_archive_members: int
+    max_asset_bytes: int
+    max_json_bytes: int
+
+
+class TusOut(BaseModel):
+    endpoint: str
+    version: str
+    extensions: list[str]
+    checksum_algorithms: list[str]
+    max_size: int
+
+
+class PipelineOut(BaseModel):
+    name: str
+    description: str
+    params_schema: dict[str, Any] = Field(description="JSON Schema of the params object.")
+    artifact_kinds: list[str]
+
+
+class InfoOut(BaseModel):
+    version: str
+    tenant: str
+    keys_required: bool
+    limits: LimitsOut
+    tus: TusOut
+    pipelines: list[str]
+    jobs: dict[str, int] = Field(description="The caller's jobs per state.")
+    retention_days: float | None
+
+
+class HealthOut(BaseModel):
+    status: Literal["ok"]
+
+
+class ReadyOut(BaseModel):
+    status: Literal["ready", "unavailable"]
+    checks: dict[str, str]

@@ -1,0 +1,96 @@
+"""`dgs serve`: the API with everything a fresh machine needs (DESIGN.md section 4): the job
+store migrated, a sweeper thread (re-sends jobs whose worker was lost, deletes what expired),
+and, when no broker is configured, one supervised worker subprocess on the embedded SQLite
+broker. With DGS_BROKER_URL and DGS_DATABASE_URL set the same command serves a deployment
+(workers run elsewhere, `dgs worker`)."""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+
+from service.auth import BindRefused, check_bind, has_active_key
+from service.settings import ServiceSettings
+
+__all__ = ["serve", "worker_env"]
+
+log = logging.getLogger("dgs.service")
+
+
+def worker_env(settings: ServiceSettings) -> dict[str, str]:
+    """DGS_* variables that give a worker subprocess this process's settings."""
+    from worker.settings import WorkerSettings
+
+    env = {}
+    for name in WorkerSettings.model_fields:
+        value = getattr(settings, name)
+        if value is not None:
+            env[f"DGS_{name.upper()}"] = str(value)
+    return env
+
+
+def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
+    """Run until interrupted; 2 when the bind is refused (see service.auth.check_bind)."""
+    import uvicorn
+
+    from service.app import create_app
+    from worker.db import migrate
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    migrate(settings.database)
+    try:
+        check_bind(settings.host, settings)
+    except BindRefused as exc:
+        print(f"dgs serve: {exc}", file=sys.stderr)
+        return 2
+    app = create_app(settings)
+    services = app.state.services
+    from worker.supervise import EmbeddedWorker, job_sender
+    from worker.sweeper import Sweeper
+
+    sweeper = Sweeper(settings, job_sender(services.celery, settings), store=services.store,
+                      blobs=services.blobs).start()
+    embedded = None
+    if worker and settings.embedded_broker:
+        embedded = EmbeddedWorker(settings, env=worker_env(settings)).start()
+    _announce(settings, embedded is not None)
+    # Uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler
+    # it found installed: this one, so the embedded worker is stopped below instead of being
+    # left running without its server.
+    previous = signal.signal(signal.SIGTERM, _stopped)
+    try:
+        uvicorn.run(app, host=settings.host, port=settings.port, log_level="info",
+                    timeout_graceful_shutdown=10)
+    except _Stopped:
+        pass
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+        sweeper.stop()
+        if embedded is not None:
+            embedded.stop()
+    return 0
+
+
+class _Stopped(Exception):
+    pass
+
+
+def _stopped(signum, frame) -> None:
+    raise _Stopped
+
+
+def _announce(settings: ServiceSettings, worker: bool) -> None:
+    keys = ("API keys required" if has_active_key(settings.database)
+            else "no API keys exist: requests run as tenant 'local' (loopback only)")
+    if worker:
+        workers = f"one embedded worker (log: {settings.data_dir / 'logs' / 'worker.log'})"
+    elif settings.embedded_broker:
+        workers = "no worker (--no-worker): start `dgs worker` with the same DGS_DATA_DIR"
+    else:
+        workers = f"workers on broker {settings.broker.split('@')[-1]} (`dgs worker`)"
+    print(f"dgs serve: http://{settings.host}:{settings.port}  (OpenAPI: /docs)\n"
+          f"  data:    {settings.data_dir}\n"
+          f"  store:   {settings.database.split('@')[-1]}, artifacts {settings.storage}\n"
+          f"  workers: {workers}\n"
+          f"  auth:    {keys}", flush=True)

@@ -1,0 +1,67 @@
+"""Helpers of the API tests (a module with its own name: several test folders have a conftest,
+so `from conftest import ...` would pick whichever was imported first)."""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+from pathlib import Path
+
+from fastapi.testclient import TestClient
+
+from service.settings import ServiceSettings
+
+TUS = {"Tus-Resumable": "1.0.0"}
+CANONICAL = ("capture.json", "images/", "masks/", "normals/")
+
+
+def make_settings(data_dir: Path, **overrides) -> ServiceSettings:
+    """Settings that ignore the developer's DGS_* environment."""
+    fields = {"data_dir": data_dir, "database_url": None, "broker_url": None,
+              "storage_url": None, "public_url": None, "retention_days": None,
+              "queue": "dgs-test", "commit_wait_seconds": 30.0, "sse_poll_seconds": 0.05}
+    fields.update(overrides)
+    return ServiceSettings(_env_file=None, **fields)
+
+
+
+def capture_files(root: Path) -> dict[str, bytes]:
+    """The canonical content of a capture folder: path -> bytes."""
+    out = {}
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        rel = path.relative_to(root).as_posix()
+        if rel.startswith(CANONICAL):
+            out[rel] = path.read_bytes()
+    return out
+
+
+def manifest_of(files: dict[str, bytes]) -> dict:
+    return {"files": [{"path": p, "size": len(b), "sha256": hashlib.sha256(b).hexdigest()}
+                      for p, b in files.items()]}
+
+
+def metadata(**values: str) -> str:
+    return ",".join(f"{k} {base64.b64encode(v.encode()).decode()}" for k, v in values.items())
+
+
+def tus_create(client: TestClient, capture_id: str, path: str, length: int,
+               headers: dict | None = None):
+    return client.post("/v1/uploads", headers={
+        **TUS, **(headers or {}), "Upload-Length": str(length),
+        "Upload-Metadata": metadata(capture=capture_id, path=path)})
+
+
+def tus_patch(client: TestClient, url: str, offset: int, data: bytes,
+              headers: dict | None = None):
+    return client.patch(url, content=data, headers={
+        **TUS, **(headers or {}), "Upload-Offset": str(offset),
+        "Content-Type": "application/offset+octet-stream"})
+
+
+def upload_file(client: TestClient, capture_id: str, path: str, data: bytes,
+                headers: dict | None = None) -> None:
+    created = tus_create(client, capture_id, path, len(data), headers)
+    assert created.status_code == 201, created.text
+    if data:
+        done = tus_patch(client, created.headers["Location"], 0, data, headers)
+        assert done.status_code == 204, done.text
