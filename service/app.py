@@ -15,6 +15,7 @@ from service.routers.info import package_version
 from service.settings import ServiceSettings, get_service_settings
 from service.staging import ManifestCache, Staging
 from service.tus import HashCache
+from service.webpage import mount_web
 from worker.blobs import open_store
 from worker.celery_app import make_celery
 from worker.db import migrate
@@ -56,6 +57,7 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     install_error_handlers(app)
     for module in (info, captures, uploads, jobs, artifacts, assets, renders):
         app.include_router(module.router)
+    mount_web(app)  # the web page at / (after the API, which it never shadows)
     app.add_middleware(BodyLimit, limit=settings.max_json_bytes)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,

@@ -1,0 +1,158 @@
+// The HTTP API from the page: the key (Bearer header, never in a URL), JSON requests with the
+// API's error bodies turned into ApiError, authenticated downloads as object URLs, and a job's
+// server-sent events read with fetch (EventSource cannot send an Authorization header).
+
+const KEY_NAME = 'dgs.apiKey';
+
+export class ApiError extends Error {
+  constructor(status, code, message, retryable = false, details = []) {
+    super(`${status} ${code}: ${message}`);
+    Object.assign(this, { status, code, detail: message, retryable, details });
+  }
+}
+
+export const auth = {
+  key: sessionStorage.getItem(KEY_NAME) || localStorage.getItem(KEY_NAME) || '',
+  set(key, remember) {
+    this.key = key;
+    sessionStorage.setItem(KEY_NAME, key);
+    if (remember) localStorage.setItem(KEY_NAME, key);
+  },
+  clear() {
+    this.key = '';
+    sessionStorage.removeItem(KEY_NAME);
+    localStorage.removeItem(KEY_NAME);
+  },
+  headers(extra = {}) {
+    return this.key ? { Authorization: `Bearer ${this.key}`, ...extra } : { ...extra };
+  },
+};
+
+/** The API's error body of a failed response as an ApiError. */
+export async function errorOf(response) {
+  let body = null;
+  try { body = await response.json(); } catch { /* not JSON: a proxy's page */ }
+  const e = body && body.error;
+  if (e) return new ApiError(response.status, e.code, e.message, e.retryable, e.details || []);
+  return new ApiError(response.status, 'http_error', response.statusText || 'request failed');
+}
+
+/** fetch with the key; throws ApiError for a 4xx/5xx answer. */
+export async function request(method, path, { json, body, headers = {}, signal } = {}) {
+  const init = { method, headers: auth.headers(headers), signal };
+  if (json !== undefined) {
+    init.body = JSON.stringify(json);
+    init.headers['Content-Type'] = 'application/json';
+  } else if (body !== undefined) {
+    init.body = body;
+  }
+  const r = await fetch(path, init);
+  if (!r.ok) throw await errorOf(r);
+  return r;
+}
+
+export async function getJson(path, opts) {
+  return (await request('GET', path, opts)).json();
+}
+
+export async function sendJson(method, path, json) {
+  const r = await request(method, path, { json });
+  return r.status === 204 ? null : r.json();
+}
+
+/** Every item of a paginated listing (`items`, `next_cursor`). */
+export async function listAll(path, params = {}) {
+  const items = [];
+  let cursor = null;
+  do {
+    const q = new URLSearchParams({ ...params, ...(cursor ? { cursor } : {}) });
+    const page = await getJson(`${path}?${q}`);
+    items.push(...page.items);
+    cursor = page.next_cursor;
+  } while (cursor);
+  return items;
+}
+
+const blobUrls = new Map();
+
+/** An object URL of an authenticated download (kept: artifacts never change). */
+export async function blobUrl(path) {
+  if (!blobUrls.has(path)) {
+    const promise = request('GET', path).then((r) => r.blob()).then((b) => URL.createObjectURL(b));
+    blobUrls.set(path, promise);
+    promise.catch(() => blobUrls.delete(path));
+  }
+  return blobUrls.get(path);
+}
+
+export async function arrayBuffer(path) {
+  return (await request('GET', path)).arrayBuffer();
+}
+
+/** One connection's events: yields {id, kind, data} until the server ends the stream. */
+async function* eventStream(path, lastEventId, signal) {
+  const headers = { Accept: 'text/event-stream' };
+  if (lastEventId != null) headers['Last-Event-ID'] = String(lastEventId);
+  const r = await request('GET', path, { headers, signal });
+  const reader = r.body.pipeThrough(new TextDecoderStream()).getReader();
+  let buffer = '';
+  let fields = {};
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done) return;
+    buffer += value;
+    let nl;
+    while ((nl = buffer.search(/\r?\n/)) >= 0) {
+      const line = buffer.slice(0, nl);
+      buffer = buffer.slice(nl + (buffer[nl] === '\r' ? 2 : 1));
+      if (line === '') {
+        if ('data' in fields) {
+          yield { id: fields.id != null ? Number(fields.id) : null, kind: fields.event || 'message',
+                  data: JSON.parse(fields.data) };
+        }
+        fields = {};
+      } else if (!line.startsWith(':')) {
+        const i = line.indexOf(':');
+        const key = i < 0 ? line : line.slice(0, i);
+        let val = i < 0 ? '' : line.slice(i + 1);
+        if (val.startsWith(' ')) val = val.slice(1);
+        fields[key] = key === 'data' && 'data' in fields ? `${fields.data}\n${val}` : val;
+      }
+    }
+  }
+}
+
+const TERMINAL = new Set(['succeeded', 'failed', 'cancelled']);
+
+/** Follow a job's events until it ends, reconnecting with Last-Event-ID when the connection
+ *  drops; `onEvent(event)` for each. Resolves with the final job. */
+export async function followJob(jobId, onEvent, signal) {
+  let last = null;
+  let delay = 500;
+  for (;;) {
+    try {
+      for await (const event of eventStream(`/v1/jobs/${jobId}/events`, last, signal)) {
+        if (event.id != null) last = event.id;
+        delay = 500;
+        onEvent(event);
+        if (event.kind === 'state' && TERMINAL.has(event.data.state)) {
+          return getJson(`/v1/jobs/${jobId}`);
+        }
+      }
+    } catch (err) {
+      if (signal && signal.aborted) throw err;
+      if (err instanceof ApiError && !err.retryable && err.status < 500) throw err;
+    }
+    const job = await getJson(`/v1/jobs/${jobId}`);
+    if (TERMINAL.has(job.state)) return job;
+    await new Promise((resolve) => setTimeout(resolve, delay));
+    delay = Math.min(delay * 2, 10000);
+  }
+}
+
+export function formatBytes(n) {
+  const units = ['B', 'KiB', 'MiB', 'GiB', 'TiB'];
+  let i = 0;
+  while (n >= 1024 && i < units.length - 1) { n /= 1024; i++; }
+  return `${n.toFixed(i ? 1 : 0)} ${units[i]}`;
+}
