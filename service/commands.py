@@ -1,5 +1,6 @@
 """`dgs serve` and `dgs keys create|list|revoke` (registered through the dgs.commands entry
-point, so core never imports the service)."""
+point, so core never imports the service); and `dgs demo` is taken over to run through the
+service (service.demo) when the service extra's packages are installed."""
 
 from __future__ import annotations
 
@@ -33,6 +34,42 @@ def register(sub: argparse._SubParsersAction) -> None:
     r = ksub.add_parser("revoke", help="revoke a key at once")
     r.add_argument("key_id", help="the id column of `dgs keys list`")
     r.set_defaults(func=_revoke)
+
+    # core registers `dgs demo` before the entry points are loaded (core.cli.build_parser)
+    demo = sub.choices.get("demo")
+    if demo is not None:
+        demo.set_defaults(func=_demo)
+
+
+def _missing_service_packages() -> list[str]:
+    from importlib.util import find_spec
+
+    return [name for name in ("fastapi", "uvicorn", "httpx", "sqlalchemy", "celery",
+                              "pydantic_settings") if find_spec(name) is None]
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from core import commands_demo
+
+    if args.raster:
+        from core.demo_raster import run_raster_demo
+
+        return run_raster_demo(args.out)
+    if args.in_process:
+        return commands_demo.run_demo(args.out)
+    missing = _missing_service_packages()
+    if missing:
+        print(f"dgs demo: the service extra is not installed ({', '.join(missing)} missing), "
+              "so the job runs in this process (pip install -e '.[service]' to run it through "
+              "the HTTP service)", flush=True)
+        return commands_demo.run_demo(args.out)
+    from service.demo import run_service_demo
+
+    try:
+        return run_service_demo(args.out)
+    except RuntimeError as exc:
+        print(f"dgs demo: {exc}", file=sys.stderr)
+        return 1
 
 
 def _settings(args: argparse.Namespace):

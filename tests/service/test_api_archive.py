@@ -69,6 +69,8 @@ def _symlink_zip() -> bytes:
     (_symlink_zip(), "symlink"),
     (make_zip({"capture.json": b"{}", "images/000000/cam00.png": bytes(8 << 20)}), "zip bomb"),
     (b"PK\x03\x04 this is not really a zip", "not a zip archive"),
+    (make_zip({"capture.json": b"{}", "images/000000/cam00.png": bytes(4096)})[:-40],
+     "not a zip archive"),  # truncated: the central directory is cut off
     (make_zip({"notes.txt": b"hello"}), "no known format"),
 ])
 def test_bad_archives_leave_nothing(client, services, body, words):

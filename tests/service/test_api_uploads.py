@@ -131,6 +131,28 @@ def test_wrong_sha256_is_460_and_shown_corrupt(client, services, capture):
     assert files["corrupt"] == 0 and files["received"] == 1
 
 
+def test_a_truncated_upload_is_never_part_of_the_capture(client, services, capture):
+    """A file whose upload stopped short stays missing: commit answers 409 naming it, nothing
+    is frozen, and the upload resumes where it stopped."""
+    upload_file(client, capture["id"], "capture.json", b"{}")
+    url = tus_create(client, capture["id"], "images/000000/cam00.png", len(DATA)).headers[
+        "Location"]
+    assert tus_patch(client, url, 0, DATA[:4000]).status_code == 204
+    r = client.post(f"/v1/captures/{capture['id']}/commit")
+    assert r.status_code == 409, r.text
+    error = r.json()["error"]
+    assert error["code"] == "files_missing"
+    assert [d["path"] for d in error["details"]] == ["images/000000/cam00.png"]
+    assert not services.staging.file(capture["id"], "images/000000/cam00.png").exists()
+    assert services.blobs.list(f"captures/{capture['id']}") == []
+    files = _state(client, capture["id"])
+    assert files["missing_paths"] == ["images/000000/cam00.png"] and files["corrupt"] == 0
+    assert client.get(f"/v1/captures/{capture['id']}").json()["state"] == "uploading"
+    assert client.head(url, headers=TUS).headers["Upload-Offset"] == "4000"
+    assert tus_patch(client, url, 4000, DATA[4000:]).status_code == 204
+    assert services.staging.file(capture["id"], "images/000000/cam00.png").read_bytes() == DATA
+
+
 def test_body_past_upload_length_is_413(client, services, capture):
     url = tus_create(client, capture["id"], "capture.json", 2).headers["Location"]
     r = tus_patch(client, url, 0, b"{}  ")

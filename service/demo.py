@@ -1,0 +1,220 @@
+"""`dgs demo` through the HTTP service (what `make demo` runs when the service extra is
+installed): the main job as a studio would run it.
+
+synth the capture -> start an embedded `dgs serve` (a subprocess on a free loopback port, its
+own data folder under the demo's) -> upload the capture with the client (tus) -> submit the
+reconstruct job -> follow its server-sent events as a progress bar -> download the artifacts ->
+evaluate and make the contact sheet here -> stop the server.
+
+The command keeps core's `dgs demo` arguments (core.commands_demo registers it; this module
+takes it over through the dgs.commands entry point, see service.commands).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+__all__ = ["DemoServer", "ProgressBar", "run_service_demo"]
+
+STEPS = 6
+
+
+class DemoServer:
+    """`dgs serve` with its embedded worker in a subprocess: a free loopback port, the data
+    folder `data_dir`, none of the caller's DGS_* service settings (the demo stands alone)."""
+
+    def __init__(self, data_dir: Path, *, start_timeout: float = 120.0):
+        from service.settings import ServiceSettings
+
+        self.data_dir = data_dir
+        data_dir.mkdir(parents=True, exist_ok=True)
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            self.port = s.getsockname()[1]
+        self.url = f"http://127.0.0.1:{self.port}"
+        ours = {f"DGS_{name.upper()}" for name in ServiceSettings.model_fields}
+        env = {k: v for k, v in os.environ.items() if k not in ours}
+        self.log_path = data_dir / "serve.log"
+        self._log = open(self.log_path, "ab")
+        self.proc = subprocess.Popen(
+            [sys.executable, "-m", "core.cli", "serve", "--port", str(self.port),
+             "--data-dir", str(data_dir)], env=env, stdout=self._log,
+            stderr=subprocess.STDOUT, cwd=Path(__file__).resolve().parents[1])
+        try:
+            self._wait_ready(start_timeout)
+        except BaseException:
+            self.stop()
+            raise
+
+    def _wait_ready(self, timeout: float) -> None:
+        import httpx
+
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                raise RuntimeError(f"dgs serve exited ({self.proc.returncode}); see "
+                                   f"{self.log_path}")
+            try:
+                if httpx.get(f"{self.url}/readyz", timeout=2).status_code == 200:
+                    return
+            except httpx.TransportError:
+                pass
+            time.sleep(0.2)
+        raise RuntimeError(f"dgs serve did not answer within {timeout:.0f} s; see "
+                           f"{self.log_path}")
+
+    @property
+    def worker_log(self) -> Path:
+        return self.data_dir / "logs" / "worker.log"
+
+    def stop(self) -> int | None:
+        """SIGTERM (the server stops its worker too), SIGKILL after a minute."""
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            try:
+                self.proc.wait(timeout=60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        self._log.close()
+        return self.proc.returncode
+
+    def __enter__(self) -> DemoServer:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    return f"{seconds // 60}m{seconds % 60:02d}s" if seconds >= 60 else f"{seconds}s"
+
+
+class ProgressBar:
+    """One line redrawn in place on a terminal (a line per tenth of the job otherwise): stage,
+    fraction, frame and step, ETA, from a job's progress events."""
+
+    def __init__(self, stream: TextIO | None = None, width: int = 30):
+        self.stream = stream or sys.stdout
+        self.width = width
+        self.tty = self.stream.isatty()
+        self._last_tenth, self._last_stage, self._open = -1, None, False
+
+    def line(self, p: dict[str, Any]) -> str:
+        fraction = float(p.get("fraction") or 0.0)
+        filled = int(round(fraction * self.width))
+        text = f"      [{'#' * filled}{'.' * (self.width - filled)}] {fraction:6.1%}  " \
+               f"{p.get('stage') or '':<11}"
+        if p.get("frames"):
+            text += f" frame {p['frame']}/{p['frames']}"
+        if p.get("iterations"):
+            text += f" step {p['iteration']}/{p['iterations']}"
+        if p.get("eta_s") is not None:
+            text += f"  ETA {_duration(p['eta_s'])}"
+        return text
+
+    def update(self, p: dict[str, Any]) -> None:
+        text = self.line(p)
+        if self.tty:
+            self.stream.write("\r" + text.ljust(100))
+            self._open = True
+        else:
+            tenth = int(float(p.get("fraction") or 0.0) * 10)
+            if tenth == self._last_tenth and p.get("stage") == self._last_stage:
+                return
+            self._last_tenth, self._last_stage = tenth, p.get("stage")
+            self.stream.write(text + "\n")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self._open:
+            self.stream.write("\n")
+            self.stream.flush()
+            self._open = False
+
+
+def _upload(client, capture_dir: Path) -> dict:
+    capture = client.create_capture(capture_dir, name="dgs demo")
+    total = capture["total_bytes"]
+    t0 = time.perf_counter()
+    client.upload_capture(capture["id"], capture_dir)
+    took = time.perf_counter() - t0
+    print(f"      {capture['files']['declared']} files, {total / 1e6:.1f} MB in {took:.1f} s "
+          f"(tus); committing", flush=True)
+    return client.commit(capture["id"])
+
+
+def _follow(client, job_id: str, server: DemoServer) -> dict:
+    bar = ProgressBar()
+
+    def on_event(event) -> None:
+        if event.kind in ("progress", "state") and "fraction" in event.data:
+            bar.update(event.data)
+
+    try:
+        job = client.wait(job_id, on_event=on_event)
+    finally:
+        bar.close()
+    if job["state"] != "succeeded":
+        error = (job.get("error") or {}).get("message", "")
+        tail = "\n".join(client.logs(job_id)[-15:])
+        raise RuntimeError(f"job {job_id} {job['state']}: {error}\n{tail}\n(worker log: "
+                           f"{server.worker_log})")
+    return job
+
+
+def run_service_demo(out: str = "demo", *, synth: dict | None = None,
+                     overrides: dict | None = None, preset: str = "test") -> int:
+    """The demo through the service (see the module docstring); `synth` (SynthConfig fields)
+    and `overrides` (the job's config) default to core's demo."""
+    from core.commands_demo import DEMO_OVERRIDES, demo_capture, report
+    from core.evaluate import evaluate_run
+    from service.client import Client
+
+    root = Path(out)
+    capture_dir, run_dir, data_dir = root / "capture", root / "run", root / "service"
+    overrides = DEMO_OVERRIDES if overrides is None else overrides
+    t0 = time.perf_counter()
+    capture = demo_capture(capture_dir, synth, step=f"[1/{STEPS}]")
+    shutil.rmtree(data_dir, ignore_errors=True)  # each demo starts a fresh service
+    print(f"[2/{STEPS}] dgs serve --port ... --data-dir {data_dir} (API and embedded worker)",
+          flush=True)
+    with DemoServer(data_dir) as server, Client(server.url) as client:
+        print(f"      {server.url} (OpenAPI: {server.url}/docs), worker log "
+              f"{server.worker_log}", flush=True)
+        print(f"[3/{STEPS}] upload {capture_dir} -> POST /v1/captures, tus /v1/uploads",
+              flush=True)
+        cap = _upload(client, capture_dir)
+        iterations = overrides.get("train", {}).get("schedule", {}).get("iterations")
+        print(f"[4/{STEPS}] POST /v1/jobs reconstruct ({preset} preset"
+              f"{f', {iterations} iterations' if iterations else ''}; the worker builds the "
+              "native rasterizer on first use)", flush=True)
+        t1 = time.perf_counter()
+        job = client.submit(cap["id"], {"preset": preset, "config": overrides},
+                            name="dgs demo")
+        print(f"      job {job['id']}: {server.url}{job['links']['self']}", flush=True)
+        job = _follow(client, job["id"], server)
+        train_s = time.perf_counter() - t1
+        if run_dir.exists():
+            shutil.rmtree(run_dir)  # an earlier demo's results
+        print(f"[5/{STEPS}] download the artifacts -> {run_dir}", flush=True)
+        files = client.download_all(job["id"], run_dir)
+        print(f"      {len(files)} files, {sum(p.stat().st_size for p in files) / 1e6:.1f} MB",
+              flush=True)
+    print(f"      server stopped (its data: {data_dir})", flush=True)
+    result = evaluate_run(run_dir, capture_dir)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    report(capture, capture_dir, run_dir, metrics, result, train_s, step=f"[6/{STEPS}]")
+    print(f"      PLY per frame: {run_dir / 'frames'}")
+    print(f"      total {time.perf_counter() - t0:.0f} s")
+    return 0
