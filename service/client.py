@@ -20,7 +20,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 from urllib.parse import quote
 
 import httpx
@@ -28,7 +28,7 @@ import httpx
 __all__ = ["ApiError", "Client", "Event", "manifest_of"]
 
 CHUNK = 8 << 20
-"""Bytes per tus PATCH: each carries its own SHA-1, so a corrupted chunk is sent again alone."""
+"""Bytes per tus PATCH when each carries a checksum (Client chunk_checksum)."""
 TERMINAL = ("succeeded", "failed", "cancelled")
 CANONICAL = ("capture.json", "images/", "masks/", "normals/")
 """What a canonical capture holds (DESIGN.md 3.1); anything else in its folder (a synthetic
@@ -52,6 +52,20 @@ class Event:
     id: int
     kind: str
     data: dict[str, Any]
+
+
+def _blocks(f, length: int, start: int,
+            progress: Callable[[int], None] | None) -> Iterator[bytes]:
+    """`length` bytes of `f` from where it stands, in blocks of 1 MiB (a streamed body)."""
+    sent = 0
+    while sent < length:
+        block = f.read(min(1 << 20, length - sent))
+        if not block:
+            raise ValueError(f"{f.name} became shorter while it was uploaded")
+        yield block
+        sent += len(block)
+        if progress is not None:
+            progress(start + sent)
 
 
 def _sha256(path: Path) -> str:
@@ -85,15 +99,23 @@ class Client:
     """The API at `base_url`, with a bearer key (None when the server has no keys).
 
     `url_store`: a JSON file where the URLs of begun uploads are kept, so that another
-    process (after a crash, a closed laptop) resumes them instead of starting over."""
+    process (after a crash, a closed laptop) resumes them instead of starting over.
+    `chunk_checksum`: None (default) streams each file in one PATCH; a dropped connection
+    loses nothing (the server keeps what arrived, HEAD says where to go on) and the server
+    checks the whole file against the manifest's SHA-256. "sha1" (or sha256, md5) sends
+    CHUNK-byte PATCHes with a tus Upload-Checksum each, so a chunk damaged on the way is
+    refused alone and sent again; it costs a hash on both sides and a request per chunk
+    (benchmarks/service.py measures both)."""
 
     def __init__(self, base_url: str, api_key: str | None = None, *, timeout: float = 60.0,
                  transport: httpx.BaseTransport | None = None,
-                 url_store: str | os.PathLike[str] | None = None):
+                 url_store: str | os.PathLike[str] | None = None,
+                 chunk_checksum: Literal["sha1", "sha256", "md5"] | None = None):
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
         self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers,
                                  timeout=timeout, transport=transport)
         self.url_store = Path(url_store) if url_store is not None else None
+        self.chunk_checksum = chunk_checksum
         self._uploads: dict[str, str] = (
             json.loads(self.url_store.read_text()) if self.url_store is not None
             and self.url_store.is_file() else {})
@@ -219,19 +241,25 @@ class Client:
             url, offset = r.headers["Location"], int(r.headers.get("Upload-Offset", 0))
             self._remember(capture_id, rel, url)
         with open(path, "rb") as f:
-            f.seek(offset)
             while offset < size:
-                chunk = f.read(CHUNK)
-                digest = base64.b64encode(hashlib.sha1(chunk).digest()).decode()
-                r = self.http.patch(url, content=chunk, headers={
-                    **tus, "Upload-Offset": str(offset), "Upload-Checksum": f"sha1 {digest}",
+                f.seek(offset)
+                if self.chunk_checksum is None:  # the rest of the file in one request
+                    length, body = size - offset, _blocks(f, size - offset, offset, progress)
+                    headers = {}
+                else:
+                    body = f.read(CHUNK)
+                    length, digest = len(body), hashlib.new(self.chunk_checksum, body).digest()
+                    headers = {"Upload-Checksum": f"{self.chunk_checksum} "
+                                                  f"{base64.b64encode(digest).decode()}"}
+                r = self.http.patch(url, content=body, headers={
+                    **tus, **headers, "Upload-Offset": str(offset),
+                    "Content-Length": str(length),
                     "Content-Type": "application/offset+octet-stream"})
                 if r.status_code == 409 and "Upload-Offset" in r.headers:
                     r.read()  # an earlier attempt got further than we knew: go on from there
                 else:
                     self._check(r)
                 offset = int(r.headers["Upload-Offset"])
-                f.seek(offset)
                 if progress is not None:
                     progress(offset)
         self._forget(capture_id, rel)

@@ -194,8 +194,7 @@ class PartWriter:
     def flush(self) -> None:
         if not self.buf:
             return
-        data = bytes(self.buf)
-        self.buf.clear()
+        data, self.buf = self.buf, bytearray()  # handed over, not copied
         self.f.write(data)
         self.sha.update(data)
         if self.check is not None:

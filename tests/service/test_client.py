@@ -112,7 +112,7 @@ def test_upload_resumes_after_a_lost_answer(server, folder, monkeypatch):
 
     transport = Flaky(drop)
     seen = []
-    with Client(base, transport=transport) as c:
+    with Client(base, transport=transport, chunk_checksum="sha1") as c:
         cap = c.create_capture(folder)
         assert cap["state"] == "uploading"
         sent = c.upload_capture(cap["id"], folder, progress=lambda d, t: seen.append((d, t)))
@@ -142,14 +142,14 @@ def test_another_process_resumes_from_the_url_store(server, folder, tmp_path, mo
             return "before"
         return None
 
-    first = Client(base, transport=Flaky(crash), url_store=store)
+    first = Client(base, transport=Flaky(crash), url_store=store, chunk_checksum="sha1")
     cap = first.create_capture(folder)
     with pytest.raises(httpx.WriteError):
         first.upload_capture(cap["id"], folder, retries=0)
     first.close()
     assert BIG in [f["path"] for f in Client(base).missing_files(cap["id"])]
     transport = Flaky()
-    with Client(base, transport=transport, url_store=store) as second:
+    with Client(base, transport=transport, url_store=store, chunk_checksum="sha1") as second:
         second.upload_capture(cap["id"], folder)
         assert second.commit(cap["id"])["state"] == "ready"
     # Resumed at 3 MiB: the first three MiB went over the wire once.
@@ -160,6 +160,46 @@ def test_another_process_resumes_from_the_url_store(server, folder, tmp_path, mo
     assert services.blobs.local_path(f"captures/{cap['id']}/{BIG}").read_bytes() == \
         (folder / BIG).read_bytes()
     assert store.read_text() == "{}"  # finished uploads are forgotten
+
+
+class CutBody(httpx.SyncByteStream):
+    """A request body whose connection drops after `keep` bytes."""
+
+    def __init__(self, inner, keep: int):
+        self.inner, self.keep = inner, keep
+
+    def __iter__(self):
+        sent = 0
+        for block in self.inner:
+            if sent + len(block) > self.keep:
+                raise httpx.WriteError("connection dropped")
+            sent += len(block)
+            yield block
+
+
+def test_streamed_upload_resumes_after_a_dropped_connection(server, folder):
+    """The default client streams each file in one PATCH; the connection drops 3 MiB into the
+    big file, and the retry goes on from what the server kept."""
+    base, services = server
+
+    def drop(request):
+        if request.method == "PATCH" and request.headers["Upload-Offset"] == "0" \
+                and int(request.headers["Content-Length"]) > 4 * MiB:
+            request.stream = CutBody(request.stream, 3 * MiB)
+        return None
+
+    transport = Flaky(drop)
+    with Client(base, transport=transport) as c:
+        cap = c.create_capture(folder)
+        c.upload_capture(cap["id"], folder)
+        assert c.commit(cap["id"])["state"] == "ready"
+    patches = [r for r in transport.requests if r.method == "PATCH"]
+    assert not [r for r in patches if "Upload-Checksum" in r.headers]
+    big = [int(r.headers["Upload-Offset"]) for r in patches
+           if int(r.headers["Content-Length"]) > MiB or r.headers["Upload-Offset"] != "0"]
+    assert len(big) >= 2 and big[0] == 0 and 0 < big[-1] <= 3 * MiB  # resumed, not restarted
+    assert services.blobs.local_path(f"captures/{cap['id']}/{BIG}").read_bytes() == \
+        (folder / BIG).read_bytes()
 
 
 def test_commit_errors_name_the_files(server, folder):
