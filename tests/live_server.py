@@ -25,8 +25,9 @@ def free_port() -> int:
 def clean_env(data_dir: Path, **extra: str) -> dict[str, str]:
     """The environment of a `dgs` process on `data_dir`: the developer's DGS_* left out."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("DGS_")}
-    env.update({"DGS_DATA_DIR": str(data_dir), "OMP_NUM_THREADS": "1",
-                "PATH": f"{Path(sys.executable).parent}{os.pathsep}{env.get('PATH', '')}"})
+    # PATH stays as it is: the native build cache is keyed to the ninja on PATH (a different
+    # ninja rebuilds the extension from scratch), so the server's worker uses the test's.
+    env.update({"DGS_DATA_DIR": str(data_dir), "OMP_NUM_THREADS": "1"})
     env.update(extra)
     return env
 

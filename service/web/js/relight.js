@@ -86,6 +86,7 @@ async function render() {
     return;
   }
   $('relight-render').disabled = true;
+  showStatus(status, 'requesting the render…', 'busy');
   try {
     const schema = await renderSchema();
     const body = { job_id: state.job.id, lights: lights(schema.light), cameras: 'heldout',
@@ -95,7 +96,6 @@ async function render() {
     const degrees = Number($('envmap-rotation').value);
     if (rotation) body[rotation] = degrees;
     else if (degrees) showStatus(status, 'this server takes no environment rotation; rendering unrotated');
-    showStatus(status, 'requesting the render…');
     const r = await request('POST', '/v1/renders', { json: body });
     const out = await r.json();
     let items = out.items || out.artifacts || null;

@@ -45,8 +45,9 @@ async function depthCanvas(a) {
   const img = ctx.createImageData(w, h);
   for (let i = 0; i < w * h; i++) {
     const v = data[i * (data.length / (w * h))];
-    const t = Number.isFinite(v) && v > 0 ? 1 - (v - lo) / Math.max(hi - lo, 1e-9) : 0;
-    img.data.set([255 * t ** 0.8, 255 * t, 255 * Math.min(1, 0.3 + t), v > 0 ? 255 : 255], 4 * i);
+    const valid = Number.isFinite(v) && v > 0;
+    const t = valid ? 1 - (v - lo) / Math.max(hi - lo, 1e-9) : 0;
+    img.data.set(valid ? [255 * t ** 0.8, 255 * t, 255 * Math.min(1, 0.3 + t), 255] : [0, 0, 0, 255], 4 * i);
   }
   ctx.putImageData(img, 0, 0);
   const out = el('img', { alt: a.path });
@@ -94,9 +95,10 @@ async function showMetrics() {
   const evalFile = state.artifacts.find((a) => a.kind === 'eval');
   if (!evalFile) { table.replaceChildren(); return; }
   const data = JSON.parse(new TextDecoder().decode(await arrayBuffer(url(evalFile))));
-  const rows = Object.entries(data).filter(([, v]) => v === null || typeof v !== 'object');
+  const rows = Object.entries(data).filter(([, v]) => v === null || typeof v === 'number');
+  const show = (v) => (v === null ? '—' : Number.isInteger(v) ? String(v) : v.toFixed(4));
   table.replaceChildren(...rows.map(([k, v]) => el('tr', {},
-    el('th', { textContent: k }), el('td', { textContent: typeof v === 'number' ? v.toFixed(4) : String(v) }))));
+    el('th', { textContent: k }), el('td', { textContent: show(v) }))));
 }
 
 async function download(a) {
