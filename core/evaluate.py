@@ -150,5 +150,9 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     result = {**_summary(rows), "lpips": None, "chamfer": None,
               "normal_reference": rows[0]["normal_reference"], "capture": str(capture_dir),
               "views": len(rows), "per_frame": per_frame}
+    from core.sequence.metrics import temporal_metrics  # flicker, per-frame series (sequences)
+
+    result["temporal"] = temporal_metrics(run, capture_dir, frames, held, per_frame)
+    result["flicker"] = result["temporal"]["flicker"]
     write_json(run / "eval.json", result)
     return result

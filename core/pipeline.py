@@ -2,8 +2,9 @@
 
 Per frame: the full static stages (`core.train.Trainer`), a PLY, renders of the held-out cameras,
 per-frame metrics; checkpoints land atomically under RUN/checkpoints/<frame>.pt so an interrupted
-run resumes where it stopped. Sequences (deform + refine inside a GoP) come in a later issue: for
-now every frame is a key frame, and metrics.json says so.
+run resumes where it stopped. Frames are grouped into GoPs (`gop`, DESIGN.md section 5): the first
+frame of each group gets the full static stages, the others are deformed from their predecessor
+and refined (`core.sequence`); RUN/sequence.json records groups, roles, timings and counts.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from core.sequence.config import SequenceConfig
 from core.train import Callback, CheckpointCallback, StepInfo, TrainConfig, Trainer, train_config
 
 __all__ = ["Progress", "RunConfig", "Stopped", "apply_overrides", "parse_frames", "reconstruct",
@@ -30,8 +32,10 @@ __all__ = ["Progress", "RunConfig", "Stopped", "apply_overrides", "parse_frames"
 # alpha-weighted normal sum is not noise.
 COVERAGE = 0.2
 
-SEQUENCE_NOTE = ("sequences with deformation (GoP) come in a later issue: every frame was "
-                 "reconstructed independently with the full static stages")
+SEQUENCE_NOTE = ("the first frame of each GoP is reconstructed with the full static stages, the "
+                 "others deformed from the previous frame and refined (see sequence.json)")
+INDEPENDENT_NOTE = ("sequence.enabled is off: every frame was reconstructed independently with the "
+                    "full static stages")
 
 
 @dataclass(frozen=True)
@@ -59,6 +63,9 @@ class Progress:
     """Total loss of the step (kind 'step')."""
     path: str | None = None
     """The checkpoint file (kind 'checkpoint') or the frame's folder (kind 'frame_done')."""
+    phase: Literal["key", "deform", "refine"] = "key"
+    """How the frame is made: static stages (a GoP's key frame), or the deform / refine stage
+    of a frame deformed from its predecessor."""
 
 
 class Stopped(Exception):
@@ -79,7 +86,10 @@ class RunConfig:
     checkpoint_every: int = 1000
     """Steps between checkpoints (RUN/checkpoints/<frame>.pt, written atomically)."""
     gop: int = 20
-    """Frames per group of pictures; recorded, unused until sequences land."""
+    """Frames per group of pictures: the first gets the static stages, the others deform +
+    refine (DESIGN.md section 5)."""
+    sequence: SequenceConfig = field(default_factory=SequenceConfig)
+    """How the frames after a group's first are deformed and refined."""
     normal_estimator: str | None = None
     """Model file (TorchScript, or .onnx with onnxruntime) for views without a normals/ prior."""
     normal_estimator_space: str = "camera"
@@ -188,6 +198,11 @@ def write_json(path: Path, data) -> None:
     os.replace(tmp, path)
 
 
+def _iterations(trainer) -> int:
+    """Steps of the frame: a key frame's schedule, or a tracked frame's deform + refine."""
+    return getattr(trainer, "iterations", None) or trainer.config.schedule.iterations
+
+
 class _History(Callback):
     """Per-step records for metrics.json and the plots (survives resume via the checkpoint)."""
 
@@ -219,8 +234,9 @@ class _Hooks(Callback):
             return
         self.on_progress(Progress(
             kind=kind, frame=self.frame, frame_index=self.index, frames=self.frames,
-            step=trainer.step, iterations=trainer.config.schedule.iterations, stage=self.stage,
-            gaussians=len(trainer.model), loss=self.loss if kind == "step" else None, path=path))
+            step=trainer.step, iterations=_iterations(trainer), stage=self.stage,
+            gaussians=len(trainer.model), loss=self.loss if kind == "step" else None, path=path,
+            phase=getattr(trainer, "phase", "key")))
 
     def on_train_start(self, trainer: Trainer) -> None:
         self.trainer = trainer
@@ -229,7 +245,7 @@ class _Hooks(Callback):
     def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
         self.stage, self.loss = info.plan.stage, info.losses["total"]
         self.emit("step", trainer)
-        last = trainer.step >= trainer.config.schedule.iterations
+        last = trainer.step >= _iterations(trainer)
         if self.should_stop is not None and not last and self.should_stop():
             if self.saver is not None:
                 self.saver.save(trainer)
@@ -245,12 +261,12 @@ class _Tqdm(Callback):
     def on_train_start(self, trainer: Trainer) -> None:
         from tqdm import tqdm
 
-        self.bar = tqdm(total=trainer.config.schedule.iterations, initial=trainer.step,
+        self.bar = tqdm(total=_iterations(trainer), initial=trainer.step,
                         desc=self.label, unit="it", dynamic_ncols=True, leave=True)
 
     def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
         self.bar.update(1)
-        if info.step % 10 == 0 or info.step == trainer.config.schedule.iterations - 1:
+        if info.step % 10 == 0 or info.step == _iterations(trainer) - 1:
             self.bar.set_postfix(stage=info.plan.stage, loss=f"{info.losses['total']:.4f}",
                                  gaussians=info.n_gaussians, refresh=False)
 
@@ -290,7 +306,7 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
     `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
     run: finished frames are skipped, an unfinished one restarts from its checkpoint. `gop`
-    overrides the configuration's group-of-pictures length (recorded only, for now);
+    overrides the configuration's group-of-pictures length (the first frame of each group is a key frame);
     `overrides` (same shape as a --config file) apply after the file.
 
     `progress` shows a bar on a terminal; `on_progress` receives `Progress` events (every step,
@@ -320,17 +336,26 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     write_json(run / "config.json", record)
     metrics_path = run / "metrics.json"
     metrics = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {}
-    metrics.update({"version": 1, "preset": preset, "gop": cfg.gop, "note": SEQUENCE_NOTE})
+    metrics.update({"version": 1, "preset": preset, "gop": cfg.gop,
+                    "note": SEQUENCE_NOTE if cfg.sequence.enabled else INDEPENDENT_NOTE})
     metrics.setdefault("frames", {})
     show = progress and sys.stderr.isatty()
-    for i, frame in enumerate(chosen):
+    from core.sequence.gop import roles
+    from core.sequence.run import sequence_record
+
+    for i, role in enumerate(roles(chosen, cfg.gop if cfg.sequence.enabled else 1)):
+        frame = role.frame
         if frame in metrics["frames"] and (run / "frames" / frame / "gaussians.ply").is_file():
             continue
         label = f"frame {frame} ({i + 1}/{len(chosen)})"
         hooks = _Hooks(frame, i, len(chosen), on_progress, should_stop)
-        metrics["frames"][frame] = _reconstruct_frame(capture, frame, run, cfg, estimator,
-                                                      label if show else None, hooks)
+        next_id = None if role.key else metrics["frames"][role.previous]["next_track_id"]
+        metrics["frames"][frame] = {**_reconstruct_frame(
+            capture, frame, run, cfg, estimator, label if show else None, hooks,
+            previous=role.previous, next_id=next_id), "gop": role.gop, "position": role.position}
         write_json(metrics_path, metrics)
+        write_json(run / "sequence.json",
+                   sequence_record(chosen, cfg.gop, cfg.sequence, metrics["frames"]))
         hooks.emit("frame_done", None, path=str(run / "frames" / frame))
         # The frame is finished (PLY and metrics on disk): its training state is no longer needed.
         (run / "checkpoints" / f"{frame}.pt").unlink(missing_ok=True)
@@ -341,8 +366,12 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
 
 
 def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator,
-                       label: str | None, hooks: _Hooks) -> dict:
+                       label: str | None, hooks: _Hooks, previous: str | None = None,
+                       next_id: int | None = None) -> dict:
+    """A key frame (`previous` None) with the static stages, or a frame deformed from
+    `previous` and refined; `next_id` is its group's next unused track id."""
     from core.priors import fill_priors
+    from core.sequence.run import save_frame, tracker_from_capture
 
     history = _History()
     ckpt_dir = run / "checkpoints"
@@ -355,8 +384,13 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         callbacks.append(_Tqdm(label))
     callbacks.append(hooks)  # last: a stop sees the step's history and checkpoint
     start = time.perf_counter()
-    trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks,
-                                   downscale=cfg.downscale)
+    if previous is None:
+        trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks,
+                                       downscale=cfg.downscale)
+    else:
+        trainer = tracker_from_capture(capture, frame, run / "frames" / previous / "gaussians.ply",
+                                       next_id, cfg.train, cfg.sequence, downscale=cfg.downscale,
+                                       callbacks=callbacks)
     priors = fill_priors(trainer.views, estimator)
     ckpt = ckpt_dir / f"{frame}.pt"
     resumed_at = 0
@@ -366,13 +400,12 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     trainer.train()
     out = run / "frames" / frame
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / "gaussians.ply.tmp"
-    trainer.model.save_ply(tmp)
-    os.replace(tmp, out / "gaussians.ply")
+    ids = None if previous is None else trainer.ids
+    save_frame(out / "gaussians.ply", trainer.model, ids)
     render_heldout(capture, frame, trainer, run / "renders" / frame, cfg.downscale)
     last = history.records[-1] if history.records else {}
     return {
-        "iterations": cfg.train.schedule.iterations,
+        "iterations": _iterations(trainer),
         "seconds": round(time.perf_counter() - start, 3),
         "resumed_at": resumed_at,
         "gaussians": len(trainer.model),
@@ -380,7 +413,10 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
                          if k not in ("step", "stage", "gaussians", "psnr", "seconds")},
         "train_psnr": round(trainer.evaluate(), 4),
         "normal_prior": priors,
-        "stages": "static (key frame)",
+        "stages": "static (key frame)" if previous is None else "deform + refine",
+        "previous": previous,
+        "next_track_id": len(trainer.model) if previous is None else trainer.group_next_id,
+        "new_tracks": None if previous is None else trainer.state.born,
         "notes": trainer.notes,
         "history": _thin(history.records),
     }

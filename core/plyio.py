@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["gaussian_ply_properties", "read_gaussian_ply", "write_gaussian_ply"]
+__all__ = ["gaussian_ply_properties", "read_gaussian_ply", "read_track_ids", "write_gaussian_ply"]
 
 _N_REST = 45
 _TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1",
@@ -49,9 +49,11 @@ def _columns(params: dict[str, Tensor]) -> np.ndarray:
     return np.concatenate(parts, axis=1)
 
 
-def write_gaussian_ply(path: str | os.PathLike[str], params: dict[str, Tensor]) -> None:
+def write_gaussian_ply(path: str | os.PathLike[str], params: dict[str, Tensor],
+                       track_ids: np.ndarray | Tensor | None = None) -> None:
     """Write raw Gaussian parameters (names of `core.model.PARAM_NAMES`) as binary PLY,
-    atomically (a temporary file renamed into place)."""
+    atomically (a temporary file renamed into place). `track_ids` (N,) adds an int property
+    `track_id`: the same Gaussian has the same id in every frame of a group (core.sequence)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     data = np.ascontiguousarray(_columns(params), dtype="<f4")
@@ -59,6 +61,16 @@ def write_gaussian_ply(path: str | os.PathLike[str], params: dict[str, Tensor]) 
     assert data.shape[1] == len(names)
     header = ["ply", "format binary_little_endian 1.0", f"element vertex {data.shape[0]}"]
     header += [f"property float {name}" for name in names]
+    if track_ids is not None:
+        ids = np.asarray(track_ids, dtype=np.int64).reshape(-1)
+        if ids.shape[0] != data.shape[0] or (ids.size and not 0 <= ids.min() <= ids.max() < 2**31):
+            raise ValueError(f"track_ids: expected {data.shape[0]} ids in 0..2^31-1")
+        rec = np.empty(data.shape[0], dtype=[(n, "<f4") for n in names] + [("track_id", "<i4")])
+        for i, name in enumerate(names):
+            rec[name] = data[:, i]
+        rec["track_id"] = ids
+        data = rec
+        header.append("property int track_id")
     header.append("end_header")
     tmp = path.with_name(path.name + ".tmp")
     with open(tmp, "wb") as fh:
@@ -137,3 +149,14 @@ def read_gaussian_ply(path: str | os.PathLike[str]) -> dict[str, Tensor]:
         out["normals"] = torch.tensor([[0.0, 0.0, 1.0]]).repeat(count, 1)
         out["visibility"] = torch.full((count, 1), math.log(0.9 / 0.1))
     return out
+
+
+def read_track_ids(path: str | os.PathLike[str]) -> np.ndarray | None:
+    """(N,) int64 `track_id` of a Gaussian PLY, or None when the file has none."""
+    path = Path(path)
+    raw = path.read_bytes()
+    count, dtype, offset = _parse_header(path, raw)
+    if "track_id" not in (dtype.names or ()):
+        return None
+    v = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)
+    return v["track_id"].astype(np.int64)

@@ -212,7 +212,8 @@ class Runner:
             if event.kind == "frame_done":
                 step_share = 1.0
             fraction = (event.frame_index + step_share) / event.frames * (1 - PUBLISH_SHARE)
-            stage = "outputs" if event.step >= event.iterations else STAGES.get(event.stage, "")
+            stage = ("outputs" if event.step >= event.iterations else event.phase
+                     if event.phase != "key" else STAGES.get(event.stage, ""))
             link.update(fraction=fraction, stage=stage, frame=event.frame_index + 1,
                         frames=event.frames, iteration=event.step, iterations=event.iterations,
                         message=f"frame {event.frame} ({event.gaussians} Gaussians)")

@@ -32,7 +32,8 @@ SHORT = {"train": {"schedule": {"iterations": 100, "stage2_start": 30, "stage3_s
                                 "densify_from": 5, "densify_until": 60, "densify_interval": 10,
                                 "reset_interval": 40, "sh_interval": 10},
                    "init_points": 500},
-         "checkpoint_every": 10}
+         "checkpoint_every": 10,
+         "gop": 1}  # every frame a key frame: sequences are tested in test_sequence.py
 
 
 @pytest.fixture(scope="module")
@@ -66,7 +67,7 @@ def test_run_directory_layout(run: Path, capture: Path):
     assert cfg["preset"] == "test" and cfg["capture"] == str(capture.resolve())
     assert cfg["train"]["schedule"]["iterations"] == 100  # override applied
     assert cfg["train"]["densify"]["max_gaussians"] == 4_000  # the rest is the preset
-    assert cfg["checkpoint_every"] == 10 and cfg["gop"] == 20
+    assert cfg["checkpoint_every"] == 10 and cfg["gop"] == 1
     assert cfg["frames"] == ["000000", "000001"]
     for frame in cfg["frames"]:
         model = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
@@ -94,7 +95,7 @@ def test_run_directory_layout(run: Path, capture: Path):
 
 def test_metrics(run: Path):
     m = json.loads((run / "metrics.json").read_text())
-    assert "later issue" in m["note"] and m["gop"] == 20
+    assert "GoP" in m["note"] and m["gop"] == 1
     for frame in ("000000", "000001"):
         f = m["frames"][frame]
         assert f["iterations"] == 100 and f["seconds"] > 0 and f["gaussians"] > 0

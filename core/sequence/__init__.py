@@ -1,0 +1,59 @@
+"""Volumetric video (DESIGN.md section 5, Sequence): groups of pictures whose first frame gets the
+static stages and whose other frames are the previous frame's Gaussians deformed by an embedded
+deformation graph, then refined with temporal regularisation, keeping Gaussian correspondences
+(track ids) inside a group."""
+
+from core.sequence.config import SequenceConfig
+from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
+from core.sequence.frame import FrameTracker
+from core.sequence.gop import FrameRole, Gop, roles, segment
+from core.sequence.graph import (
+    DeformationGraph,
+    arap_loss,
+    blend_weights,
+    build_graph,
+    farthest_point_sampling,
+    quat_multiply,
+    quat_norm_loss,
+)
+from core.sequence.refine import (
+    TemporalWeights,
+    TrackedState,
+    anchors_of,
+    anisotropy_loss,
+    prune_transparent,
+    relabel,
+    temporal_loss,
+)
+from core.sequence.run import load_frame, save_frame, sequence_record, tracker_from_capture
+
+__all__ = [
+    "DeformationGraph",
+    "DeformedGaussians",
+    "FrameRole",
+    "FrameTracker",
+    "Gop",
+    "SequenceConfig",
+    "TemporalWeights",
+    "TrackedState",
+    "anchors_of",
+    "anisotropy_loss",
+    "arap_loss",
+    "blend_weights",
+    "blur",
+    "blur_sigma",
+    "build_graph",
+    "deform_losses",
+    "farthest_point_sampling",
+    "load_frame",
+    "prune_transparent",
+    "quat_multiply",
+    "quat_norm_loss",
+    "relabel",
+    "roles",
+    "save_frame",
+    "segment",
+    "sequence_record",
+    "temporal_loss",
+    "tracker_from_capture",
+]

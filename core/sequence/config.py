@@ -1,0 +1,73 @@
+"""Configuration of the sequential method (DESIGN.md section 5, Sequence)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+__all__ = ["SequenceConfig"]
+
+
+@dataclass(frozen=True)
+class SequenceConfig:
+    """How the frames after a GoP's key frame are deformed and refined. Step counts are fractions
+    of the key frame's iterations, so every preset scales the same plan."""
+
+    enabled: bool = True
+    """Deform + refine the frames after each GoP's first; off: every frame is a key frame
+    (independent per-frame reconstruction)."""
+    deform_fraction: float = 0.15
+    """Deform-stage steps per frame, as a fraction of a key frame's iterations."""
+    refine_fraction: float = 0.25
+    """Refine-stage steps per frame, as a fraction of a key frame's iterations."""
+    num_nodes: int = 1024
+    """Deformation-graph nodes (farthest-point samples of the previous frame's Gaussians)."""
+    node_neighbors: int = 8
+    """ARAP neighbours of each node."""
+    lr_rotation: float = 5e-3
+    """Adam rate of the node quaternions."""
+    lr_translation: float = 3e-3
+    """Adam rate of the node translations, times the scene extent."""
+    arap: float = 1.0
+    """Weight of the ARAP term (edge residuals relative to the mean edge length)."""
+    quat_norm: float = 1.0
+    """Weight of the node-quaternion unit-norm term."""
+    coarse_sigma: float = 2.0
+    """Deform stage: render and target are blurred by a Gaussian of this many pixels at the
+    first step, shrinking linearly to none by the stage's middle (a wider basin for fast
+    motion); 0 turns it off."""
+    temporal: bool = True
+    """Refine stage: temporal L1 to the deformed values (off for the ablation)."""
+    temporal_opacity_g: float = 0.01
+    """Temporal weight of the geometry opacity (DESIGN.md section 5)."""
+    temporal_means: float = 1.0
+    """Temporal weight of the positions."""
+    temporal_quats: float = 0.3
+    """Temporal weight of the rotations."""
+    temporal_normals: float = 0.5
+    """Temporal weight of the normals."""
+    anisotropy: float = 0.01
+    """Weight of the anisotropy loss mean(max(s_max / s_min - r, 0)); 0 for the ablation."""
+    anisotropy_ratio: float = 3.0
+    """Largest scale ratio r the anisotropy loss leaves alone."""
+    means_lr_scale: float = 0.1
+    """Refine stage: position rate = this x the key frame's initial rate (no decay)."""
+    densify_every: int = 0
+    """Refine stage: steps between densifications (0: 4 per refine)."""
+    max_growth: float = 0.02
+    """Refine stage: densification adds at most this fraction of the frame's Gaussians."""
+    bake_ao: bool = True
+    """Refine stage: re-bake ambient occlusion of the deformed pose (visibility loss on)."""
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            value = getattr(self, f.name)
+            if isinstance(value, (int, float)) and not isinstance(value, bool) and value < 0:
+                raise ValueError(f"sequence.{f.name}: expected >= 0, got {value}")
+        if self.num_nodes < 5:
+            raise ValueError(f"sequence.num_nodes: expected >= 5 (4 blended + the 5th for d_max), "
+                             f"got {self.num_nodes}")
+
+    def steps(self, key_iterations: int) -> tuple[int, int]:
+        """(deform, refine) steps for a key frame of `key_iterations`; at least 1 each."""
+        return (max(1, round(self.deform_fraction * key_iterations)),
+                max(1, round(self.refine_fraction * key_iterations)))

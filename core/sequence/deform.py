@@ -1,0 +1,94 @@
+"""The deform stage: the previous frame's Gaussians moved by the embedded deformation graph, whose
+node rotations and translations are optimised against this frame's views with photometric +
+normal + quaternion unit-norm + ARAP losses (DESIGN.md section 5). Everything but positions,
+rotations and normals stays as it was, so the Gaussians keep their identity (correspondence).
+
+Fast motion (a limb moving by more than its width between frames) is outside the basin of a
+sharp photometric loss; the first half of the stage therefore compares blurred images, the blur
+shrinking to none (coarse to fine, as image-alignment methods since Lucas-Kanade do).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from core.model import GaussianModel
+from core.sequence.graph import DeformationGraph, arap_loss, quat_norm_loss
+
+__all__ = ["DeformedGaussians", "blur", "blur_sigma", "deform_losses"]
+
+
+class DeformedGaussians:
+    """A read-only view of `base` with deformed means, quaternions and normals (differentiable
+    with respect to the graph's node parameters); `core.render.render` draws it like a model."""
+
+    def __init__(self, base: GaussianModel, graph: DeformationGraph, rotations: Tensor,
+                 translations: Tensor):
+        self.base = base
+        p = base.params
+        self._means, quats, normals = graph.deform(p["means"].detach(), p["quats"].detach(),
+                                                   p["normals"].detach(), rotations,
+                                                   translations)
+        self._quats = F.normalize(quats, dim=-1)
+        self._normals = F.normalize(normals, dim=-1)
+        self.raw_quats, self.raw_normals = quats, normals
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    means = property(lambda self: self._means)
+    quats = property(lambda self: self._quats)
+    normals = property(lambda self: self._normals)
+    scales = property(lambda self: self.base.scales.detach())
+    opacity_c = property(lambda self: self.base.opacity_c.detach())
+    opacity_g = property(lambda self: self.base.opacity_g.detach())
+    visibility = property(lambda self: self.base.visibility.detach())
+    sh = property(lambda self: self.base.sh.detach())
+
+    def to_model(self) -> GaussianModel:
+        """A new model: the base's parameters with the deformed ones (raw quaternions and
+        normals keep their norms' role: the model normalises them)."""
+        params = {k: v.detach() for k, v in self.base.params.items()}
+        params.update(means=self._means.detach(), quats=self.raw_quats.detach(),
+                      normals=self.raw_normals.detach())
+        return GaussianModel(params)
+
+
+@functools.lru_cache(maxsize=16)
+def _kernel(sigma: float) -> Tensor:
+    radius = max(1, int(3 * sigma + 0.5))
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    g = torch.exp(-x * x / (2 * sigma * sigma))
+    return (g / g.sum()).float()
+
+
+def blur(image: Tensor, sigma: float) -> Tensor:
+    """(H, W, C) image blurred by a separable Gaussian of `sigma` pixels (replicated edges);
+    returned unchanged for sigma < 0.3."""
+    if sigma < 0.3:
+        return image
+    k = _kernel(float(sigma)).to(image)
+    c, r = image.shape[2], k.shape[0] // 2
+    x = image.permute(2, 0, 1)[None]
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(c, 1, 1, -1),
+                 groups=c)
+    x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(c, 1, -1, 1),
+                 groups=c)
+    return x[0].permute(1, 2, 0)
+
+
+def blur_sigma(step: int, steps: int, sigma0: float) -> float:
+    """The coarse-to-fine blur at `step` of `steps`: sigma0 at 0, linearly 0 by steps / 2."""
+    half = max(steps / 2, 1)
+    return max(0.0, sigma0 * (1 - step / half))
+
+
+def deform_losses(graph: DeformationGraph, rotations: Tensor, translations: Tensor, *,
+                  arap: float = 1.0, quat_norm: float = 1.0) -> dict[str, Tensor]:
+    """The graph's regularisers: weighted ARAP and node-quaternion unit norm."""
+    return {"arap": arap * arap_loss(graph, rotations, translations),
+            "quat_norm": quat_norm * quat_norm_loss(rotations)}

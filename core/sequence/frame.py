@@ -1,0 +1,279 @@
+"""`FrameTracker`: one frame after a GoP's key frame, deformed from the previous frame's Gaussians
+and then refined. It runs like `core.train.Trainer` for the pipeline's callbacks (progress,
+history, checkpoints): `step`, `iterations`, `model`, `train()`, `save_checkpoint` /
+`load_checkpoint` with exact resume.
+
+Steps [0, D) are the deform stage (graph node parameters only), [D, D + R) the refine stage (every
+attribute, temporal L1 to the deformed values, anisotropy, densification and pruning with track
+ids). Both render with the key frame's last-step plan (full SH degree, final beta, geometry
+branch on).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from core.losses import depth_normal_consistency, normal_prior_loss, photometric_loss
+from core.losses import visibility_loss
+from core.model import GaussianModel
+from core.render import RenderCamera, render
+from core.seeding import scene_extent
+from core.sequence.config import SequenceConfig
+from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
+from core.sequence.graph import build_graph
+from core.sequence.refine import (
+    TemporalWeights,
+    TrackedState,
+    anchors_of,
+    anisotropy_loss,
+    prune_transparent,
+    relabel,
+    temporal_loss,
+)
+from core.stages import plan
+from core.strategy import DensifyStrategy
+from core.train import Callback, StepInfo, TrainConfig, View, psnr
+
+__all__ = ["FrameTracker"]
+
+
+class FrameTracker:
+    """Deform + refine one frame from `previous` (the last frame's model, its track ids (N,) and
+    the group's next unused id)."""
+
+    def __init__(self, views: Sequence[View], previous: GaussianModel, ids: Tensor, next_id: int,
+                 config: TrainConfig, sequence: SequenceConfig = SequenceConfig(), *,
+                 callbacks: Sequence[Callback] = (), ao_baker=None):
+        if not views:
+            raise ValueError("views: expected at least one training view")
+        if tuple(ids.shape) != (len(previous),):
+            raise ValueError(f"ids: expected ({len(previous)},) track ids, got {tuple(ids.shape)}")
+        self.views, self.config, self.seq = list(views), config, sequence
+        self.callbacks = list(callbacks)
+        self.previous, self.prev_ids, self.next_id = previous, ids.long(), int(next_id)
+        self.deform_steps, self.refine_steps = sequence.steps(config.schedule.iterations)
+        self.iterations = self.deform_steps + self.refine_steps
+        self.plan = plan(config.schedule.iterations - 1, config.schedule)
+        if ao_baker is None and sequence.bake_ao and config.bake_ao:
+            from core.ao import GaussianAOBaker
+
+            ao_baker = GaussianAOBaker()
+        self.ao_baker = ao_baker if (sequence.bake_ao and config.bake_ao) else None
+        self.cameras = [RenderCamera.from_camera(v.camera) for v in self.views]
+        self.extent = scene_extent([v.camera for v in self.views])
+        self.background = torch.tensor(config.background, dtype=torch.float32)
+        self.generator = torch.Generator().manual_seed(config.seed)
+        self.graph = build_graph(previous.means.detach(), sequence.num_nodes,
+                                 node_neighbors=sequence.node_neighbors)
+        q, t = self.graph.identity()
+        self.node_q, self.node_t = torch.nn.Parameter(q), torch.nn.Parameter(t)
+        self.optimizer: torch.optim.Optimizer = torch.optim.Adam(
+            [{"params": [self.node_q], "lr": sequence.lr_rotation, "name": "node_q"},
+             {"params": [self.node_t], "lr": sequence.lr_translation * self.extent,
+              "name": "node_t"}], lr=0.0)
+        self.model: GaussianModel = previous
+        self.state: TrackedState | None = None
+        self.strategy: DensifyStrategy | None = None
+        self.ao_targets: list[Tensor] | None = None
+        self.notes: list[str] = []
+        self.step = 0
+        self._order: list[int] = []
+
+    # -- shared pieces -----------------------------------------------------------------------
+    def target(self, index: int, background: Tensor | None = None) -> Tensor:
+        view = self.views[index]
+        if view.mask is None:
+            return view.image
+        bg = self.background if background is None else background
+        return view.image * view.mask + bg * (1 - view.mask)
+
+    def _next_view(self) -> int:
+        if not self._order:
+            self._order = torch.randperm(len(self.views), generator=self.generator).tolist()
+        return self._order.pop()
+
+    def _background(self, index: int) -> Tensor:
+        if self.config.random_background and self.views[index].mask is not None:
+            return torch.rand(3, generator=self.generator)
+        return self.background
+
+    def _render(self, model, index: int, background: Tensor):
+        p = self.plan
+        return render(model, self.cameras[index], sh_degree=p.sh_degree, beta=p.beta,
+                      geometry=True, tie_opacity=False, background=background,
+                      eps2d=self.config.eps2d, antialiased=self.config.antialiased)
+
+    def _image_terms(self, r, index: int, background: Tensor, sigma: float = 0.0) -> dict:
+        w, view, cam = self.config.losses, self.views[index], self.cameras[index]
+        terms = {"photometric": photometric_loss(blur(r.rgb, sigma),
+                                                 blur(self.target(index, background), sigma), w)}
+        if view.normal is not None:
+            terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
+        terms["consistency"] = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K,
+                                                        cam.viewmat, w)
+        return terms
+
+    # -- stages ------------------------------------------------------------------------------
+    def _deform_step(self, index: int, bg: Tensor) -> tuple[dict, object]:
+        s = self.seq
+        posed = DeformedGaussians(self.previous, self.graph, self.node_q, self.node_t)
+        r = self._render(posed, index, bg)
+        sigma = blur_sigma(self.step, self.deform_steps, s.coarse_sigma)
+        terms = self._image_terms(r, index, bg, sigma)
+        terms.update(deform_losses(self.graph, self.node_q, self.node_t, arap=s.arap,
+                                   quat_norm=s.quat_norm))
+        return terms, r
+
+    def _start_refine(self) -> None:
+        """The deformed Gaussians become the model; anchors, ids, optimizer, strategy start."""
+        s, cfg = self.seq, self.config
+        with torch.no_grad():
+            self.model = DeformedGaussians(self.previous, self.graph, self.node_q,
+                                           self.node_t).to_model()
+        self.optimizer = self.model.make_optimizer(cfg.rates, self.extent)
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = cfg.rates.means * self.extent * s.means_lr_scale
+        cap = int(len(self.model) * (1 + s.max_growth))
+        if cfg.densify.max_gaussians is not None:
+            cap = min(cap, max(cfg.densify.max_gaussians, len(self.model)))
+        self.strategy = DensifyStrategy(replace(cfg.densify, max_gaussians=cap), self.extent)
+        z = torch.zeros(len(self.model))
+        # resets=1: the key frame's resets are behind it, so too-big Gaussians are pruned.
+        self.state = TrackedState(z.clone(), z.clone(), z.clone(), z.clone(), z.clone(),
+                                  rho=cfg.densify.rho, resets=1, ids=self.prev_ids.clone(),
+                                  anchor=anchors_of(self.model), next_id=self.next_id)
+        if self.ao_baker is not None:
+            self.ao_targets = self.ao_baker(self.model, self.cameras, self.optimizer,
+                                            self.plan.beta)
+
+    def _refine_step(self, index: int, bg: Tensor) -> tuple[dict, object]:
+        s, view = self.seq, self.views[index]
+        r = self._render(self.model, index, bg)
+        terms = self._image_terms(r, index, bg)
+        if self.ao_targets is not None:
+            terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index], view.mask,
+                                                  self.config.losses)
+        if s.temporal:
+            weights = TemporalWeights(s.temporal_opacity_g, s.temporal_means, s.temporal_quats,
+                                      s.temporal_normals)
+            terms.update(temporal_loss(self.model, self.state.anchor, weights))
+        if s.anisotropy > 0:
+            terms["anisotropy"] = anisotropy_loss(self.model.scales, s.anisotropy,
+                                                  s.anisotropy_ratio)
+        return terms, r
+
+    def _after_refine_step(self, r, index: int) -> None:
+        cam = self.cameras[index]
+        self.strategy.update(self.state, r.raster, cam.width, cam.height)
+        k = self.step - self.deform_steps + 1  # refine steps done
+        every = self.seq.densify_every or max(1, self.refine_steps // 4)
+        if k % every == 0 and k < self.refine_steps:
+            self.strategy.densify(self.model, self.optimizer, self.state, self.generator)
+            relabel(self.state, self.model)
+            prune_transparent(self.model, self.optimizer, self.state,
+                              self.config.densify.transparent)
+
+    def train_step(self) -> StepInfo:
+        start = time.perf_counter()
+        if self.step == self.deform_steps:
+            self._start_refine()
+        index = self._next_view()
+        bg = self._background(index)
+        deforming = self.step < self.deform_steps
+        terms, r = (self._deform_step if deforming else self._refine_step)(index, bg)
+        total = sum(terms.values())
+        total.backward()
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        if not deforming:
+            self._after_refine_step(r, index)
+        losses = {k: float(v.detach()) for k, v in terms.items()}
+        losses["total"] = float(total.detach())
+        on_config = r.rgb.detach() + (1 - r.alpha_c.detach()) * (self.background - bg)
+        info = StepInfo(self.step, self.plan, losses, len(self.model),
+                        time.perf_counter() - start, psnr(on_config, self.target(index)))
+        self.step += 1
+        return info
+
+    def train(self) -> GaussianModel:
+        for cb in self.callbacks:
+            cb.on_train_start(self)
+        while self.step < self.iterations:
+            info = self.train_step()
+            for cb in self.callbacks:
+                cb.on_step_end(self, info)
+        for cb in self.callbacks:
+            cb.on_train_end(self)
+        return self.model
+
+    @property
+    def phase(self) -> str:
+        """'deform' or 'refine': the stage of the next step."""
+        return "deform" if self.step < self.deform_steps else "refine"
+
+    @property
+    def ids(self) -> Tensor:
+        """(N,) track ids of the current model's Gaussians."""
+        return self.prev_ids if self.state is None else self.state.ids
+
+    @property
+    def group_next_id(self) -> int:
+        return self.next_id if self.state is None else self.state.next_id
+
+    @torch.no_grad()
+    def evaluate(self) -> float:
+        """Mean PSNR over the training views."""
+        model = self.model if self.state is not None else DeformedGaussians(
+            self.previous, self.graph, self.node_q, self.node_t)
+        return sum(psnr(self._render(model, i, self.background).rgb, self.target(i))
+                   for i in range(len(self.views))) / len(self.views)
+
+    # -- checkpoints -------------------------------------------------------------------------
+    def save_checkpoint(self, path: str | os.PathLike[str], extra: object = None) -> None:
+        """Everything the remaining steps depend on, written atomically (the graph is rebuilt
+        from the previous frame, deterministically)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        blob = {"step": self.step, "node_q": self.node_q.detach(), "node_t": self.node_t.detach(),
+                "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
+                "order": list(self._order), "notes": list(self.notes), "extra": extra}
+        if self.state is not None:
+            st = asdict(self.state)
+            blob.update(params={k: v.detach() for k, v in self.model.params.items()},
+                        state=st, ao_targets=self.ao_targets)
+        tmp = path.with_name(path.name + ".tmp")
+        torch.save(blob, tmp)
+        os.replace(tmp, path)
+
+    def load_checkpoint(self, path: str | os.PathLike[str]) -> object:
+        blob = torch.load(path, weights_only=True)
+        with torch.no_grad():
+            self.node_q.copy_(blob["node_q"])
+            self.node_t.copy_(blob["node_t"])
+        self.step = int(blob["step"])
+        if "params" in blob:
+            self._start_refine_from(blob)
+        self.optimizer.load_state_dict(blob["optimizer"])
+        self.generator.set_state(blob["generator"])
+        self._order = [int(i) for i in blob["order"]]
+        self.notes = list(blob.get("notes") or [])
+        return blob.get("extra")
+
+    def _start_refine_from(self, blob: dict) -> None:
+        baker, self.ao_baker = self.ao_baker, None  # targets come from the checkpoint
+        try:
+            self._start_refine()
+        finally:
+            self.ao_baker = baker
+        self.model = GaussianModel(blob["params"])
+        self.optimizer = self.model.make_optimizer(self.config.rates, self.extent)
+        self.state = TrackedState(**blob["state"])
+        self.ao_targets = blob.get("ao_targets")

@@ -1,0 +1,101 @@
+"""What `core.pipeline.reconstruct` needs for sequences: a tracker for a frame of a capture, frame
+PLYs with track ids, and RUN/sequence.json (DESIGN.md 3.3).
+
+sequence.json is derived from metrics.json (which a resumed run, also on another machine, always
+has), so it is rewritten whole after every frame: frames with their group, role, Gaussian count,
+seconds and steps; the groups; totals.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from core.model import GaussianModel
+from core.sequence.config import SequenceConfig
+from core.sequence.frame import FrameTracker
+from core.sequence.gop import roles, segment
+
+__all__ = ["load_frame", "save_frame", "sequence_record", "tracker_from_capture"]
+
+
+def save_frame(path: str | os.PathLike[str], model: GaussianModel,
+               ids: torch.Tensor | np.ndarray | None = None) -> None:
+    """The frame's PLY with its track ids (0..N-1 for a key frame: `ids` None), atomically."""
+    from core.plyio import write_gaussian_ply
+
+    path = Path(path)
+    if ids is None:
+        ids = np.arange(len(model))
+    ids = ids.numpy() if isinstance(ids, torch.Tensor) else np.asarray(ids)
+    tmp = path.with_name(path.name + ".tmp")
+    write_gaussian_ply(tmp, {k: v.detach().cpu() for k, v in model.params.items()}, ids)
+    os.replace(tmp, path)
+
+
+def load_frame(path: str | os.PathLike[str]) -> tuple[GaussianModel, torch.Tensor]:
+    """(model, track ids) of a frame PLY; a PLY without ids (a key frame written by another
+    tool) gets 0..N-1."""
+    from core.plyio import read_track_ids
+
+    model = GaussianModel.load_ply(path)
+    ids = read_track_ids(path)
+    return model, torch.from_numpy(np.arange(len(model)) if ids is None else ids).long()
+
+
+def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, train,
+                         sequence: SequenceConfig, *, downscale: float = 1.0,
+                         callbacks=(), ao_baker=None) -> FrameTracker:
+    """A `FrameTracker` on the training cameras of `frame`, starting from the previous frame's
+    PLY."""
+    from core.data.dataset import CaptureDataset
+    from core.train import View, training_cameras
+
+    if not Path(previous_ply).is_file():
+        raise ValueError(f"previous frame: {previous_ply} not found; the frame before {frame!r} "
+                         "in its group must be finished first")
+    ids = [c.id for c in training_cameras(capture.cameras)]
+    ds = CaptureDataset(capture, frames=[frame], cameras=ids, downscale=downscale)
+    views = [View.from_sample(ds[i]) for i in range(len(ds))]
+    model, track = load_frame(previous_ply)
+    return FrameTracker(views, model, track, next_id, train, sequence, callbacks=callbacks,
+                        ao_baker=ao_baker)
+
+
+def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
+                    frames: dict[str, dict]) -> dict:
+    """The content of RUN/sequence.json from the run's per-frame metrics."""
+    gop_eff = gop if sequence.enabled else 1
+    rows = []
+    for r in roles(chosen, gop_eff):
+        m = frames.get(r.frame)
+        rows.append({"frame": r.frame, "gop": r.gop, "position": r.position,
+                     "role": "key" if r.key else "deformed", "previous": r.previous,
+                     "done": m is not None,
+                     "gaussians": None if m is None else m.get("gaussians"),
+                     "seconds": None if m is None else m.get("seconds"),
+                     "iterations": None if m is None else m.get("iterations"),
+                     "new_tracks": None if m is None else m.get("new_tracks")})
+    done = [r for r in rows if r["done"]]
+
+    def mean(role: str, key: str) -> float | None:
+        vals = [r[key] for r in done if r["role"] == role and r[key] is not None]
+        return round(float(np.mean(vals)), 3) if vals else None
+
+    return {
+        "version": 1, "gop": gop_eff, "method": "deform + refine" if sequence.enabled
+        else "independent (every frame a key frame)",
+        "frames": rows,
+        "gops": [{"index": g.index, "key": g.key, "frames": list(g.frames)}
+                 for g in segment(chosen, gop_eff)],
+        "timings": {"seconds_total": round(sum(r["seconds"] or 0 for r in done), 3),
+                    "seconds_per_key_frame": mean("key", "seconds"),
+                    "seconds_per_deformed_frame": mean("deformed", "seconds")},
+        "gaussians": {"mean": None if not done else round(float(np.mean(
+            [r["gaussians"] for r in done])), 1),
+                      "per_key_frame": mean("key", "gaussians"),
+                      "per_deformed_frame": mean("deformed", "gaussians")},
+    }

@@ -1,0 +1,290 @@
+"""core.sequence: the deformation graph against hand-computed values, the losses with their
+gradients, track ids through densification and pruning, GoP segmentation, and a 3-frame sequence
+that is stopped twice (once in each stage) and resumed to the same result as a straight run."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from core.model import GaussianModel
+from core.plyio import read_track_ids
+from core.sequence import (
+    DeformationGraph,
+    TrackedState,
+    anchors_of,
+    anisotropy_loss,
+    arap_loss,
+    blend_weights,
+    build_graph,
+    farthest_point_sampling,
+    prune_transparent,
+    quat_norm_loss,
+    relabel,
+    roles,
+    segment,
+    temporal_loss,
+)
+from core.strategy import DensifyConfig, DensifyStrategy
+
+TOL = dict(rtol=1e-5, atol=1e-6)
+
+
+def _graph(nodes, anchors, weights, edges=((0, 1), (1, 0))) -> DeformationGraph:
+    return DeformationGraph(torch.tensor(nodes, dtype=torch.float32),
+                            torch.tensor(anchors, dtype=torch.long),
+                            torch.tensor(weights, dtype=torch.float32),
+                            torch.tensor(edges, dtype=torch.long))
+
+
+def _quat_z(angle: float) -> list[float]:
+    return [math.cos(angle / 2), 0.0, 0.0, math.sin(angle / 2)]
+
+
+def test_blend_weights_by_hand():
+    # d_max = 5: (1 - d/5)^2 = 0.64, 0.36, 0.16, 0.04, sum 1.2.
+    w = blend_weights(torch.tensor([[1.0, 2.0, 3.0, 4.0, 5.0], [2.0, 2.0, 2.0, 2.0, 2.0]]))
+    torch.testing.assert_close(w[0], torch.tensor([0.64, 0.36, 0.16, 0.04]) / 1.2, **TOL)
+    torch.testing.assert_close(w[1], torch.full((4,), 0.25), **TOL)  # all at d_max: uniform
+
+
+def test_farthest_point_sampling_and_graph_shapes():
+    pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [10, 0, 0]])
+    assert farthest_point_sampling(pts, 3).tolist() == [0, 3, 2]
+    with pytest.raises(ValueError, match="count"):
+        farthest_point_sampling(pts, 5)
+    g = build_graph(torch.randn(200, 3, generator=torch.Generator().manual_seed(0)), 20)
+    assert g.nodes.shape == (20, 3) and g.anchors.shape == (200, 4) and g.weights.shape == (200, 4)
+    torch.testing.assert_close(g.weights.sum(dim=1), torch.ones(200), **TOL)
+    assert g.edges.shape == (20 * 8, 2) and bool((g.edges[:, 0] != g.edges[:, 1]).all())
+    with pytest.raises(ValueError, match="at least 5 nodes"):
+        build_graph(torch.randn(4, 3), 1024)
+
+
+def test_deformation_blend_by_hand():
+    # One point at (1, 0, 0) blended 0.75 / 0.25 from node 0 at the origin (turned 90 degrees
+    # about z) and node 1 at (2, 0, 0) (moved by (0, 0, 1)).
+    g = _graph([[0.0, 0, 0], [2.0, 0, 0]], [[0, 1]], [[0.75, 0.25]])
+    rot = torch.tensor([_quat_z(math.pi / 2), [1.0, 0, 0, 0]])
+    trans = torch.tensor([[0.0, 0, 0], [0.0, 0, 1]])
+    means, quats, normals = g.deform(torch.tensor([[1.0, 0, 0]]), torch.tensor([[1.0, 0, 0, 0]]),
+                                     torch.tensor([[2.0, 0, 0]]), rot, trans)
+    # node 0 sends the point to (0, 1, 0), node 1 to (1, 0, 1): 0.75 (0,1,0) + 0.25 (1,0,1).
+    torch.testing.assert_close(means, torch.tensor([[0.25, 0.75, 0.25]]), **TOL)
+    # Blended quaternion 0.75 q_90 + 0.25 q_0, normalised: a turn about z by 2 atan2(z, w).
+    w, z = 0.75 * math.cos(math.pi / 4) + 0.25, 0.75 * math.sin(math.pi / 4)
+    angle = 2 * math.atan2(z, w)
+    torch.testing.assert_close(quats, torch.tensor([[w, 0, 0, z]]) / math.hypot(w, z), **TOL)
+    # The normal turns by the same angle and keeps its length 2.
+    torch.testing.assert_close(normals, torch.tensor([[2 * math.cos(angle),
+                                                       2 * math.sin(angle), 0.0]]), **TOL)
+
+
+def test_a_rigid_motion_is_reproduced_exactly_and_costs_no_arap():
+    gen = torch.Generator().manual_seed(1)
+    pts = torch.randn(300, 3, generator=gen)
+    g = build_graph(pts, 32)
+    angle = 0.7
+    R = torch.tensor([[math.cos(angle), -math.sin(angle), 0], [math.sin(angle),
+                                                                math.cos(angle), 0], [0, 0, 1.0]])
+    T = torch.tensor([0.3, -0.2, 0.5])
+    rot = torch.tensor([_quat_z(angle)]).repeat(len(g), 1)
+    trans = g.nodes @ R.T + T - g.nodes  # t_j = R g_j + T - g_j
+    moved = g.deform_points(pts, rot, trans)
+    torch.testing.assert_close(moved, pts @ R.T + T, rtol=1e-5, atol=1e-5)
+    assert float(arap_loss(g, rot, trans)) < 1e-10
+    q, t = g.identity()
+    torch.testing.assert_close(g.deform_points(pts, q, t), pts, **TOL)
+
+
+def test_arap_and_unit_norm_by_hand_with_gradients():
+    g = _graph([[0.0, 0, 0], [1.0, 0, 0]], [[0, 1]], [[0.5, 0.5]])
+    rot = torch.tensor([[1.0, 0, 0, 0], [1.0, 0, 0, 0]], requires_grad=True)
+    trans = torch.tensor([[0.0, 0, 0], [0.0, 1, 0]], requires_grad=True)
+    loss = arap_loss(g, rot, trans)  # R = I: residuals t_j - t_l, |.|^2 = 1 both ways
+    loss.backward()
+    assert float(loss.detach()) == pytest.approx(1.0)
+    torch.testing.assert_close(trans.grad, torch.tensor([[0.0, -2, 0], [0.0, 2, 0]]), **TOL)
+    p = torch.tensor([[2.0, 0, 0, 0], [0.0, 1, 0, 0]], requires_grad=True)
+    loss = quat_norm_loss(p)  # mean((2 - 1)^2, 0) = 0.5
+    loss.backward()
+    assert float(loss.detach()) == pytest.approx(0.5)
+    torch.testing.assert_close(p.grad, torch.tensor([[1.0, 0, 0, 0], [0.0, 0, 0, 0]]), **TOL)
+
+
+def _model(n: int, seed: int = 0) -> GaussianModel:
+    gen = torch.Generator().manual_seed(seed)
+    m = GaussianModel.from_points(torch.randn(n, 3, generator=gen))
+    m.params["quats"].data = torch.randn(n, 4, generator=gen)
+    m.params["normals"].data = torch.randn(n, 3, generator=gen)
+    return m
+
+
+def test_temporal_l1_by_hand_with_gradients():
+    m = _model(2)
+    anchor = anchors_of(m)
+    anchor["means"] = anchor["means"] + torch.tensor([[0.1, 0, 0], [0, -0.2, 0]])
+    anchor["opacity_g"] = anchor["opacity_g"] + torch.tensor([0.05, 0.0])
+    m.params["quats"].data = -m.params["quats"].data  # the same rotations: no cost
+    terms = temporal_loss(m, anchor)
+    assert float(terms["temporal_means"]) == pytest.approx(1.0 * 0.3 / 6)
+    assert float(terms["temporal_opacity_g"]) == pytest.approx(0.01 * 0.05 / 2, rel=1e-4)
+    assert float(terms["temporal_quats"]) < 1e-7 and float(terms["temporal_normals"]) < 1e-7
+    terms["temporal_means"].backward()
+    expected = torch.tensor([[-1.0, 0, 0], [0, 1.0, 0]]) / 6  # d mean|x - a| = sign(x - a) / 6
+    torch.testing.assert_close(m.params["means"].grad, expected, **TOL)
+    # A normal turned by 90 degrees: |(0,1,0) - (1,0,0)| summed over 3 components = 2, per
+    # component 2/3, over 2 Gaussians (the other agrees) 1/3, times 0.5.
+    m2 = _model(2)
+    m2.params["normals"].data = torch.tensor([[0.0, 1, 0], [0, 0, 1]])
+    a2 = anchors_of(m2)
+    a2["normals"] = torch.tensor([[1.0, 0, 0], [0, 0, 1]])
+    assert float(temporal_loss(m2, a2)["temporal_normals"]) == pytest.approx(0.5 / 3)
+
+
+def test_anisotropy_by_hand_with_gradients():
+    s = torch.tensor([[1.0, 1, 1], [1, 1, 5], [1, 2, 8]], requires_grad=True)
+    loss = anisotropy_loss(s)  # ratios 1, 5, 8 -> max(r - 3, 0) = 0, 2, 5; mean 7/3
+    loss.backward()
+    assert float(loss.detach()) == pytest.approx(0.01 * 7 / 3)
+    # d(s_max / s_min): 1/s_min on s_max, -s_max/s_min^2 on s_min, each / 3 rows, times 0.01.
+    expected = torch.tensor([[0.0, 0, 0], [-5.0, 0, 1], [-8.0, 0, 1]]) * 0.01 / 3
+    torch.testing.assert_close(s.grad, expected, **TOL)
+
+
+def test_track_ids_follow_densification_and_pruning():
+    m = _model(6, seed=3)
+    with torch.no_grad():  # Gaussian 1 small (clone), Gaussian 4 large (split), all opaque
+        m.params["scales"].data[:] = math.log(0.001)
+        m.params["scales"].data[4] = math.log(0.5)
+        m.params["opacity_c"].data[:] = 2.0
+        m.params["opacity_g"].data[:] = 2.0
+    z = torch.zeros(6)
+    state = TrackedState(z.clone(), z.clone(), torch.ones(6), z.clone(), z.clone(), rho=0.1,
+                         ids=torch.arange(10, 16), anchor=anchors_of(m), next_id=100)
+    state.grad_c[[1, 4]] = 1.0  # above the threshold in the appearance branch only
+    before = anchors_of(m)
+    strategy = DensifyStrategy(DensifyConfig(prune_scale=None), extent=1.0)
+    strategy.densify(m, None, state, torch.Generator().manual_seed(0))
+    assert relabel(state, m) == 2 and state.next_id == 102 and state.born == 2
+    ids = state.ids.tolist()
+    # Survivors keep ids and anchors; the clone's copy and the split's second sample are new.
+    assert ids == [10, 11, 12, 13, 15, 100, 14, 101]
+    keep = [0, 1, 2, 3, 5]
+    torch.testing.assert_close(state.anchor["means"][:5], before["means"][keep])
+    now = anchors_of(m)
+    for row in (5, 7):  # new rows: anchors are their own values at birth
+        torch.testing.assert_close(state.anchor["means"][row], now["means"][row])
+    torch.testing.assert_close(state.anchor["means"][6], before["means"][4])  # first split sample
+    with torch.no_grad():  # make 11 and 100 transparent in both branches
+        for row in (1, 5):
+            m.params["opacity_c"].data[row] = -10.0
+            m.params["opacity_g"].data[row] = -10.0
+    assert prune_transparent(m, None, state) == 2
+    assert state.ids.tolist() == [10, 12, 13, 15, 14, 101] and len(m) == 6
+    assert all(v.shape[0] == 6 for v in state.anchor.values())
+
+
+def test_gop_segmentation():
+    frames = [f"{i:06d}" for i in range(7)]
+    gops = segment(frames, 3)
+    assert [g.frames for g in gops] == [tuple(frames[0:3]), tuple(frames[3:6]), (frames[6],)]
+    assert [g.key for g in gops] == [frames[0], frames[3], frames[6]]
+    r = roles(frames, 3)
+    assert [x.key for x in r] == [True, False, False, True, False, False, True]
+    assert r[2].previous == frames[1] and r[3].previous is None and r[5].gop == 1
+    assert all(x.key for x in roles(frames, 1))
+    with pytest.raises(ValueError, match="gop"):
+        segment(frames, 0)
+    with pytest.raises(ValueError, match="distinct"):
+        segment(["a", "a"], 2)
+
+
+# -- end to end ----------------------------------------------------------------------------------
+TINY_RUN = {"train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3_start": 28,
+                                   "densify_from": 2, "densify_until": 24, "densify_interval": 5,
+                                   "reset_interval": 15, "sh_interval": 5},
+                      "init_points": 300},
+            "sequence": {"num_nodes": 64, "deform_fraction": 0.25, "refine_fraction": 0.25},
+            "checkpoint_every": 4, "gop": 3}
+
+
+@pytest.fixture(scope="module")
+def capture3(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    from core.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("seq") / "capture"
+    synthesize(out, SynthConfig(frames=3, views=8, width=32, height=32, seed=4, priors=True,
+                                ao_directions=8))
+    return out
+
+
+def _reconstruct(capture: Path, run: Path, **kwargs) -> dict:
+    from core.pipeline import reconstruct
+
+    return reconstruct(capture, run, preset="test", overrides=TINY_RUN, progress=False, **kwargs)
+
+
+def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp_path,
+                                                                   one_thread):
+    from core.evaluate import evaluate_run
+    from core.pipeline import Stopped
+
+    straight = tmp_path / "straight"
+    events = []
+    _reconstruct(capture3, straight, on_progress=events.append)
+    seq = json.loads((straight / "sequence.json").read_text())
+    assert [f["role"] for f in seq["frames"]] == ["key", "deformed", "deformed"]
+    assert [g["frames"] for g in seq["gops"]] == [["000000", "000001", "000002"]]
+    assert seq["timings"]["seconds_per_deformed_frame"] > 0 and seq["gaussians"]["mean"] > 0
+    assert {e.phase for e in events if e.frame_index > 0} == {"deform", "refine"}
+    assert [e.frame for e in events if e.kind == "frame_done"] == ["000000", "000001", "000002"]
+    # D = R = 10 steps for a 40-step key frame.
+    assert {e.iterations for e in events if e.frame_index > 0} == {20}
+    ids = [read_track_ids(straight / "frames" / f / "gaussians.ply") for f in
+           ("000000", "000001", "000002")]
+    assert ids[0].tolist() == list(range(len(ids[0])))  # key frame: 0..N-1
+    for a, b in zip(ids, ids[1:]):
+        assert len(set(b.tolist())) == len(b)  # unique within a frame
+        assert len(np.intersect1d(a, b)) >= 0.8 * len(a)  # most Gaussians carry over
+    for frame in ("000001", "000002"):
+        assert (straight / "renders" / frame / "cam00_rgb.png").is_file()
+
+    # Stop in frame 1's deform stage (step 3), resume, stop in frame 2's refine stage (step 15).
+    resumed = tmp_path / "resumed"
+    for frame, step in (("000001", 3), ("000002", 15)):
+        with pytest.raises(Stopped) as stop:
+            _reconstruct(capture3, resumed, resume=resumed.exists(),
+                         should_stop=lambda f=frame, s=step: last[0] == (f, s),
+                         on_progress=lambda e: last.__setitem__(0, (e.frame, e.step)))
+        assert (stop.value.frame, stop.value.step) == (frame, step)
+        assert (resumed / "checkpoints" / f"{frame}.pt").is_file()
+    metrics = _reconstruct(capture3, resumed, resume=True)
+    assert metrics["frames"]["000002"]["resumed_at"] == 15
+    for frame in ("000001", "000002"):
+        a = (straight / "frames" / frame / "gaussians.ply").read_bytes()
+        assert a == (resumed / "frames" / frame / "gaussians.ply").read_bytes(), frame
+    ev = evaluate_run(straight)
+    assert ev["flicker"] is not None and ev["flicker"] >= 0
+    assert len(ev["temporal"]["psnr_per_frame"]) == 3 and len(ev["temporal"]["pairs"]) == 2
+
+
+last: list = [None]
+
+
+def test_independent_mode_makes_every_frame_a_key_frame(capture3, tmp_path, one_thread):
+    run = tmp_path / "run"
+    cfg = {**TINY_RUN, "sequence": {"enabled": False},
+           "train": {**TINY_RUN["train"], "schedule": {**TINY_RUN["train"]["schedule"],
+                                                       "iterations": 20, "stage2_start": 6,
+                                                       "stage3_start": 14}}}
+    from core.pipeline import reconstruct
+
+    reconstruct(capture3, run, preset="test", overrides=cfg, progress=False, frames="0:2")
+    seq = json.loads((run / "sequence.json").read_text())
+    assert [f["role"] for f in seq["frames"]] == ["key", "key"] and seq["gop"] == 1
