@@ -35,7 +35,8 @@ class Services:
     """service.commit.Committer: this process's background commits."""
 
 
-def get_services(request: Request) -> Services:
+async def get_services(request: Request) -> Services:
+    # async: FastAPI would run a plain function in a worker thread, a hop on every request
     return request.app.state.services
 
 

@@ -77,9 +77,10 @@ def _query_names(route) -> frozenset[str]:
     return names
 
 
-def strict_query(request: Request) -> None:
+async def strict_query(request: Request) -> None:
     """400 for a query parameter the operation does not take: a typo in a filter
-    (`?stat=failed`) must not silently list everything."""
+    (`?stat=failed`) must not silently list everything. (async: no I/O, so no worker
+    thread.)"""
     route = request.scope.get("route")
     if route is None or not hasattr(route, "dependant"):
         return

@@ -112,6 +112,19 @@ def _die_with_parent() -> None:
         pass
 
 
+WORKER_NICE = 5
+"""Niceness added to the embedded worker: on the machine it shares with `dgs serve`, the API
+keeps answering (polls, progress, downloads) while a job trains on every core."""
+
+
+def _embedded_child() -> None:
+    _die_with_parent()
+    try:
+        os.nice(WORKER_NICE)
+    except OSError:
+        pass
+
+
 class EmbeddedWorker:
     """Keeps one `dgs worker` subprocess running (restarted with back-off if it dies), with
     the same DGS_* settings as this process; its output goes to <data_dir>/logs/worker.log."""
@@ -139,7 +152,7 @@ class EmbeddedWorker:
         try:
             return subprocess.Popen([sys.executable, "-m", "core.cli", "worker"],
                                     env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                                    start_new_session=True, preexec_fn=_die_with_parent)
+                                    start_new_session=True, preexec_fn=_embedded_child)
         finally:
             out.close()
 

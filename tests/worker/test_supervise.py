@@ -13,7 +13,7 @@ from pathlib import Path
 from worker_harness import wait_for
 
 from worker.settings import WorkerSettings
-from worker.supervise import EmbeddedWorker
+from worker.supervise import WORKER_NICE, EmbeddedWorker
 
 SUPERVISOR = textwrap.dedent("""
     import sys, time
@@ -42,6 +42,9 @@ def test_embedded_worker_is_restarted_when_it_dies(tmp_path: Path):
         first = wait_for(lambda: w.proc, 30, "the worker to start")
         wait_for(lambda: " ready." in w.log_path.read_text(errors="replace"), 60,
                  "the worker to be ready")
+        # The worker yields the cores to the API it shares the machine with.
+        nice = int(Path(f"/proc/{first.pid}/stat").read_text().rsplit(")", 1)[1].split()[16])
+        assert nice == min(19, os.nice(0) + WORKER_NICE)
         os.killpg(first.pid, signal.SIGKILL)
         second = wait_for(lambda: w.proc if w.proc is not first else None, 30,
                           "a new worker process")
