@@ -70,7 +70,7 @@ class FrameTracker:
         self.extent = scene_extent([v.camera for v in self.views])
         self.background = torch.tensor(config.background, dtype=torch.float32)
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.graph = build_graph(previous.means.detach(), sequence.num_nodes,
+        self.graph = build_graph(previous.means.detach(), sequence.nodes(len(previous)),
                                  node_neighbors=sequence.node_neighbors)
         q, t = self.graph.identity()
         self.node_q, self.node_t = torch.nn.Parameter(q), torch.nn.Parameter(t)
@@ -123,6 +123,10 @@ class FrameTracker:
     # -- stages ------------------------------------------------------------------------------
     def _deform_step(self, index: int, bg: Tensor) -> tuple[dict, object]:
         s = self.seq
+        decay = 0.1 ** (self.step / self.deform_steps)  # exponential, to a tenth by the end
+        for group, base in zip(self.optimizer.param_groups,
+                               (s.lr_rotation, s.lr_translation * self.extent)):
+            group["lr"] = base * decay
         posed = DeformedGaussians(self.previous, self.graph, self.node_q, self.node_t)
         r = self._render(posed, index, bg)
         sigma = blur_sigma(self.step, self.deform_steps, s.coarse_sigma)

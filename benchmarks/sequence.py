@@ -1,0 +1,139 @@
+"""Sequential (deform + refine inside GoPs) against independent per-frame reconstruction at the
+same total iteration budget, on a `dgs synth` sequence; plus two ablations of the sequential
+method: without the temporal L1 and without the anisotropy loss.
+
+Variants (same capture, same key-frame schedule):
+- sequential: GoPs of --gop frames; key frames get K steps, the others deform + refine;
+- independent: every frame a key frame with the static stages scaled to total / frames steps,
+  where total is the sequential run's total step count (equal budget);
+- no-temporal, no-anisotropy: sequential with that loss off.
+Reported: held-out PSNR (figure pixels) and normal cosine (against ground truth), flicker of the
+normal and AO maps (core.sequence.metrics), the largest PSNR drop between consecutive frames of
+a group, Gaussians per frame, seconds per key frame and per other frame. Results go to
+OUT/results.json (updated after each variant; finished variants are reused).
+
+    python benchmarks/sequence.py [--quick] [--frames 24] [--views 16] [--size 64]
+                                  [--iterations 500] [--gop 20] [--out DIR]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+VARIANTS = ("sequential", "independent", "no-temporal", "no-anisotropy")
+
+
+def _schedule(iterations: int) -> dict:
+    from core.stages import schedule_for
+
+    return asdict(schedule_for("paper").scaled(iterations))
+
+
+def overrides(variant: str, iterations: int, total: int | None, frames: int, gop: int) -> dict:
+    """The run's configuration overrides for `variant` (`total`: the sequential step count)."""
+    base = {"gop": gop, "checkpoint_every": 100_000,
+            "train": {"schedule": _schedule(iterations), "init_points": 2_000}}
+    if variant == "independent":
+        per_frame = max(3, round(total / frames))
+        base["train"]["schedule"] = _schedule(per_frame)
+        base["sequence"] = {"enabled": False}
+    elif variant == "no-temporal":
+        base["sequence"] = {"temporal": False}
+    elif variant == "no-anisotropy":
+        base["sequence"] = {"anisotropy": 0.0}
+    return base
+
+
+def summarize(run: Path) -> dict:
+    """The row of one finished run."""
+    from core.evaluate import evaluate_run
+
+    ev = evaluate_run(run)
+    seq = json.loads((run / "sequence.json").read_text())
+    metrics = json.loads((run / "metrics.json").read_text())["frames"]
+    t = ev["temporal"]
+    return {"psnr": ev["psnr"], "normal_cos": ev["normal_cos"], "flicker": t["flicker"],
+            "flicker_normal": t["flicker_normal"], "flicker_ao": t["flicker_ao"],
+            "largest_drop_db": t["largest_psnr_drop_in_group"],
+            "gaussians_per_frame": seq["gaussians"]["mean"],
+            "seconds_per_frame": round(seq["timings"]["seconds_total"] / len(metrics), 2),
+            "seconds_key": seq["timings"]["seconds_per_key_frame"],
+            "seconds_other": seq["timings"]["seconds_per_deformed_frame"],
+            "steps_total": sum(m["iterations"] for m in metrics.values()),
+            "psnr_per_frame": [round(p, 2) for p in t["psnr_per_frame"]]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--quick", action="store_true",
+                    help="24 frames, 16 views, 48x48, 300 steps per key frame")
+    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--views", type=int, default=16)
+    ap.add_argument("--size", type=int, default=64)
+    ap.add_argument("--iterations", type=int, default=500, help="steps per key frame")
+    ap.add_argument("--gop", type=int, default=20)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--variants", default=",".join(VARIANTS))
+    ap.add_argument("--out", default="/tmp/dgs-bench-sequence")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.size, args.iterations = 48, 300
+    import torch
+
+    from core.pipeline import reconstruct
+    from core.synth import SynthConfig, synthesize
+
+    torch.set_num_threads(max(1, torch.get_num_threads()))
+    out = Path(args.out)
+    capture = out / "capture"
+    if not (capture / "capture.json").is_file():
+        synthesize(capture, SynthConfig(frames=args.frames, views=args.views, width=args.size,
+                                        height=args.size, seed=args.seed, priors=True))
+    results_path = out / "results.json"
+    results = json.loads(results_path.read_text()) if results_path.is_file() else {}
+    results["setup"] = {k: getattr(args, k) for k in ("frames", "views", "size", "iterations",
+                                                       "gop", "seed")}
+    total = None
+    for variant in args.variants.split(","):
+        run = out / variant
+        if variant != "sequential" and total is None:
+            total = results.get("sequential", {}).get("steps_total")
+            if total is None:
+                raise SystemExit("run the sequential variant first (its step count is the budget)")
+        if variant in results and (run / "eval.json").is_file():
+            continue
+        start = time.perf_counter()
+        reconstruct(capture, run, preset="test", resume=(run / "config.json").is_file(),
+                    overrides=overrides(variant, args.iterations, total, args.frames, args.gop),
+                    progress=False)
+        row = summarize(run)
+        row["wall_s"] = round(time.perf_counter() - start, 1)
+        results[variant] = row
+        if variant == "sequential":
+            total = row["steps_total"]
+        results_path.write_text(json.dumps(results, indent=2) + "\n")
+        print(variant, json.dumps({k: v for k, v in row.items() if k != "psnr_per_frame"}),
+              flush=True)
+    print("| variant | PSNR | normal cos | flicker (normal / AO) | largest drop in GoP (dB) | "
+          "Gaussians / frame | s / frame (key / other) | steps |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for v in VARIANTS:
+        r = results.get(v)
+        if r:
+            print(f"| {v} | {r['psnr']:.2f} | {r['normal_cos']:.3f} | {r['flicker']:.4f} "
+                  f"({r['flicker_normal']:.4f} / {r['flicker_ao']:.4f}) | "
+                  f"{r['largest_drop_db'] if r['largest_drop_db'] is None else round(r['largest_drop_db'], 2)} | "
+                  f"{r['gaussians_per_frame']:.0f} | {r['seconds_per_frame']:.1f} "
+                  f"({r['seconds_key']} / {r['seconds_other']}) | {r['steps_total']} |")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
