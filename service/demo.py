@@ -19,6 +19,7 @@ import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any, TextIO
@@ -173,13 +174,16 @@ def _follow(client, job_id: str, server: DemoServer) -> dict:
     return job
 
 
+def _interrupted(signum, frame) -> None:
+    raise KeyboardInterrupt
+
+
 def run_service_demo(out: str = "demo", *, synth: dict | None = None,
                      overrides: dict | None = None, preset: str = "test") -> int:
     """The demo through the service (see the module docstring); `synth` (SynthConfig fields)
     and `overrides` (the job's config) default to core's demo."""
     from core.commands_demo import DEMO_OVERRIDES, demo_capture, report
     from core.evaluate import evaluate_run
-    from service.client import Client
 
     root = Path(out)
     capture_dir, run_dir, data_dir = root / "capture", root / "run", root / "service"
@@ -189,6 +193,28 @@ def run_service_demo(out: str = "demo", *, synth: dict | None = None,
     shutil.rmtree(data_dir, ignore_errors=True)  # each demo starts a fresh service
     print(f"[2/{STEPS}] dgs serve --port ... --data-dir {data_dir} (API and embedded worker)",
           flush=True)
+    # SIGTERM (a CI timeout, `kill`) ends the demo like Ctrl-C: the server is stopped too.
+    main = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _interrupted) if main else None
+    try:
+        job, files, train_s = _run_job(data_dir, capture_dir, run_dir, overrides, preset)
+    finally:
+        if main:
+            signal.signal(signal.SIGTERM, previous)
+    print(f"      server stopped (its data: {data_dir})", flush=True)
+    result = evaluate_run(run_dir, capture_dir)
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    report(capture, capture_dir, run_dir, metrics, result, train_s, step=f"[6/{STEPS}]")
+    print(f"      PLY per frame: {run_dir / 'frames'}")
+    print(f"      total {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+def _run_job(data_dir: Path, capture_dir: Path, run_dir: Path, overrides: dict,
+             preset: str) -> tuple[dict, list[Path], float]:
+    """Steps 2 to 5: serve, upload, run the job, download; the server is stopped after."""
+    from service.client import Client
+
     with DemoServer(data_dir) as server, Client(server.url) as client:
         print(f"      {server.url} (OpenAPI: {server.url}/docs), worker log "
               f"{server.worker_log}", flush=True)
@@ -211,10 +237,4 @@ def run_service_demo(out: str = "demo", *, synth: dict | None = None,
         files = client.download_all(job["id"], run_dir)
         print(f"      {len(files)} files, {sum(p.stat().st_size for p in files) / 1e6:.1f} MB",
               flush=True)
-    print(f"      server stopped (its data: {data_dir})", flush=True)
-    result = evaluate_run(run_dir, capture_dir)
-    metrics = json.loads((run_dir / "metrics.json").read_text())
-    report(capture, capture_dir, run_dir, metrics, result, train_s, step=f"[6/{STEPS}]")
-    print(f"      PLY per frame: {run_dir / 'frames'}")
-    print(f"      total {time.perf_counter() - t0:.0f} s")
-    return 0
+    return job, files, train_s
