@@ -12,6 +12,7 @@ import time
 import pytest
 from sqlalchemy import update
 
+import service.events as service_events
 from worker.models import Job
 from worker.store import Owner
 
@@ -205,13 +206,33 @@ def test_events_resume_after_last_event_id(client, services, capture_id):
     assert r.status_code == 400
 
 
-def test_events_stream_live_until_the_job_ends(tmp_path, capture_id, client, services):
+def test_events_stream_live_until_the_job_ends(tmp_path, capture_id, client, services,
+                                              monkeypatch):
     services.settings.sse_keepalive_seconds = 0.1
     store = services.store
     job = store.create("local", "reconstruct", PARAMS, capture_id=capture_id)
+    # The worker starts only once the stream has sent the queued state and then polled long
+    # enough for a keep-alive: no sleep that a loaded machine could outlast.
+    opened: list[float] = []
+    quiet = threading.Event()
+    snapshot, events_after = service_events.snapshot, store.events_after
+
+    def watched_snapshot(*args):
+        result = snapshot(*args)
+        opened.append(time.monotonic())
+        return result
+
+    def watched_events_after(*args):
+        result = events_after(*args)
+        if opened and time.monotonic() - opened[0] > 0.15:
+            quiet.set()
+        return result
+
+    monkeypatch.setattr(service_events, "snapshot", watched_snapshot)
+    monkeypatch.setattr(store, "events_after", watched_events_after)
 
     def worker():
-        time.sleep(0.4)
+        quiet.wait(60)  # on a timeout the assertions below say what was missed
         run_job(store, job.id, steps=2)
 
     thread = threading.Thread(target=worker)
