@@ -21,6 +21,7 @@ __all__ = ["main", "build_parser"]
 _COMMAND_MODULES: tuple[str, ...] = (
     "core.commands_demo",
     "core.commands_reconstruct",
+    "core.commands_relight",
     "core.data.commands",
     "core.synth.commands",
 )

@@ -62,3 +62,29 @@ def one_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+# A shortened `test` preset (every stage, densification, a reset and the AO bake in 100 steps),
+# as in test_pipeline.py; one frame.
+TINY_RUN = {"train": {"schedule": {"iterations": 100, "stage2_start": 30, "stage3_start": 70,
+                                   "densify_from": 5, "densify_until": 60, "densify_interval": 10,
+                                   "reset_interval": 40, "sh_interval": 10},
+                      "init_points": 500},
+            "gop": 1}
+
+
+@pytest.fixture(scope="session")
+def tiny_run(synth_capture: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finished one-frame run of ``synth_capture`` (meshes included). Read-only by convention:
+    tests relight and mesh it into their own folders."""
+    from core.pipeline import reconstruct
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    out = tmp_path_factory.mktemp("tiny_run") / "run"
+    try:
+        reconstruct(synth_capture, out, preset="test", frames="0:1", overrides=TINY_RUN,
+                    progress=False)
+    finally:
+        torch.set_num_threads(before)
+    return out

@@ -1,0 +1,198 @@
+"""A watertight mesh of one reconstructed frame (DESIGN.md section 5, Mesh): TSDF fusion of the
+geometry branch's expected depth where alpha_g > 0.5 over the training cameras, voxel = scene
+diagonal / 512, truncation 5 voxels, marching cubes, the largest components kept.
+
+Vertex colours are render-and-project: each vertex takes the cosine-weighted mean of the
+appearance render (full SH, straight colour) of every training camera that sees it (its depth
+within a tolerance of the camera's geometry depth); a vertex no camera sees takes the base colour
+of its nearest opaque Gaussian.
+
+`depth="appearance"` is the baseline that meshes the appearance branch's depth instead: both
+opacities of every Gaussian are set to its appearance opacity as the final render mixes it,
+o_c = ((1 + beta) opacity_c + (1 - beta) opacity_g) / 2 (DESIGN.md 3.4), and the model is
+rendered at beta 0, so the rasterizer's (geometry-weighted) depth and coverage are exactly the
+appearance branch's alpha_c-weighted ones.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+import torch
+
+from core.mesh.tsdf import TSDFVolume
+from core.render import RenderCamera, render, safe_divide
+
+__all__ = ["MeshConfig", "appearance_model", "mesh_model", "scene_box"]
+
+
+@dataclass(frozen=True)
+class MeshConfig:
+    """How a frame is meshed."""
+
+    resolution: int = 512
+    """Voxels along the scene box's diagonal (voxel = diagonal / resolution)."""
+    truncation_voxels: float = 5.0
+    """TSDF truncation distance in voxels."""
+    alpha_threshold: float = 0.5
+    """Pixels count as surface where the coverage is above this."""
+    depth: Literal["geometry", "appearance"] = "geometry"
+    """Which branch's depth is fused ('appearance' is the baseline, see module doc)."""
+    box: Literal["gaussians", "cameras"] = "gaussians"
+    """Scene box: the opaque Gaussians' extent (0.5-99.5 percentiles of their means) or the
+    ball every training camera sees around their look-at centre."""
+    margin: float = 0.05
+    """Box padding as a fraction of its diagonal (plus the truncation distance)."""
+    min_component: float = 0.05
+    """Connected components with fewer faces than this fraction of the largest are dropped."""
+    colors: bool = True
+    """Vertex colours from the appearance branch."""
+    formats: tuple[str, ...] = ("ply",)
+    """Files written per frame: any of ply, obj, glb."""
+    chunk: int = 1 << 20
+    """Voxels per vectorized TSDF step (memory bound of the temporaries)."""
+    device: str | None = None
+    """Torch device of the TSDF; None: CUDA when available, else CPU."""
+
+    def __post_init__(self) -> None:
+        from core.mesh.surface import FORMATS
+
+        if not 16 <= self.resolution <= 2048:
+            raise ValueError(f"resolution: expected 16..2048 voxels, got {self.resolution}")
+        if not 0 < self.alpha_threshold < 1:
+            raise ValueError(f"alpha_threshold: expected in (0, 1), got {self.alpha_threshold}")
+        if self.depth not in ("geometry", "appearance"):
+            raise ValueError(f"depth: expected 'geometry' or 'appearance', got {self.depth!r}")
+        if self.box not in ("gaussians", "cameras"):
+            raise ValueError(f"box: expected 'gaussians' or 'cameras', got {self.box!r}")
+        if not self.formats or any(f not in FORMATS for f in self.formats):
+            raise ValueError(f"formats: expected some of {FORMATS}, got {self.formats!r}")
+
+
+def appearance_model(model, beta: float):
+    """A copy of `model` whose two opacities both equal the appearance opacity the final render
+    uses at `beta` (render it at beta 0)."""
+    from core.model import GaussianModel
+
+    with torch.no_grad():
+        o = 0.5 * ((1 + beta) * model.opacity_c + (1 - beta) * model.opacity_g)
+        logit = torch.logit(o.clamp(1e-6, 1 - 1e-6))
+        params = {k: v.detach() for k, v in model.params.items()}
+        params["opacity_c"] = params["opacity_g"] = logit
+        return GaussianModel(params)
+
+
+def scene_box(model, cameras, mode: str = "gaussians") -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the scene, unpadded (see MeshConfig.box)."""
+    if mode == "cameras":
+        from core.seeding import _common_radius, look_at_center
+
+        c = look_at_center(cameras)
+        r = _common_radius(cameras, c)
+        return c - r, c + r
+    with torch.no_grad():
+        opaque = torch.maximum(model.opacity_c, model.opacity_g) > 0.5
+        pts = (model.means[opaque] if int(opaque.sum()) >= 4 else model.means).double().numpy()
+    if len(pts) == 0:
+        raise ValueError("model: has no Gaussians to take a scene box from")
+    lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
+    return lo, np.maximum(hi, lo + 1e-3)
+
+
+@torch.no_grad()
+def _render(model, cam, settings, beta: float):
+    return render(model, RenderCamera.from_camera(cam), sh_degree=settings.sh_degree, beta=beta,
+                  geometry=True, background=torch.zeros(3), eps2d=settings.eps2d,
+                  antialiased=settings.antialiased)
+
+
+def _fuse(model, cameras, settings, config: MeshConfig, lo, hi, voxel, device) -> TSDFVolume:
+    src, beta = (model, settings.beta) if config.depth == "geometry" else (
+        appearance_model(model, settings.beta), 0.0)
+    vol = TSDFVolume.create(lo, hi, voxel, config.truncation_voxels, device=device,
+                            chunk=config.chunk)
+    depths, Ks, views = [], [], []
+    for cam in cameras:
+        r = _render(src, cam, settings, beta)
+        ok = (r.alpha_g[..., 0] > config.alpha_threshold) & (r.depth[..., 0] > 0)
+        depths.append(torch.where(ok, r.depth[..., 0], 0.0))
+        Ks.append(torch.from_numpy(np.asarray(cam.K, np.float32)))
+        views.append(torch.from_numpy(np.asarray(cam.world_to_camera, np.float32)))
+    vol.integrate(depths, Ks, views)
+    return vol
+
+
+@torch.no_grad()
+def vertex_colors(mesh, model, cameras, settings, *, voxel: float, alpha_threshold: float,
+                  linear_capture: bool) -> np.ndarray:
+    """(V, 4) uint8 sRGB colours (see module doc)."""
+    verts = np.asarray(mesh.vertices, np.float64)
+    normals = np.asarray(mesh.vertex_normals, np.float64)
+    acc, wsum = np.zeros((len(verts), 3)), np.zeros(len(verts))
+    for cam in cameras:
+        r = _render(model, cam, settings, settings.beta)
+        rgb = safe_divide(r.rgb, r.alpha_c).clamp(0, 1).numpy()
+        depth, cover = r.depth[..., 0].numpy(), r.alpha_g[..., 0].numpy()
+        uv, z = cam.project(verts)
+        u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        ok = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        uc, vc = np.clip(u, 0, cam.width - 1), np.clip(v, 0, cam.height - 1)
+        tol = np.maximum(3 * voxel, 0.01 * z)
+        ok &= (cover[vc, uc] > alpha_threshold) & (np.abs(depth[vc, uc] - z) < tol)
+        to_cam = cam.center[None] - verts
+        w = np.clip((normals * to_cam).sum(1) / np.linalg.norm(to_cam, axis=1), 0, 1) * ok
+        acc += rgb[vc, uc] * w[:, None]
+        wsum += w
+    colors = acc / np.maximum(wsum, 1e-12)[:, None]
+    unseen = wsum <= 1e-6
+    if unseen.any():
+        from scipy.spatial import cKDTree
+
+        from core.model import SH_C0
+
+        keep = model.opacity_c > 0.5
+        means = (model.means[keep] if int(keep.sum()) else model.means).double().numpy()
+        base = ((model.params["sh0"][:, 0] * SH_C0 + 0.5).clamp(0, 1)[keep] if int(keep.sum())
+                else (model.params["sh0"][:, 0] * SH_C0 + 0.5).clamp(0, 1)).numpy()
+        colors[unseen] = base[cKDTree(means).query(verts[unseen])[1]]
+    if linear_capture:
+        from core.synth.shading import linear_to_srgb
+
+        colors = linear_to_srgb(colors)
+    rgba = np.concatenate([colors, np.ones((len(verts), 1))], axis=1)
+    return (np.clip(rgba, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+
+def mesh_model(model, cameras, settings, config: MeshConfig = MeshConfig(), *,
+               linear_capture: bool = False):
+    """(trimesh.Trimesh in the model's world coordinates, info dict) of one frame's model seen
+    by the training `cameras` (core.data.Camera at the run's resolution)."""
+    from core.mesh.surface import clean_mesh, extract_surface
+
+    if not cameras:
+        raise ValueError("cameras: expected at least one training camera")
+    device = config.device or ("cuda" if torch.cuda.is_available() else "cpu")
+    t0 = time.perf_counter()
+    lo, hi = scene_box(model, cameras, config.box)
+    diag = float(np.linalg.norm(hi - lo))
+    voxel = diag / config.resolution
+    pad = config.margin * diag + (config.truncation_voxels + 2) * voxel
+    vol = _fuse(model, cameras, settings, config, lo - pad, hi + pad, voxel, device)
+    t1 = time.perf_counter()
+    mesh = clean_mesh(extract_surface(vol.values(), vol.lo, voxel), config.min_component)
+    t2 = time.perf_counter()
+    if config.colors:
+        mesh.visual.vertex_colors = vertex_colors(
+            mesh, model, cameras, settings, voxel=voxel, alpha_threshold=config.alpha_threshold,
+            linear_capture=linear_capture)
+    info = {"voxel": voxel, "grid": list(vol.shape), "scene_diagonal": diag,
+            "vertices": int(len(mesh.vertices)), "faces": int(len(mesh.faces)),
+            "watertight": bool(mesh.is_watertight), "depth": config.depth, "device": str(device),
+            "seconds": {"fusion": round(t1 - t0, 3), "surface": round(t2 - t1, 3),
+                        "colors": round(time.perf_counter() - t2, 3)}}
+    info["seconds"]["total"] = round(math.fsum(info["seconds"].values()), 3)
+    return mesh, info

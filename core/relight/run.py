@@ -1,0 +1,250 @@
+"""`relight_run`: relit renders of a finished run (what `dgs relight` and the service's render
+jobs call), with progress events and a cooperative stop, in the manner of core.pipeline.
+
+Output (DESIGN.md 3.2): OUT/<frame>/<camera>.png (sRGB) and .exr (linear, premultiplied RGBA);
+with an orbit or a camera path also OUT/<frame>.mp4; OUT/relight.json records the parameters,
+the map's SH9 coefficients and the files.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from core.relight.lights import LightSpec
+
+__all__ = ["RelightParams", "RelightProgress", "RelightStopped", "relight_run"]
+
+
+@dataclass(frozen=True)
+class RelightParams:
+    """What to relight and how (the service publishes this as its render job's JSON Schema)."""
+
+    envmap: str
+    """Environment map, equirectangular .exr or .hdr (linear radiance, width = 2 x height)."""
+    rotation_deg: float = 0.0
+    """Turn of the map about the capture's up axis, degrees (right-hand rule)."""
+    exposure: float = 0.0
+    """Map exposure in stops (radiance x 2**exposure)."""
+    lights: tuple[LightSpec, ...] = ()
+    """Directional and point lights added to the map."""
+    cameras: str = "heldout"
+    """'heldout' (every 8th camera), 'all', or camera ids 'ID,ID' (ignored with orbit or
+    camera_path)."""
+    frames: str | None = None
+    """Slice 'A:B' over the run's finished frames; None: all of them."""
+    orbit: int | None = None
+    """Render an orbit of this many views around the subject (and an MP4 per frame)."""
+    camera_path: str | None = None
+    """nerfstudio camera_path.json to render (and an MP4 per frame)."""
+    capture_light: str | None = None
+    """The capture's own lighting the albedo is divided by: None for a uniform irradiance of pi,
+    a number (uniform irradiance), a stage .exr/.hdr map, or a .json with sh9_radiance (9x3)."""
+    ao: bool = True
+    """Multiply the map's irradiance by the learnt visibility (False: the no-AO baseline)."""
+    fps: float = 24.0
+    """Frame rate of the MP4s (a camera path's own fps wins)."""
+
+    def __post_init__(self) -> None:
+        if self.orbit is not None and self.camera_path is not None:
+            raise ValueError("orbit, camera_path: give one of them, not both")
+        if self.orbit is not None and (isinstance(self.orbit, bool) or not isinstance(
+                self.orbit, int) or self.orbit < 1):
+            raise ValueError(f"orbit: expected a number of views >= 1, got {self.orbit!r}")
+        if not self.fps > 0:
+            raise ValueError(f"fps: expected > 0, got {self.fps!r}")
+        for light in self.lights:
+            if not isinstance(light, LightSpec):
+                raise ValueError(f"lights: expected LightSpec entries, got {light!r}")
+
+    def to_json(self) -> dict:
+        out = asdict(self)
+        out["lights"] = [light.to_json() for light in self.lights]
+        return out
+
+
+@dataclass(frozen=True)
+class RelightProgress:
+    """One event of `relight_run(on_progress=...)`; `done / total` never decreases."""
+
+    kind: Literal["start", "view", "video", "done"]
+    """'start' (inputs checked), 'view' (a view's files written), 'video' (a frame's MP4
+    written), 'done' (everything written)."""
+    done: int
+    """Views written so far, over all frames."""
+    total: int
+    """Views to write in all."""
+    frame: str | None = None
+    """The frame the event is about."""
+    path: str | None = None
+    """The file written (the view's PNG, or the MP4)."""
+
+
+class RelightStopped(Exception):
+    """`should_stop()` returned True between two views; the files already written stay."""
+
+    def __init__(self, done: int, total: int):
+        super().__init__(f"relight stopped after {done} of {total} views")
+        self.done, self.total = done, total
+
+
+@dataclass
+class _Plan:
+    settings: object
+    capture: object
+    frames: list[str]
+    env: object
+    capture_light: object
+    linear: bool
+    path_cams: list | None = None
+    fps: float = 24.0
+    files: list[str] = field(default_factory=list)
+
+
+def _prepare(run: Path, params: RelightParams, capture_dir) -> _Plan:
+    """Check every input before anything is written."""
+    from core.data import load_capture
+    from core.pipeline import parse_frames
+    from core.relight.envmap import load_envmap
+    from core.relight.gbuffer import run_render
+    from core.relight.lights import load_capture_light
+
+    settings = run_render(run, capture_dir)
+    capture = load_capture(settings.capture)
+    env = load_envmap(params.envmap, capture.up, params.rotation_deg, params.exposure)
+    cap_light = load_capture_light(params.capture_light, capture.up)
+    finished = [f for f in capture.frames if (run / "frames" / f / "gaussians.ply").is_file()]
+    if not finished:
+        raise ValueError(f"run_dir: {run} has no finished frame (no frames/<frame>/gaussians.ply)")
+    frames = parse_frames(params.frames, finished)
+    if params.camera_path is None and params.orbit is None:
+        from core.relight.cameras import select_cameras
+
+        select_cameras(capture.cameras, params.cameras)
+    first = capture.image_path(capture.frames[0], capture.cameras[0].id)
+    plan = _Plan(settings, capture, frames, env, cap_light,
+                 first is not None and first.suffix.lower() == ".exr", fps=params.fps)
+    if params.camera_path is not None:
+        from core.relight.cameras import load_camera_path
+
+        plan.path_cams, fps = load_camera_path(params.camera_path)
+        plan.fps = fps or params.fps
+    return plan
+
+
+def _subject_center(model) -> np.ndarray:
+    """Median of the means of the Gaussians opaque in the geometry branch (robust to floaters)."""
+    with torch.no_grad():
+        keep = model.opacity_g > 0.5
+        means = model.means[keep] if int(keep.sum()) >= 10 else model.means
+        return means.median(dim=0).values.double().numpy()
+
+
+def _frame_cameras(plan: _Plan, params: RelightParams, model) -> list:
+    from core.relight.cameras import orbit_cameras, select_cameras
+
+    ds = plan.settings.downscale
+    served = [c.scaled(max(1, round(c.width / ds)), max(1, round(c.height / ds)))
+              for c in plan.capture.cameras]
+    if plan.path_cams is not None:
+        return plan.path_cams
+    if params.orbit is not None:
+        return orbit_cameras(served, _subject_center(model), plan.capture.up, params.orbit)
+    ids = {c.id for c in select_cameras(plan.capture.cameras, params.cameras)}
+    return [c for c in served if c.id in ids]
+
+
+def relight_view(model, camera, plan: _Plan, params: RelightParams, *, ao: bool | None = None):
+    """(sRGB composited (H, W, 3) numpy, linear premultiplied RGBA (H, W, 4) numpy)."""
+    from core.relight.gbuffer import gbuffer, linear_to_srgb
+    from core.relight.shade import shade
+    from core.render import RenderCamera
+
+    g = gbuffer(model, RenderCamera.from_camera(camera), plan.settings,
+                linear_capture=plan.linear)
+    s = shade(g, plan.env.sh9, plan.capture_light, params.lights,
+              ao=params.ao if ao is None else ao)
+    bg = torch.tensor(plan.settings.background, dtype=torch.float32)
+    bg_srgb = linear_to_srgb(bg) if plan.linear else bg
+    srgb = linear_to_srgb(s.linear) * s.alpha + bg_srgb * (1 - s.alpha)
+    rgba = torch.cat([s.linear * s.alpha, s.alpha], dim=-1)
+    return srgb.numpy(), rgba.numpy()
+
+
+def relight_run(run_dir, out_dir, *, envmap, rotation_deg: float = 0.0, exposure: float = 0.0,
+                lights=(), cameras: str = "heldout", frames: str | None = None,
+                orbit: int | None = None, camera_path=None, capture_dir=None,
+                on_progress: Callable[[RelightProgress], None] | None = None,
+                should_stop: Callable[[], bool] | None = None, capture_light=None,
+                ao: bool = True, fps: float = 24.0) -> dict:
+    """Relight the run's frames (see `RelightParams` for the parameters; `lights` may hold
+    LightSpec or their JSON dicts); returns the record also written to OUT/relight.json.
+
+    Every input is checked before anything is written (ValueError naming the argument).
+    `on_progress` receives `RelightProgress` events; `should_stop` is asked before each view and
+    when it returns True `RelightStopped` is raised (files already written stay)."""
+    lights = tuple(lt if isinstance(lt, LightSpec) else LightSpec.from_json(lt) for lt in lights)
+    params = RelightParams(
+        envmap=str(envmap), rotation_deg=float(rotation_deg), exposure=float(exposure),
+        lights=lights, cameras=cameras, frames=frames, orbit=orbit,
+        camera_path=None if camera_path is None else str(camera_path),
+        capture_light=None if capture_light is None else str(capture_light), ao=ao, fps=fps)
+    return run_params(run_dir, out_dir, params, capture_dir=capture_dir,
+                      on_progress=on_progress, should_stop=should_stop)
+
+
+def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
+               on_progress=None, should_stop=None) -> dict:
+    """`relight_run` with the parameters as one `RelightParams`."""
+    from core.model import GaussianModel
+    from core.pipeline import write_json
+    from core.relight.output import Mp4Writer, to_uint8, write_views
+
+    start = time.perf_counter()
+    run, out = Path(run_dir), Path(out_dir)
+    plan = _prepare(run, params, capture_dir)
+    emit = on_progress or (lambda event: None)
+    models = {}
+    cams = {}
+    for frame in plan.frames:  # camera lists first, so `total` is known from the start
+        models[frame] = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
+        cams[frame] = _frame_cameras(plan, params, models[frame])
+    total = sum(len(c) for c in cams.values())
+    done, videos = 0, []
+    emit(RelightProgress("start", 0, total))
+    video = params.orbit is not None or params.camera_path is not None
+    for frame in plan.frames:
+        writer = None
+        try:
+            for cam in cams[frame]:
+                if should_stop is not None and should_stop():
+                    raise RelightStopped(done, total)
+                srgb, rgba = relight_view(models[frame], cam, plan, params)
+                files = write_views(out / frame / cam.id, srgb, rgba)
+                plan.files += [str(p.relative_to(out)) for p in files]
+                if video:
+                    writer = writer or Mp4Writer(out / f"{frame}.mp4", cam.width, cam.height,
+                                                 plan.fps)
+                    writer.write(to_uint8(srgb))
+                done += 1
+                emit(RelightProgress("view", done, total, frame, str(files[0])))
+        finally:
+            if writer is not None:
+                writer.close()
+        if writer is not None:
+            videos.append(f"{frame}.mp4")
+            emit(RelightProgress("video", done, total, frame, str(out / f"{frame}.mp4")))
+        del models[frame]
+    record = {"version": 1, "run": str(run.resolve()), "params": params.to_json(),
+              "envmap_sh9": plan.env.sh9.tolist(), "capture_light": plan.capture_light.source,
+              "frames": plan.frames, "views": done, "files": plan.files, "videos": videos,
+              "seconds": round(time.perf_counter() - start, 3)}
+    write_json(out / "relight.json", record)
+    emit(RelightProgress("done", done, total, path=str(out / "relight.json")))
+    return record
