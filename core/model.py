@@ -264,14 +264,21 @@ class GaussianModel:
             return R[torch.arange(len(self)), :, axis]
 
     def init_geometry(self, camera_centers: Tensor,
-                      optimizer: torch.optim.Optimizer | None = None) -> None:
+                      optimizer: torch.optim.Optimizer | None = None,
+                      seen_from: Tensor | None = None) -> None:
         """Start of stage 2 (DESIGN.md section 5): opacity_g becomes its own parameter, a copy of
-        opacity_c; normals are the shortest axes, flipped towards the mean direction to the
-        camera centres (K, 3)."""
+        opacity_c; normals are the shortest axes, flipped to face the cameras: those that see
+        the Gaussian when `seen_from` (N, 3) (sum of directions to them,
+        core.render.seen_directions) is non-zero, else the mean direction to all `camera_centers`
+        (K, 3), which around a subject filmed from all sides is nearly vertical and so decides
+        the side of a flank by chance."""
         with torch.no_grad():
             axes = self.shortest_axes()
             to_cams = torch.nn.functional.normalize(
                 camera_centers.float()[None, :, :] - self.means[:, None, :], dim=-1).mean(dim=1)
+            if seen_from is not None:
+                seen = seen_from.norm(dim=1, keepdim=True) > 1e-6
+                to_cams = torch.where(seen, seen_from, to_cams)
             sign = torch.where((axes * to_cams).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
             self.assign("normals", axes * sign, optimizer)
             self.assign("opacity_g", self.params["opacity_c"].detach().clone(), optimizer)

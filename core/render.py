@@ -18,7 +18,7 @@ import native
 from core.model import GaussianModel
 from native.types import RasterOutput
 
-__all__ = ["Render", "RenderCamera", "eval_sh", "render", "safe_divide"]
+__all__ = ["Render", "RenderCamera", "eval_sh", "render", "safe_divide", "seen_directions"]
 
 # Real SH constants of the 3DGS implementation (utils/sh_utils.py, after the PlenOctree code).
 SH_C0 = 0.28209479177387814
@@ -153,3 +153,31 @@ def render(
         visibility = out.color.new_zeros(camera.height, camera.width, 1)
     return Render(rgb=out.color, normal=normal, depth=safe_divide(out.depth, out.alpha_g),
                   visibility=visibility, alpha_c=out.alpha_c, alpha_g=out.alpha_g, raster=out)
+
+
+@torch.no_grad()
+def seen_directions(model: GaussianModel, cameras: list[RenderCamera], *, eps2d: float = 0.1,
+                    antialiased: bool = True) -> Tensor:
+    """(N, 3): per Gaussian, the sum of unit directions towards the cameras that see its centre,
+    zero for a Gaussian no camera sees. A camera sees it when the centre projects into the
+    image and its depth is at most the rendered expected depth there (appearance opacity) plus
+    twice its largest scale: the surface in front of a Gaussian on the far side of a body hides
+    it, while a Gaussian inside the surface's own blended shell still counts."""
+    out = torch.zeros_like(model.means)
+    slack = 2.0 * model.scales.max(dim=1).values
+    for camera in cameras:
+        # Tied opacities: the geometry alpha that weights the depth is the appearance one.
+        r = render(model, camera, sh_degree=0, geometry=True, tie_opacity=True, eps2d=eps2d,
+                   antialiased=antialiased)
+        depth = r.depth[..., 0]
+        uv = r.raster.means2d.floor().long()
+        z = model.means @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
+        inside = ((uv[:, 0] >= 0) & (uv[:, 0] < camera.width) & (uv[:, 1] >= 0)
+                  & (uv[:, 1] < camera.height) & (z[:, 2] > 0))
+        u = uv[:, 0].clamp(0, camera.width - 1)
+        v = uv[:, 1].clamp(0, camera.height - 1)
+        d = depth[v, u]
+        seen = inside & (d > 0) & (z[:, 2] <= d + slack)
+        to_cam = torch.nn.functional.normalize(camera.center[None] - model.means, dim=-1)
+        out += seen[:, None] * to_cam
+    return out

@@ -307,8 +307,12 @@ class Trainer:
 
     def _before_step(self, p: StagePlan) -> None:
         if p.start_geometry:
+            from core.render import seen_directions
+
             centers = torch.stack([c.center for c in self.cameras])
-            self.model.init_geometry(centers, self.optimizer)
+            seen = seen_directions(self.model, self.cameras, eps2d=self.config.eps2d,
+                                   antialiased=self.config.antialiased)
+            self.model.init_geometry(centers, self.optimizer, seen)
         if p.bake_ao:
             if self.ao_baker is None:
                 self.notes.append(f"step {p.step}: AO baking skipped (bake_ao is off); "

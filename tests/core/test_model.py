@@ -121,6 +121,37 @@ def test_init_geometry_normals_face_the_cameras(side: float):
     torch.testing.assert_close(m.params["opacity_g"], m.params["opacity_c"])
 
 
+def test_init_geometry_faces_the_cameras_that_see_each_gaussian():
+    """Two parallel opaque discs facing +-x, a camera on each side: each disc's normal faces the
+    camera in front of it. The mean direction to both cameras gets both wrong here (it leans
+    towards the farther camera's side by a hair)."""
+    from core.render import RenderCamera, seen_directions
+    from core.synth.generate import look_at
+
+    m = random_model(2)
+    with torch.no_grad():
+        m.params["means"].copy_(torch.tensor([[0.2, 0.0, 0.0], [-0.2, 0.0, 0.0]]))
+        m.params["quats"].copy_(torch.tensor([[1.0, 0, 0, 0]] * 2))
+        m.params["scales"].copy_(torch.log(torch.tensor([[0.005, 0.15, 0.15]] * 2)))
+        m.params["opacity_c"].fill_(6.0)  # logit: 0.998, opaque
+    K = np.array([[40.0, 0, 32], [0, 40.0, 32], [0, 0, 1]])
+
+    def camera(eye):
+        w2c = look_at(np.asarray(eye, float), np.zeros(3), np.array([0.0, 0, 1]))
+        return RenderCamera.from_camera(type("C", (), {"world_to_camera": w2c, "K": K,
+                                                        "width": 64, "height": 64})())
+
+    cams = [camera([3.0, 0.3, 0.0]), camera([-3.0, 0.3, 0.0])]
+    seen = seen_directions(m, cams)
+    # Each disc hides the other's centre from the camera on its side.
+    assert seen[0, 0] > 0.9 and seen[1, 0] < -0.9
+    centers = torch.stack([c.center for c in cams])
+    m.init_geometry(centers, seen_from=seen)
+    torch.testing.assert_close(m.normals, torch.tensor([[1.0, 0, 0], [-1.0, 0, 0]]))
+    m.init_geometry(centers)
+    torch.testing.assert_close(m.normals, torch.tensor([[-1.0, 0, 0], [1.0, 0, 0]]))
+
+
 def test_ply_round_trip_is_bit_identical(tmp_path):
     m = random_model(11, seed=4)
     path = tmp_path / "g.ply"
