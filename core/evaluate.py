@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["evaluate_run", "normal_agreement"]
+__all__ = ["evaluate_run", "normal_agreement", "rgb_scores"]
 
 
 def _read_png(path: Path) -> np.ndarray:
@@ -61,12 +61,26 @@ def _reduce_normals(normal: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return np.where(ok, mean / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
 
-def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np.ndarray | None,
-                  background: np.ndarray, linear: bool) -> dict:
+def _psnr(mse: float) -> float:
+    return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
+
+
+def rgb_scores(rgb: np.ndarray, target: np.ndarray, foreground: np.ndarray) -> dict:
+    """{"psnr" over `foreground` (H, W) pixels, "psnr_full" over the image, "ssim" (11x11
+    Gaussian window) over the image} of images (H, W, 3) in 0..1."""
     import torch
 
     from core.losses import ssim
 
+    err = (rgb - target) ** 2
+    return {"psnr": _psnr(float(err[foreground].mean()) if foreground.any() else 0.0),
+            "psnr_full": _psnr(float(err.mean())),
+            "ssim": float(ssim(torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
+                               torch.from_numpy(np.ascontiguousarray(target, np.float32))))}
+
+
+def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np.ndarray | None,
+                  background: np.ndarray, linear: bool) -> dict:
     image = sample.image.numpy()
     mask = None if sample.mask is None else sample.mask.numpy()
     if linear:
@@ -75,12 +89,7 @@ def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np
         image = linear_to_srgb(image).astype(np.float32)
     target = image if mask is None else image * mask + background * (1 - mask)
     fg = np.ones(target.shape[:2], bool) if mask is None else mask[..., 0] > 0.5
-    mse = float(((rgb - target) ** 2)[fg].mean()) if fg.any() else 0.0
-    full = float(((rgb - target) ** 2).mean())
-    out = {"camera": sample.camera_id,
-           "psnr": 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse),
-           "psnr_full": 100.0 if full <= 1e-10 else -10.0 * math.log10(full),
-           "ssim": float(ssim(torch.from_numpy(rgb), torch.from_numpy(target)))}
+    out = {"camera": sample.camera_id, **rgb_scores(rgb, target, fg)}
     if gt_normal is not None:
         if gt_normal.shape[:2] != image.shape[:2]:  # a downscaled run: average, renormalise
             gt_normal = _reduce_normals(gt_normal, image.shape[:2])
@@ -150,9 +159,66 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     result = {**_summary(rows), "lpips": None, "chamfer": None,
               "normal_reference": rows[0]["normal_reference"], "capture": str(capture_dir),
               "views": len(rows), "per_frame": per_frame}
+    result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame))
     from core.sequence.metrics import temporal_metrics  # flicker, per-frame series (sequences)
 
     result["temporal"] = temporal_metrics(run, capture_dir, frames, held, per_frame)
     result["flicker"] = result["temporal"]["flicker"]
     write_json(run / "eval.json", result)
     return result
+
+
+RELIT_KEYS = ("psnr", "psnr_full", "ssim", "psnr_no_ao", "psnr_full_no_ao", "ssim_no_ao")
+
+
+def _mesh_scores(run: Path, capture_dir: Path, frame: str) -> dict | None:
+    """Chamfer and normal consistency of RUN/meshes/<frame>.ply against gt/meshes/<frame>.ply
+    (both in the capture's original coordinates), None when either is missing."""
+    pred, ref = run / "meshes" / f"{frame}.ply", capture_dir / "gt" / "meshes" / f"{frame}.ply"
+    if not (pred.is_file() and ref.is_file()):
+        return None
+    import trimesh
+
+    from core.mesh import mesh_distance
+
+    return mesh_distance(trimesh.load(pred, force="mesh"), trimesh.load(ref, force="mesh"))
+
+
+def _relight_and_meshes(run: Path, capture_dir: Path, frames: list[str], held: list[str],
+                        downscale: float, per_frame: list[dict]) -> dict:
+    """Relit held-out views against the second light's ground truth, meshes against the
+    ground-truth meshes (added to each `per_frame` entry), and RUN/contact_sheet.png (the first
+    and last frames' held-out views)."""
+    from core.relight.metrics import relight_ground_truth, relit_heldout
+    from core.relight.sheet import contact_sheet
+
+    relit_rows, meshes, pictures = [], [], {}
+    shown = list(dict.fromkeys([frames[0], frames[-1]]))
+    for entry in per_frame:
+        frame = entry["frame"]
+        relit = (relit_heldout(run, capture_dir, frame, held, downscale)
+                 if (run / "frames" / frame / "gaussians.ply").is_file()
+                 else {"scores": [], "pictures": {cam: {} for cam in held}})
+        relit_rows += relit["scores"]
+        entry["relight"] = ({**{k: _mean(relit["scores"], k) for k in RELIT_KEYS},
+                             "views": relit["scores"]} if relit["scores"] else None)
+        entry["mesh"] = _mesh_scores(run, capture_dir, frame)
+        if entry["mesh"] is not None:
+            meshes.append(entry["mesh"])
+        if frame in shown:
+            pictures.update({(frame, cam): p for cam, p in relit["pictures"].items()})
+    truth = relight_ground_truth(capture_dir)
+    out: dict = {"relight": None, "mesh": None}
+    if relit_rows:
+        out["relight"] = {**{k: _mean(relit_rows, k) for k in RELIT_KEYS},
+                          "envmap": str(truth["envmap"]),
+                          "capture_light": str(truth["capture_light"]),
+                          "note": "relit under the capture's second light (gt/lights.json), "
+                                  "*_no_ao: the baseline without the AO term"}
+    if meshes:
+        keys = ("chamfer", "chamfer_relative", "normal_consistency")
+        out["mesh"] = {k: _mean(meshes, k) for k in keys}
+        out["chamfer"] = out["mesh"]["chamfer"]
+    sheet = contact_sheet(capture_dir, run, list(pictures), pictures, run / "contact_sheet.png")
+    out["contact_sheet"] = sheet.name
+    return out

@@ -24,7 +24,7 @@ import torch
 from core.sequence.config import SequenceConfig
 from core.train import Callback, CheckpointCallback, StepInfo, TrainConfig, Trainer, train_config
 
-__all__ = ["Progress", "RunConfig", "Stopped", "apply_overrides", "parse_frames", "reconstruct",
+__all__ = ["Progress", "RunConfig", "RunMesh", "Stopped", "apply_overrides", "parse_frames", "reconstruct",
            "render_heldout", "resolve_config", "write_json"]
 
 # Geometry coverage above which a pixel gets a normal and AO in the pictures (else black): low
@@ -78,6 +78,29 @@ class Stopped(Exception):
 
 
 @dataclass(frozen=True)
+class RunMesh:
+    """The meshes `reconstruct` writes for every finished frame (RUN/meshes/<frame>.<fmt>, TSDF
+    of the geometry branch, DESIGN.md section 5; `dgs mesh` makes others afterwards)."""
+
+    enabled: bool = True
+    """Mesh each frame as soon as it is finished."""
+    resolution: int = 512
+    """Voxels along the scene diagonal (DESIGN.md: 512)."""
+    formats: str = "ply"
+    """Comma-separated file formats: any of ply, obj, glb."""
+
+    def config(self):
+        """The `core.mesh.MeshConfig` these settings stand for (ValueError when invalid)."""
+        from core.mesh import MeshConfig
+
+        return MeshConfig(resolution=self.resolution,
+                          formats=tuple(f.strip() for f in self.formats.split(",") if f.strip()))
+
+    def __post_init__(self) -> None:
+        self.config()
+
+
+@dataclass(frozen=True)
 class RunConfig:
     """What a run needs beyond one frame's training configuration."""
 
@@ -97,6 +120,8 @@ class RunConfig:
     downscale: float = 1.0
     """Train on the images reduced by this factor (area averaging, intrinsics scaled); held-out
     views are rendered and scored at the same reduced size (as papers do with images_4)."""
+    mesh: RunMesh = field(default_factory=RunMesh)
+    """Meshes written with every finished frame."""
 
     def __post_init__(self) -> None:
         if not self.downscale >= 1.0:
@@ -160,7 +185,11 @@ def apply_overrides(obj, overrides: dict, where: str = "config"):
 def resolve_config(preset: str, config_file: str | os.PathLike[str] | None = None) -> RunConfig:
     """The preset's configuration with a JSON file's overrides (same shape as RUN/config.json's
     `train`, `checkpoint_every`, ... keys)."""
-    cfg = RunConfig(train=train_config(preset), checkpoint_every=100 if preset == "test" else 1000)
+    test = preset == "test"
+    # The test preset's tiny captures mesh at 128 voxels along the diagonal (about a second a
+    # frame on a CPU instead of 15).
+    cfg = RunConfig(train=train_config(preset), checkpoint_every=100 if test else 1000,
+                    mesh=RunMesh(resolution=128) if test else RunMesh())
     if config_file is None:
         return cfg
     path = Path(config_file)
@@ -403,6 +432,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     ids = None if previous is None else trainer.ids
     save_frame(out / "gaussians.ply", trainer.model, ids)
     render_heldout(capture, frame, trainer, run / "renders" / frame, cfg.downscale)
+    mesh = _mesh_frame(run, capture, frame, cfg.mesh)
     last = history.records[-1] if history.records else {}
     return {
         "iterations": _iterations(trainer),
@@ -418,8 +448,21 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         "next_track_id": len(trainer.model) if previous is None else trainer.group_next_id,
         "new_tracks": None if previous is None else trainer.state.born,
         "notes": trainer.notes,
+        "mesh": mesh,
         "history": _thin(history.records),
     }
+
+
+def _mesh_frame(run: Path, capture, frame: str, settings: RunMesh) -> dict | None:
+    """RUN/meshes/<frame>.<fmt> (kept when a resumed run already wrote them); its statistics, or
+    {"error": ...} when the frame has no surface to mesh (the run goes on)."""
+    if not settings.enabled:
+        return None
+    from core.mesh import mesh_run
+
+    result = mesh_run(run, frames=[frame], config=settings.config(), capture_dir=capture.root,
+                      skip_existing=True, errors="record")
+    return result["frames"].get(frame)
 
 
 def _thin(records: list[dict], keep: int = 2000) -> list[dict]:

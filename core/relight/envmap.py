@@ -173,12 +173,19 @@ def check_radiance(image: np.ndarray, where: str) -> np.ndarray:
 
 def load_envmap(path, up=(0.0, 0.0, 1.0), rotation_deg: float = 0.0,
                 exposure: float = 0.0) -> EnvMap:
-    """Read and validate an equirectangular .exr or .hdr map; errors name the file and problem."""
+    """Read and validate an equirectangular .exr or .hdr map (or a built-in one, 'builtin:NAME',
+    core.relight.presets); errors name the file and the problem."""
     for name, value in (("rotation_deg", rotation_deg), ("exposure", exposure)):
         if not math.isfinite(float(value)):
             raise ValueError(f"{name}: expected a finite number, got {value!r}")
-    path = Path(path)
-    rgb = check_radiance(_read(path), str(path)) * np.float32(2.0 ** float(exposure))
+    from core.relight.presets import builtin_radiance, is_builtin
+
+    if is_builtin(path):  # builtin:studio, builtin:sunset, builtin:neon (core.relight.presets)
+        rgb = builtin_radiance(str(path))
+    else:
+        path = Path(path)
+        rgb = check_radiance(_read(path), str(path))
+    rgb = rgb * np.float32(2.0 ** float(exposure))
     frame = up_frame(up)  # validates `up`
     return EnvMap(str(path), rgb, tuple(float(v) for v in frame[2]), float(rotation_deg),
                   float(exposure), project_sh9(rgb, frame[2], rotation_deg))

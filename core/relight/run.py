@@ -12,14 +12,21 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import torch
 
-from core.relight.lights import LightSpec
+from core.relight.lights import CaptureLight, LightSpec
 
-__all__ = ["RelightParams", "RelightProgress", "RelightStopped", "relight_run"]
+if TYPE_CHECKING:
+    from core.data.capture import Capture
+    from core.relight.envmap import EnvMap
+    from core.relight.gbuffer import RunRender
+
+__all__ = ["Plan", "RelightParams", "RelightProgress", "RelightStopped", "compose",
+           "frame_cameras", "prepare", "relight_run", "relight_view", "run_params",
+           "view_gbuffer"]
 
 
 @dataclass(frozen=True)
@@ -95,19 +102,30 @@ class RelightStopped(Exception):
 
 
 @dataclass
-class _Plan:
-    settings: object
-    capture: object
+class Plan:
+    """Everything a relight needs, checked (`prepare`)."""
+
+    settings: RunRender
+    """How the run renders its models."""
+    capture: Capture
+    """The run's capture."""
     frames: list[str]
-    env: object
-    capture_light: object
+    """Frames to relight."""
+    env: EnvMap
+    """The environment map."""
+    capture_light: CaptureLight
+    """The lighting the albedo is divided by."""
     linear: bool
+    """The capture stores linear colour (EXR); else sRGB."""
     path_cams: list | None = None
+    """Cameras of a camera path, when one was given."""
     fps: float = 24.0
+    """MP4 frame rate."""
     files: list[str] = field(default_factory=list)
+    """Files written so far (relative to the output folder)."""
 
 
-def _prepare(run: Path, params: RelightParams, capture_dir) -> _Plan:
+def prepare(run: Path, params: RelightParams, capture_dir) -> Plan:
     """Check every input before anything is written."""
     from core.data import load_capture
     from core.pipeline import parse_frames
@@ -128,8 +146,8 @@ def _prepare(run: Path, params: RelightParams, capture_dir) -> _Plan:
 
         select_cameras(capture.cameras, params.cameras)
     first = capture.image_path(capture.frames[0], capture.cameras[0].id)
-    plan = _Plan(settings, capture, frames, env, cap_light,
-                 first is not None and first.suffix.lower() == ".exr", fps=params.fps)
+    plan = Plan(settings, capture, frames, env, cap_light,
+                first is not None and first.suffix.lower() == ".exr", fps=params.fps)
     if params.camera_path is not None:
         from core.relight.cameras import load_camera_path
 
@@ -146,7 +164,7 @@ def _subject_center(model) -> np.ndarray:
         return means.median(dim=0).values.double().numpy()
 
 
-def _frame_cameras(plan: _Plan, params: RelightParams, model) -> list:
+def frame_cameras(plan: Plan, params: RelightParams, model) -> list:
     from core.relight.cameras import orbit_cameras, select_cameras
 
     ds = plan.settings.downscale
@@ -160,21 +178,44 @@ def _frame_cameras(plan: _Plan, params: RelightParams, model) -> list:
     return [c for c in served if c.id in ids]
 
 
-def relight_view(model, camera, plan: _Plan, params: RelightParams, *, ao: bool | None = None):
-    """(sRGB composited (H, W, 3) numpy, linear premultiplied RGBA (H, W, 4) numpy)."""
-    from core.relight.gbuffer import gbuffer, linear_to_srgb
-    from core.relight.shade import shade
+def view_gbuffer(model, camera, plan: Plan):
+    """The G-buffer of `model` seen by `camera` (core.data.Camera) with the run's settings."""
+    from core.relight.gbuffer import gbuffer
     from core.render import RenderCamera
 
-    g = gbuffer(model, RenderCamera.from_camera(camera), plan.settings,
-                linear_capture=plan.linear)
-    s = shade(g, plan.env.sh9, plan.capture_light, params.lights,
-              ao=params.ao if ao is None else ao)
+    return gbuffer(model, RenderCamera.from_camera(camera), plan.settings,
+                   linear_capture=plan.linear)
+
+
+def compose(g, plan: Plan, env_sh9, lights=(), *, ao: bool = True,
+            match_exposure: bool = False):
+    """Shade G-buffer `g` under `env_sh9` (9, 3) plus `lights`: (sRGB composited on the run's
+    background (H, W, 3) numpy, linear premultiplied RGBA (H, W, 4) numpy). `match_exposure`
+    scales the result so that its mean luminance over the covered pixels is that of the
+    reconstruction under the capture's own light (a camera's auto exposure: pictures under maps
+    much brighter or darker than the stage stay readable)."""
+    from core.relight.gbuffer import linear_to_srgb
+    from core.relight.shade import shade
+
+    s = shade(g, env_sh9, plan.capture_light, lights, ao=ao)
+    linear = s.linear
+    if match_exposure:
+        w = (s.alpha > 0.5).float()
+        lum = torch.tensor([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance weights
+        have = float((w * ((g.base + g.residual).clamp_min(0) @ lum)[..., None]).sum())
+        got = float((w * (linear @ lum)[..., None]).sum())
+        linear = linear * (have / got if got > 1e-8 and have > 0 else 1.0)
     bg = torch.tensor(plan.settings.background, dtype=torch.float32)
     bg_srgb = linear_to_srgb(bg) if plan.linear else bg
-    srgb = linear_to_srgb(s.linear) * s.alpha + bg_srgb * (1 - s.alpha)
-    rgba = torch.cat([s.linear * s.alpha, s.alpha], dim=-1)
+    srgb = linear_to_srgb(linear) * s.alpha + bg_srgb * (1 - s.alpha)
+    rgba = torch.cat([linear * s.alpha, s.alpha], dim=-1)
     return srgb.numpy(), rgba.numpy()
+
+
+def relight_view(model, camera, plan: Plan, params: RelightParams, *, ao: bool | None = None):
+    """(sRGB composited (H, W, 3) numpy, linear premultiplied RGBA (H, W, 4) numpy)."""
+    return compose(view_gbuffer(model, camera, plan), plan, plan.env.sh9, params.lights,
+                   ao=params.ao if ao is None else ao)
 
 
 def relight_run(run_dir, out_dir, *, envmap, rotation_deg: float = 0.0, exposure: float = 0.0,
@@ -208,13 +249,13 @@ def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
 
     start = time.perf_counter()
     run, out = Path(run_dir), Path(out_dir)
-    plan = _prepare(run, params, capture_dir)
+    plan = prepare(run, params, capture_dir)
     emit = on_progress or (lambda event: None)
     models = {}
     cams = {}
     for frame in plan.frames:  # camera lists first, so `total` is known from the start
         models[frame] = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
-        cams[frame] = _frame_cameras(plan, params, models[frame])
+        cams[frame] = frame_cameras(plan, params, models[frame])
     total = sum(len(c) for c in cams.values())
     done, videos = 0, []
     emit(RelightProgress("start", 0, total))

@@ -340,15 +340,21 @@ def test_cli_eval_bad_input(tmp_path: Path, capsys: pytest.CaptureFixture):
     assert rc != 0 and "not a run directory" in err and len(err.strip().splitlines()) == 1
 
 
-def test_demo_contact_sheet(run: Path, capture: Path, tmp_path: Path):
-    from core.commands_demo import COLUMNS, contact_sheet
+def test_contact_sheet(run: Path, capture: Path, tmp_path: Path):
+    from core.relight.sheet import LABEL_HEIGHT, contact_sheet
 
-    out = contact_sheet(capture, run, "000000", ["cam00"], tmp_path / "sheet.png", scale=2)
+    relit = {("000000", "cam00"): {"builtin:studio": np.full((32, 32, 3), 0.5)}}
+    out = contact_sheet(capture, run, [("000000", "cam00")], relit, tmp_path / "sheet.png",
+                        scale=2)
     sheet = np.asarray(Image.open(out).convert("RGB"))
-    assert sheet.shape == (16 + 64, len(COLUMNS) * 64, 3)
-    body = sheet[16:]
-    tiles = [body[:, i * 64:(i + 1) * 64] for i in range(len(COLUMNS))]
+    columns = ["capture", "render", "normal", "AO", "studio", "ground-truth normal"]
+    assert sheet.shape == (LABEL_HEIGHT + 64, len(columns) * 64, 3)
+    body = sheet[LABEL_HEIGHT:]
+    tiles = [body[:, i * 64:(i + 1) * 64] for i in range(len(columns))]
     assert all(t.max() > 0 for t in tiles)  # every column shows something
-    # The render column is the run's rgb picture, upscaled 2x nearest.
+    # The render column is the run's rgb picture, upscaled 2x nearest; the relit one as given.
     rgb = np.asarray(Image.open(run / "renders" / "000000" / "cam00_rgb.png"))
     assert np.array_equal(tiles[1][::2, ::2], rgb)
+    assert (tiles[4] == 128).all()
+    with pytest.raises(ValueError, match="views"):
+        contact_sheet(capture, run, [], {}, tmp_path / "none.png")
