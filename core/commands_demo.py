@@ -19,12 +19,13 @@ __all__ = ["DEMO_OVERRIDES", "DEMO_SYNTH", "demo_capture", "register", "report",
 
 # Between the `test` (500) and `fast` (7.5k) presets: 2500 steps take about two minutes on two
 # CPU cores for 14 training views of 128x128, long enough for the geometry branch to settle
-# (the paper preset's stage proportions).
+# (the paper preset's stage proportions). The mesh at DESIGN.md's 512 voxels per diagonal (the
+# test preset's own 128 are for tiny test captures).
 DEMO_OVERRIDES = {"train": {"schedule": {
     "iterations": 2500, "stage2_start": 625, "stage3_start": 1875, "sh_interval": 75,
     "densify_from": 40, "densify_until": 1500, "densify_interval": 40, "reset_interval": 625},
     "init_points": 5000, "rates": {"means_decay_steps": 2500},
-    "densify": {"max_gaussians": 20000}}}
+    "densify": {"max_gaussians": 20000}}, "mesh": {"resolution": 512}}
 # The built-in capture (core.synth.SynthConfig fields).
 DEMO_SYNTH = {"frames": 1, "views": 16, "width": 128, "height": 128, "seed": 0, "priors": True}
 

@@ -18,7 +18,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("relight", help="relit renders of a run under an environment map")
     p.add_argument("run", help="run directory (of dgs reconstruct)")
     p.add_argument("--envmap", required=True, metavar="FILE",
-                   help="equirectangular environment map, .exr or .hdr (width = 2 x height)")
+                   help="equirectangular environment map, .exr or .hdr (width = 2 x height), "
+                        "or a built-in one: builtin:studio, builtin:sunset, builtin:neon")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--rotation", type=float, default=0.0, metavar="DEG",
                    help="turn the map about the capture's up axis (degrees, right-hand rule)")
@@ -28,7 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="add a light: directional:X,Y,Z:INTENSITY[:R,G,B] (X,Y,Z towards it) or "
                         "point:X,Y,Z:INTENSITY[:R,G,B] (its position); repeatable")
     p.add_argument("--frames", default=None, metavar="A:B",
-                   help="slice of the run's finished frames (default all)")
+                   help="slice of the run's finished frames (default all); with several, "
+                        "also OUT/videos/<camera>.mp4 over the frames")
     p.add_argument("--cameras", default="heldout", metavar="WHICH",
                    help="heldout (default), all, or camera ids ID,ID")
     path = p.add_mutually_exclusive_group()

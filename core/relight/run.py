@@ -2,8 +2,9 @@
 jobs call), with progress events and a cooperative stop, in the manner of core.pipeline.
 
 Output (DESIGN.md 3.2): OUT/<frame>/<camera>.png (sRGB) and .exr (linear, premultiplied RGBA);
-with an orbit or a camera path also OUT/<frame>.mp4; OUT/relight.json records the parameters,
-the map's SH9 coefficients and the files.
+with an orbit or a camera path also OUT/<frame>.mp4 (the views around one frame); with capture
+cameras over several frames OUT/videos/<camera>.mp4 (the performance seen by that camera);
+OUT/relight.json records the parameters, the map's SH9 coefficients and the files.
 """
 
 from __future__ import annotations
@@ -81,7 +82,7 @@ class RelightProgress:
     """One event of `relight_run(on_progress=...)`; `done / total` never decreases."""
 
     kind: Literal["start", "view", "video", "done"]
-    """'start' (inputs checked), 'view' (a view's files written), 'video' (a frame's MP4
+    """'start' (inputs checked), 'view' (a view's files written), 'video' (an MP4
     written), 'done' (everything written)."""
     done: int
     """Views written so far, over all frames."""
@@ -251,25 +252,21 @@ def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
     run, out = Path(run_dir), Path(out_dir)
     plan = prepare(run, params, capture_dir)
     emit = on_progress or (lambda event: None)
-    models = {}
-    cams = {}
-    for frame in plan.frames:  # camera lists first, so `total` is known from the start
-        models[frame] = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
-        cams[frame] = frame_cameras(plan, params, models[frame])
-    total = sum(len(c) for c in cams.values())
+    total = _views_per_frame(plan, params) * len(plan.frames)
     done, videos = 0, []
     emit(RelightProgress("start", 0, total))
-    video = params.orbit is not None or params.camera_path is not None
-    for frame in plan.frames:
+    orbit = params.orbit is not None or params.camera_path is not None
+    for frame in plan.frames:  # one model in memory at a time
+        model = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
         writer = None
         try:
-            for cam in cams[frame]:
+            for cam in frame_cameras(plan, params, model):
                 if should_stop is not None and should_stop():
                     raise RelightStopped(done, total)
-                srgb, rgba = relight_view(models[frame], cam, plan, params)
+                srgb, rgba = relight_view(model, cam, plan, params)
                 files = write_views(out / frame / cam.id, srgb, rgba)
                 plan.files += [str(p.relative_to(out)) for p in files]
-                if video:
+                if orbit:
                     writer = writer or Mp4Writer(out / f"{frame}.mp4", cam.width, cam.height,
                                                  plan.fps)
                     writer.write(to_uint8(srgb))
@@ -281,7 +278,8 @@ def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
         if writer is not None:
             videos.append(f"{frame}.mp4")
             emit(RelightProgress("video", done, total, frame, str(out / f"{frame}.mp4")))
-        del models[frame]
+    if not orbit and len(plan.frames) > 1:
+        videos += _camera_videos(out, plan, params, emit, done, total)
     record = {"version": 1, "run": str(run.resolve()), "params": params.to_json(),
               "envmap_sh9": plan.env.sh9.tolist(), "capture_light": plan.capture_light.source,
               "frames": plan.frames, "views": done, "files": plan.files, "videos": videos,
@@ -289,3 +287,33 @@ def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
     write_json(out / "relight.json", record)
     emit(RelightProgress("done", done, total, path=str(out / "relight.json")))
     return record
+
+
+def _views_per_frame(plan: Plan, params: RelightParams) -> int:
+    from core.relight.cameras import select_cameras
+
+    if plan.path_cams is not None:
+        return len(plan.path_cams)
+    if params.orbit is not None:
+        return params.orbit
+    return len(select_cameras(plan.capture.cameras, params.cameras))
+
+
+def _camera_videos(out: Path, plan: Plan, params: RelightParams, emit, done: int,
+                   total: int) -> list[str]:
+    """OUT/videos/<camera>.mp4: each capture camera's view over the relit frames (the performance
+    under the new light), encoded from the PNGs written."""
+    from core.data.images import read_image
+    from core.relight.cameras import select_cameras
+    from core.relight.output import Mp4Writer, to_uint8
+
+    names = []
+    for cam in select_cameras(plan.capture.cameras, params.cameras):
+        path = out / "videos" / f"{cam.id}.mp4"
+        first = read_image(out / plan.frames[0] / f"{cam.id}.png")
+        with Mp4Writer(path, first.shape[1], first.shape[0], plan.fps) as writer:
+            for frame in plan.frames:
+                writer.write(to_uint8(read_image(out / frame / f"{cam.id}.png")[..., :3]))
+        names.append(f"videos/{cam.id}.mp4")
+        emit(RelightProgress("video", done, total, None, str(path)))
+    return names

@@ -358,3 +358,15 @@ def test_contact_sheet(run: Path, capture: Path, tmp_path: Path):
     assert (tiles[4] == 128).all()
     with pytest.raises(ValueError, match="views"):
         contact_sheet(capture, run, [], {}, tmp_path / "none.png")
+
+
+def test_relight_over_frames_writes_a_video_per_camera(run: Path, tmp_path: Path):
+    from core.relight import relight_run
+    from core.relight.output import read_mp4_info
+
+    record = relight_run(run, tmp_path / "relit", envmap="builtin:studio", cameras="cam01,cam02",
+                         fps=5)
+    assert record["frames"] == ["000000", "000001"] and record["views"] == 4
+    assert record["videos"] == ["videos/cam01.mp4", "videos/cam02.mp4"]
+    info = read_mp4_info(tmp_path / "relit" / "videos" / "cam01.mp4")
+    assert info["frames"] == 2 and (info["width"], info["height"]) == (32, 32)
