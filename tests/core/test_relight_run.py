@@ -220,3 +220,27 @@ def test_eval_scores_relit_views_meshes_and_draws_the_sheet(tiny_run: Path, tmp_
     # capture, render, normal, AO, relit (gt light), gt relit, 3 built-in maps, gt normal.
     assert sheet.shape[1] == 10 * 96 and sheet.shape[0] == 16 + 96
     assert json.loads((run / "eval.json").read_text())["relight"]["psnr"] == relit["psnr"]
+
+
+def test_meshes_are_written_in_the_source_coordinates(tiny_run: Path, synth_capture: Path,
+                                                      tmp_path: Path):
+    """A capture whose import record maps its world to the source's (here a shift and a turn)
+    gets meshes in the source's coordinates: the same surface, moved by that transform."""
+    import trimesh
+
+    from core.mesh import MeshConfig, mesh_run
+
+    capture = tmp_path / "capture"
+    shutil.copytree(synth_capture, capture, ignore=shutil.ignore_patterns("gt"))
+    doc = json.loads((capture / "capture.json").read_text())
+    turn = np.array([[0.0, -1, 0, 0.5], [1, 0, 0, -2.0], [0, 0, 1, 3.0], [0, 0, 0, 1]])
+    doc["import"] = {"format": "test", "to_source": {"source_from_world": turn.tolist()}}
+    (capture / "capture.json").write_text(json.dumps(doc))
+    config = MeshConfig(resolution=64, colors=False)
+    plain = mesh_run(tiny_run, tmp_path / "plain", config=config)
+    moved = mesh_run(tiny_run, tmp_path / "moved", config=config, capture_dir=capture)
+    assert plain["to_source"] is None and np.allclose(moved["to_source"], turn)
+    a = trimesh.load(tmp_path / "plain" / "000000.ply", force="mesh")
+    b = trimesh.load(tmp_path / "moved" / "000000.ply", force="mesh")
+    np.testing.assert_allclose(b.vertices, a.vertices @ turn[:3, :3].T + turn[:3, 3], atol=1e-5)
+    assert b.volume == pytest.approx(a.volume)  # a rotation keeps the faces outward
