@@ -130,7 +130,8 @@ class Upload(Base):
 
 
 class Job(Base):
-    """A pipeline run on a capture, with its progress, lease and outcome."""
+    """A pipeline run on a capture (a relight job: on a reconstruction's results), with its
+    progress, lease and outcome."""
 
     __tablename__ = "jobs"
     id: Mapped[str] = mapped_column(String(32), primary_key=True)
@@ -139,6 +140,10 @@ class Job(Base):
         ForeignKey("captures.id", ondelete="SET NULL"), index=True, default=None)
     pipeline: Mapped[str] = mapped_column(String(32))
     params: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    source_job_id: Mapped[str | None] = mapped_column(String(32), index=True, default=None)
+    """The reconstruction a relight job renders; None for other jobs, and once the source is
+    deleted. Not a foreign key (see migration 0002): deleting a job is refused while a queued
+    or running job needs it, and clears this field of the finished ones."""
     name: Mapped[str] = mapped_column(String(256), default="")
     state: Mapped[str] = mapped_column(String(16), index=True)
     """queued | running | succeeded | failed | cancelled"""

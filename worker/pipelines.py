@@ -1,17 +1,31 @@
 """The pipelines a job can run, with their parameters as pydantic models (published as JSON
 Schema by `GET /v1/pipelines`) and their time limits. Torch-free: the API validates a job's
-parameters here before it is queued; the worker runs it (`worker.runner`)."""
+parameters here before it is queued; the worker runs it (`worker.runner`).
+
+`reconstruct` runs on a capture (POST /v1/jobs); `relight` on the results of a succeeded
+reconstruction (POST /v1/renders names it; the job row keeps it as `source_job_id`)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
+from pydantic_core import PydanticCustomError
 
 from worker.settings import WorkerSettings
 
-__all__ = ["PIPELINES", "Pipeline", "ReconstructParams", "get_pipeline"]
+__all__ = ["LightParams", "PIPELINES", "Pipeline", "ReconstructParams", "RelightJobParams",
+           "get_pipeline"]
+
+FRAMES = r"^-?\d*(:-?\d*){0,2}$"
 
 
 class ReconstructParams(BaseModel):
@@ -23,7 +37,7 @@ class ReconstructParams(BaseModel):
         "fast", description="Training schedule: paper (30k steps per key frame), fast (7.5k), "
                             "test (500, for checks).")
     frames: str | None = Field(
-        None, pattern=r"^-?\d*(:-?\d*){0,2}$", max_length=32,
+        None, pattern=FRAMES, max_length=32,
         description="Python slice over the capture's frame list, e.g. '0:10'; all by default.")
     gop: int = Field(20, ge=1, le=10_000, description="Frames per group of pictures.")
     checkpoint_every: int | None = Field(
@@ -37,6 +51,121 @@ class ReconstructParams(BaseModel):
                     "fail the job with a clear error.")
 
 
+Coordinate = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
+Channel = Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)]
+
+
+class LightParams(BaseModel):
+    """A light added to the environment map (core.relight.LightSpec): it adds
+    `intensity * color * max(0, n . l)` of irradiance, a point light's falling off as 1/d^2."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["directional", "point"] = Field(
+        "directional", description="directional (infinitely far) or point.")
+    direction: list[Coordinate] | None = Field(
+        None, min_length=3, max_length=3,
+        description="Directional lights: the direction towards the light, capture world "
+                    "coordinates (need not be unit length; not zero).")
+    position: list[Coordinate] | None = Field(
+        None, min_length=3, max_length=3,
+        description="Point lights: the light's position, capture world coordinates.")
+    color: list[Channel] = Field([1.0, 1.0, 1.0], min_length=3, max_length=3,
+                                 description="Linear RGB tint (not all zero).")
+    intensity: float = Field(
+        1.0, le=1e6, allow_inf_nan=False, json_schema_extra={"exclusiveMinimum": 0},
+        description="Irradiance scale, > 0 (pi lights a surface facing the light as brightly "
+                    "as a uniform environment of radiance 1); at distance 1 for a point light.")
+
+    @field_validator("intensity")
+    @classmethod
+    def _positive(cls, value: float) -> float:
+        if not value > 0:
+            raise PydanticCustomError(
+                "light_intensity", "a light needs an intensity > 0 (one of {value} adds "
+                "nothing; leave the light out instead)", {"value": value})
+        return value
+
+    @field_validator("color")
+    @classmethod
+    def _some_color(cls, value: list[float]) -> list[float]:
+        if max(value) <= 0:
+            raise PydanticCustomError("light_color", "a light's color must not be all zero "
+                                      "(it would add nothing)")
+        return value
+
+    @model_serializer(mode="wrap")
+    def _without_unused(self, handler) -> dict[str, Any]:
+        """The stored form names only the direction or the position it uses."""
+        return {k: v for k, v in handler(self).items() if v is not None}
+
+    @model_validator(mode="after")
+    def _placed(self) -> LightParams:
+        need, other = (("direction", "position") if self.kind == "directional"
+                       else ("position", "direction"))
+        if getattr(self, need) is None:
+            raise PydanticCustomError("light_placement", "a {kind} light needs '{need}'",
+                                      {"kind": self.kind, "need": need})
+        if getattr(self, other) is not None:
+            raise PydanticCustomError("light_placement", "a {kind} light takes '{need}', not "
+                                      "'{other}'", {"kind": self.kind, "need": need,
+                                                    "other": other})
+        if self.kind == "directional" and max(abs(x) for x in self.direction) < 1e-9:
+            raise PydanticCustomError("light_direction", "a directional light's direction "
+                                      "must not be zero")
+        return self
+
+
+class RelightJobParams(BaseModel):
+    """Parameters of `relight` (the `dgs relight` command line, DESIGN.md 3.2): relit renders
+    of a succeeded reconstruction under an environment map and added lights."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    envmap: str = Field(
+        min_length=1, max_length=64,
+        description="An envmap asset id (POST /v1/assets): equirectangular .exr or .hdr. "
+                    "Required: the renderer has no black environment, so a render lit by "
+                    "lights alone is not offered yet.")
+    rotation_deg: float = Field(
+        0.0, ge=-360, le=360, allow_inf_nan=False,
+        description="Turn of the map about the capture's up axis, degrees (right-hand rule).")
+    exposure: float = Field(0.0, ge=-20, le=20, allow_inf_nan=False,
+                            description="Map exposure in stops (radiance x 2**exposure).")
+    lights: list[LightParams] = Field(default_factory=list, max_length=64,
+                                      description="Lights added to the map.")
+    cameras: str = Field(
+        "heldout", min_length=1, max_length=4096,
+        description="heldout (every 8th capture camera), all, or camera ids ID,ID,... "
+                    "(ignored with orbit).")
+    frames: str | None = Field(
+        None, pattern=FRAMES, max_length=32,
+        description="Python slice over the reconstruction's frames, e.g. '0:10' or '2'; "
+                    "all by default.")
+    orbit: int | None = Field(
+        None, ge=1, le=720,
+        description="Render this many views on an orbit around the subject instead of the "
+                    "capture's cameras, and an MP4 per frame (relit/<frame>.mp4).")
+    fps: float = Field(24.0, gt=0, le=240, allow_inf_nan=False,
+                       description="Frame rate of the orbit MP4s.")
+    ao: bool = Field(True, description="Shade with the learnt ambient occlusion (False: the "
+                                       "no-AO baseline).")
+    capture_light: float | None = Field(
+        None, gt=0, le=1e6, allow_inf_nan=False,
+        description="Uniform irradiance the capture was lit with, which the albedo is divided "
+                    "by; default pi (a white dome of radiance 1).")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _envmap_given(cls, data: Any) -> Any:
+        if isinstance(data, dict) and data.get("envmap") is None:
+            raise PydanticCustomError(
+                "envmap_required", "envmap: an environment map asset is required (upload one "
+                "with POST /v1/assets); lights alone cannot light a render yet, the renderer "
+                "has no black environment")
+        return data
+
+
 @dataclass(frozen=True)
 class Pipeline:
     name: str
@@ -44,13 +173,18 @@ class Pipeline:
     params: type[BaseModel]
     artifacts: tuple[str, ...]
     """Kinds of artifact the pipeline produces."""
+    soft_limit: str
+    """The WorkerSettings field that holds the soft time limit in seconds."""
+    source: Literal["capture", "job"] = "capture"
+    """What a job of it runs on: a capture (POST /v1/jobs) or a succeeded reconstruction
+    (POST /v1/renders)."""
 
     def schema(self) -> dict[str, Any]:
         return self.params.model_json_schema()
 
     def limits(self, settings: WorkerSettings) -> tuple[float, float]:
         """(soft, hard) time limits in seconds."""
-        soft = settings.reconstruct_soft_limit_seconds
+        soft = getattr(settings, self.soft_limit)
         return soft, soft + settings.hard_limit_margin_seconds
 
 
@@ -61,6 +195,17 @@ PIPELINES: dict[str, Pipeline] = {
                     "(PLY), held-out renders (rgb, normal, AO, depth), metrics, plots.",
         params=ReconstructParams,
         artifacts=("ply", "render", "depth", "plot", "metrics", "config", "eval", "image"),
+        soft_limit="reconstruct_soft_limit_seconds",
+    ),
+    "relight": Pipeline(
+        name="relight",
+        description="Relit renders of a succeeded reconstruction under an environment map and "
+                    "lights (POST /v1/renders): relit/<frame>/<camera>.png (sRGB) and .exr "
+                    "(linear), with an orbit relit/<frame>.mp4, and relit/relight.json.",
+        params=RelightJobParams,
+        artifacts=("relit", "video", "relight"),
+        soft_limit="relight_soft_limit_seconds",
+        source="job",
     ),
 }
 

@@ -70,6 +70,9 @@ class WorkerSettings(BaseSettings):
     with a worker that died holding it)."""
     reconstruct_soft_limit_seconds: float = Field(48 * 3600.0, gt=0)
     """Soft time limit of a reconstruction job (it fails cleanly, checkpoint kept)."""
+    relight_soft_limit_seconds: float = Field(2 * 3600.0, gt=0)
+    """Soft time limit of a relight (render) job: views of frames already reconstructed, so
+    far shorter than a reconstruction; a long sequence's orbit may want more."""
     hard_limit_margin_seconds: float = Field(600.0, gt=0)
     """The hard limit (process killed) is the soft limit plus this margin."""
     retention_days: float | None = None
@@ -109,7 +112,8 @@ class WorkerSettings(BaseSettings):
     def visibility_timeout(self) -> float:
         """Redis visibility timeout: longer than the longest hard limit (DESIGN.md section 4),
         so a long job's message is never handed to a second worker while the first runs."""
-        return 2 * (self.reconstruct_soft_limit_seconds + self.hard_limit_margin_seconds)
+        longest = max(self.reconstruct_soft_limit_seconds, self.relight_soft_limit_seconds)
+        return 2 * (longest + self.hard_limit_margin_seconds)
 
 
 @functools.lru_cache(maxsize=1)

@@ -119,6 +119,13 @@ class JobStore:
         return session_scope(self.url, write)
 
     @staticmethod
+    def envmap_users(s: Session, tenant: str, asset_id: str) -> list[str]:
+        """Queued or running jobs of `tenant` that render with envmap asset `asset_id`."""
+        rows = s.execute(select(Job.id, Job.params).where(
+            Job.tenant == tenant, Job.pipeline == "relight", Job.state.in_(ACTIVE)))
+        return [job_id for job_id, params in rows if (params or {}).get("envmap") == asset_id]
+
+    @staticmethod
     def _event(s: Session, job_id: str, kind: str, data: dict[str, Any]) -> None:
         s.add(JobEvent(job_id=job_id, kind=kind, data=data))
 
@@ -138,6 +145,31 @@ class JobStore:
             s.flush()
             self._state_event(s, job)
             return job
+
+    def create_render(self, tenant: str, source_job_id: str, pipeline: str,
+                      params: dict[str, Any], *, name: str = "",
+                      expires_at: dt.datetime | None = None) -> Job | None:
+        """A job on the results of `source_job_id`, a succeeded job of `tenant` (on its
+        capture); None when the source is not that (any more). The source row is locked
+        while the job is added, so a concurrent delete of the source either happens first
+        (None here) or waits and then sees this job (and refuses)."""
+        with self.session() as s:
+            source = s.get(Job, source_job_id, with_for_update=True)
+            if source is None or source.tenant != tenant or source.state != "succeeded":
+                return None
+            job = Job(id=new_id("job"), tenant=tenant, capture_id=source.capture_id,
+                      source_job_id=source.id, pipeline=pipeline, params=params, name=name,
+                      state="queued", stage="queued", expires_at=expires_at)
+            s.add(job)
+            s.flush()
+            self._state_event(s, job)
+            return job
+
+    @staticmethod
+    def dependents(s: Session, job_id: str) -> list[str]:
+        """Queued or running jobs that need `job_id`'s results (in session `s`)."""
+        return list(s.scalars(select(Job.id).where(Job.source_job_id == job_id,
+                                                   Job.state.in_(ACTIVE))))
 
     def get(self, job_id: str, tenant: str | None = None) -> Job | None:
         """The job, or None when it does not exist or belongs to another tenant."""

@@ -52,20 +52,30 @@ class Sweeper:
         return {"redispatched": sent, **self.expire()}
 
     def expire(self) -> dict[str, list[str]]:
-        """Delete jobs (finished ones), captures (no active job on them) and assets whose
-        expires_at has passed, with their files."""
+        """Delete jobs (finished ones no active job renders from), captures (no active job on
+        them) and assets (no active job renders with them) whose expires_at has passed, with
+        their files."""
         now = utcnow()
         out: dict[str, list[str]] = {"jobs": [], "captures": [], "assets": []}
         with self.store.session() as s:
-            jobs = list(s.scalars(select(Job).where(Job.expires_at < now,
-                                                    Job.state.in_(TERMINAL))))
-            busy = set(s.scalars(select(Job.capture_id).where(Job.state.in_(ACTIVE))))
+            active = list(s.execute(select(Job.capture_id, Job.source_job_id, Job.pipeline,
+                                           Job.params).where(Job.state.in_(ACTIVE))))
+            busy = {row.capture_id for row in active}
+            needed = {row.source_job_id for row in active}
+            envmaps = {(row.params or {}).get("envmap") for row in active
+                       if row.pipeline == "relight"}
+            jobs = [j for j in s.scalars(select(Job).where(Job.expires_at < now,
+                                                           Job.state.in_(TERMINAL)))
+                    if j.id not in needed]
             captures = [c for c in s.scalars(select(Capture).where(Capture.expires_at < now))
                         if c.id not in busy]
-            assets = list(s.scalars(select(Asset).where(Asset.expires_at < now)))
+            assets = [a for a in s.scalars(select(Asset).where(Asset.expires_at < now))
+                      if a.id not in envmaps]
             for job in jobs:
                 self.blobs.delete_prefix(f"jobs/{job.id}")
                 shutil.rmtree(self.settings.scratch / "jobs" / job.id, ignore_errors=True)
+                s.execute(update(Job).where(Job.source_job_id == job.id)
+                          .values(source_job_id=None))
                 s.delete(job)
                 out["jobs"].append(job.id)
             for cap in captures:

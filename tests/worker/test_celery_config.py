@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from worker.celery_app import make_celery
-from worker.pipelines import get_pipeline
+from worker.pipelines import PIPELINES, get_pipeline
 from worker.settings import WorkerSettings
 
 
@@ -22,9 +22,19 @@ def test_redis_visibility_timeout_outlasts_the_longest_job(tmp_path: Path):
     settings = WorkerSettings(data_dir=tmp_path, broker_url="redis://127.0.0.1:6379/0",
                               redis_key_prefix="deploy-a:")
     options = make_celery(settings).conf.broker_transport_options
-    soft, hard = get_pipeline("reconstruct").limits(settings)
-    assert soft < hard < options["visibility_timeout"]
+    for name in PIPELINES:
+        soft, hard = get_pipeline(name).limits(settings)
+        assert soft < hard < options["visibility_timeout"]
     assert options["global_keyprefix"] == "deploy-a:"
+
+
+def test_each_pipeline_has_its_own_time_limits(tmp_path: Path):
+    settings = WorkerSettings(data_dir=tmp_path, relight_soft_limit_seconds=600,
+                              reconstruct_soft_limit_seconds=7200, hard_limit_margin_seconds=60)
+    assert get_pipeline("relight").limits(settings) == (600, 660)
+    assert get_pipeline("reconstruct").limits(settings) == (7200, 7260)
+    longer = settings.model_copy(update={"relight_soft_limit_seconds": 30_000})
+    assert longer.visibility_timeout > 30_000 + 60
 
 
 def test_defaults_live_in_the_data_folder(tmp_path: Path, monkeypatch):

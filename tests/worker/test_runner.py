@@ -162,3 +162,28 @@ def test_sweeper_deletes_what_expired_and_nothing_else(setup, tiny_capture: Path
     assert blobs.list("captures/cap_old") == [] and blobs.list("assets") == []
     assert store.get(active.id).state == "queued" and blobs.list("captures/cap_busy")
     assert store.get(kept.id).capture_id is None  # its capture went; the job stays
+
+
+def test_sweeper_keeps_what_an_active_render_needs(setup, tiny_capture: Path):
+    settings, store, blobs = setup
+    sweeper = Sweeper(settings, lambda job_id: None, store=store, blobs=blobs)
+    past = utcnow() - dt.timedelta(days=1)
+    owner = Owner.current()
+    sources = []
+    for _ in range(2):
+        job = store.create("t1", "reconstruct", {}, capture_id=None, expires_at=past)
+        store.claim(job.id, owner, 5, 3)
+        store.finish(job.id, owner, "succeeded")
+        sources.append(job.id)
+    with store.session() as s:
+        for asset in ("ast_used", "ast_free"):
+            s.add(Asset(id=asset, tenant="t1", kind="envmap", filename="env.exr", size=1,
+                        sha256="0" * 64, content_type="image/x-exr", expires_at=past))
+    active = store.create_render("t1", sources[0], "relight", {"envmap": "ast_used"})
+    ended = store.create_render("t1", sources[1], "relight", {"envmap": "ast_free"})
+    store.claim(ended.id, owner, 5, 3)
+    store.finish(ended.id, owner, "failed")
+    gone = sweeper.expire()
+    assert gone == {"jobs": [sources[1]], "captures": [], "assets": ["ast_free"]}
+    assert store.get(active.id).source_job_id == sources[0]
+    assert store.get(ended.id).source_job_id is None  # its source went; the render stays

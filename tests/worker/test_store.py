@@ -203,3 +203,23 @@ def test_release_puts_the_job_back_for_another_worker(store: JobStore):
     sent: list[str] = []
     assert store.redispatch_stranded(sent.append, requeue_after=3600, min_gap=60) == [job]
     assert store.claim(job, Owner.current(), 30, 3).job.attempts == 1
+
+
+def test_a_render_is_made_only_from_a_succeeded_job_of_its_tenant(store: JobStore):
+    source, other = _job(store), _job(store, "t2")
+    assert store.create_render("t1", source, "relight", {"envmap": "a"}) is None  # queued
+    owner = Owner.current()
+    for job in (source, other):
+        store.claim(job, owner, 30, 3)
+        store.finish(job, owner, "succeeded")
+    assert store.create_render("t1", other, "relight", {"envmap": "a"}) is None
+    assert store.create_render("t1", "job_missing", "relight", {"envmap": "a"}) is None
+    render = store.create_render("t1", source, "relight", {"envmap": "a"})
+    assert render.source_job_id == source and render.state == "queued"
+    with store.session() as s:
+        assert JobStore.dependents(s, source) == [render.id]
+        assert JobStore.envmap_users(s, "t1", "a") == [render.id]
+        assert JobStore.envmap_users(s, "t2", "a") == []
+    store.request_cancel(render.id, "t1")
+    with store.session() as s:
+        assert JobStore.dependents(s, source) == []

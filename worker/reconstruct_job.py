@@ -1,0 +1,143 @@
+"""The `reconstruct` job: fetch the capture, resume the run directory from its last checkpoint,
+call `core.pipeline.reconstruct`, evaluate the held-out views, publish the run directory.
+
+A job's run directory lives in the worker's scratch folder (<scratch>/jobs/<id>/run). Every
+checkpoint is also copied to the store (jobs/<id>/state/) and every finished frame published as
+artifacts as soon as it is written, so that a worker on another machine (another scratch folder)
+resumes where a lost one stopped.
+"""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from worker.models import Job
+from worker.pipelines import ReconstructParams
+from worker.progress import JobLink
+from worker.runner import JobStopped
+
+if TYPE_CHECKING:
+    from worker.runner import Runner
+
+__all__ = ["ReconstructJob"]
+
+# Share of a frame's progress taken by training; the rest is its renders and PLY.
+TRAIN_SHARE = 0.97
+# Share of the whole job left for publishing artifacts at the end.
+PUBLISH_SHARE = 0.01
+STAGES = {0: "starting", 1: "appearance", 2: "geometry", 3: "occlusion"}
+
+
+class ReconstructJob:
+    """One reconstruct job on this worker (see the module's docstring)."""
+
+    retry_note = "retry resumes from the last checkpoint"
+
+    def __init__(self, runner: Runner, job: Job, params: ReconstructParams, link: JobLink):
+        self.runner, self.job, self.params, self.link = runner, job, params, link
+        self.blobs = runner.blobs
+
+    def run(self) -> None:
+        from core.pipeline import Stopped
+
+        capture = self.runner.capture(self.job, self.link)
+        run = self._run_dir()
+        try:
+            self._reconstruct(capture, run)
+        except Stopped as exc:
+            raise JobStopped(f"step {exc.step}") from exc
+        self._evaluate(run, capture)
+        self._publish_final(run)
+
+    def _run_dir(self) -> Path:
+        """<scratch>/jobs/<id>/run, restored from jobs/<id>/state/ and the published frames
+        when this machine does not have it (a job resumed elsewhere)."""
+        job_id = self.job.id
+        run = self.runner.settings.scratch / "jobs" / job_id / "run"
+        if (run / "config.json").is_file():
+            return run
+        state = self.blobs.list(f"jobs/{job_id}/state")
+        if state:
+            self.link.log(f"restoring the run directory from the store ({len(state)} files)")
+            self.runner.fetch(f"jobs/{job_id}/state", run)
+            self.runner.fetch(f"jobs/{job_id}/artifacts/frames", run / "frames")
+        return run
+
+    def _reconstruct(self, capture: Path, run: Path) -> None:
+        from core.pipeline import reconstruct
+
+        params, link = self.params, self.link
+        overrides = dict(params.config)
+        if params.checkpoint_every is not None:
+            overrides["checkpoint_every"] = params.checkpoint_every
+        resume = (run / "config.json").is_file()
+        if resume:
+            link.log("resuming from the run directory's last checkpoint")
+        run.parent.mkdir(parents=True, exist_ok=True)
+        reconstruct(capture, run, preset=params.preset, frames=params.frames, gop=params.gop,
+                    overrides=overrides or None, resume=resume, progress=False,
+                    on_progress=self._on_progress(run), should_stop=link.should_stop)
+
+    def _on_progress(self, run: Path):
+        link = self.link
+        last_logged = [-1]
+
+        def on_progress(event) -> None:
+            step_share = TRAIN_SHARE * event.step / max(event.iterations, 1)
+            if event.kind == "frame_done":
+                step_share = 1.0
+            fraction = (event.frame_index + step_share) / event.frames * (1 - PUBLISH_SHARE)
+            stage = ("outputs" if event.step >= event.iterations else event.phase
+                     if event.phase != "key" else STAGES.get(event.stage, ""))
+            link.update(fraction=fraction, stage=stage, frame=event.frame_index + 1,
+                        frames=event.frames, iteration=event.step, iterations=event.iterations,
+                        message=f"frame {event.frame} ({event.gaussians} Gaussians)")
+            if event.kind == "frame_start":
+                link.log(f"frame {event.frame} ({event.frame_index + 1}/{event.frames}) from "
+                         f"step {event.step}")
+            elif event.kind == "step" and event.step // 100 != last_logged[0]:
+                last_logged[0] = event.step // 100
+                link.log(f"frame {event.frame} step {event.step}/{event.iterations} stage "
+                         f"{event.stage} loss {event.loss:.4f} gaussians {event.gaussians}")
+            elif event.kind == "checkpoint":
+                self._save_state(run, Path(event.path))
+            elif event.kind == "frame_done":
+                link.log(f"frame {event.frame} done")
+                self.runner.publish(self.job, run)
+                self._save_state(run, None)
+
+        return on_progress
+
+    def _evaluate(self, run: Path, capture: Path) -> None:
+        from core.evaluate import evaluate_run
+
+        self.link.update(fraction=1 - PUBLISH_SHARE, stage="evaluating", message="")
+        try:
+            result = evaluate_run(run, capture)
+        except ValueError as exc:  # e.g. no held-out camera: the job still succeeds
+            self.link.log(f"evaluation skipped: {exc}")
+            return
+        psnr = result.get("psnr")
+        self.link.log(f"held-out views: PSNR {psnr:.2f} dB" if psnr is not None else
+                      "held-out views evaluated")
+
+    def _save_state(self, run: Path, checkpoint: Path | None) -> None:
+        """Copy what a resume needs (config, metrics, this checkpoint) to jobs/<id>/state/."""
+        files = [run / "config.json", run / "metrics.json"]
+        if checkpoint is not None:
+            files.append(checkpoint)
+        for path in files:
+            if path.is_file():
+                self.blobs.put_file(
+                    f"jobs/{self.job.id}/state/{path.relative_to(run).as_posix()}", path)
+
+    def _publish_final(self, run: Path) -> None:
+        """Publish what is new in the run directory, then drop the resume state: a finished
+        job is never resumed."""
+        self.link.update(fraction=1 - PUBLISH_SHARE / 2, stage="publishing", message="")
+        published = self.runner.publish(self.job, run)
+        self.link.log(f"published {published} artifacts")
+        self.blobs.delete_prefix(f"jobs/{self.job.id}/state")
+        shutil.rmtree(run.parent, ignore_errors=True)
