@@ -21,6 +21,7 @@ _RULES: tuple[tuple[str, str], ...] = (
     (r"renders/(?P<frame>[^/]+)/[^/]+_depth\.npy", "depth"),
     (r"relit/(?P<frame>[^/]+)/[^/]+\.(png|exr)", "relit"),
     (r"relit/(?P<frame>[^/]+)\.mp4", "video"),
+    (r"relit/videos/[^/]+\.mp4", "video"),
     (r"relit/relight\.json", "relight"),
     (r"plots/[^/]+\.png", "plot"),
     (r"config\.json", "config"),

@@ -201,7 +201,8 @@ PIPELINES: dict[str, Pipeline] = {
         name="relight",
         description="Relit renders of a succeeded reconstruction under an environment map and "
                     "lights (POST /v1/renders): relit/<frame>/<camera>.png (sRGB) and .exr "
-                    "(linear), with an orbit relit/<frame>.mp4, and relit/relight.json.",
+                    "(linear); with an orbit relit/<frame>.mp4, over several frames "
+                    "relit/videos/<camera>.mp4; relit/relight.json.",
         params=RelightJobParams,
         artifacts=("relit", "video", "relight"),
         soft_limit="relight_soft_limit_seconds",

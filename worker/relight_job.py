@@ -5,8 +5,8 @@ published RUN/config.json and frames/<frame>/gaussians.ply (jobs/<source>/artifa
 capture (captures/<id>/, as for a reconstruction) and the envmap asset (assets/<id>/<file>).
 They are gathered into a scratch run directory of this attempt and handed to
 `core.relight.run.run_params`, whose output folder is published under relit/:
-relit/<frame>/<camera>.png|.exr (kind relit), relit/<frame>.mp4 (video) and relit/relight.json
-(relight). Nothing is resumed: a retried or re-delivered render starts over (views are cheap
+relit/<frame>/<camera>.png|.exr (kind relit), relit/<frame>.mp4 (an orbit's video) or, over
+several frames, relit/videos/<camera>.mp4 (video), and relit/relight.json (relight). Nothing is resumed: a retried or re-delivered render starts over (views are cheap
 next to a reconstruction).
 """
 
@@ -168,9 +168,9 @@ class RelightJob:
             fields.update(frame=frame, message=f"frame {event.frame}: {event.done}/"
                                                f"{event.total} views")
         self.link.update(fraction=fraction, **fields)
-        if event.kind == "video":
-            self.link.log(f"frame {event.frame}: video written ({event.done}/{event.total} "
-                          "views)")
+        if event.kind == "video":  # an orbit's frame, or a camera over every frame
+            what = f"frame {event.frame}" if event.frame else Path(event.path).name
+            self.link.log(f"{what}: video written ({event.done}/{event.total} views)")
 
     def _portable_record(self, path: Path, source: Job) -> None:
         """relight.json names this worker's scratch paths; publish it with the ids the client

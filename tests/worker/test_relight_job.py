@@ -37,6 +37,31 @@ def tiny_run(tmp_path_factory: pytest.TempPathFactory, tiny_capture: Path) -> Pa
     return run
 
 
+@pytest.fixture(scope="module")
+def capture3(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The tiny capture's cameras over three frames."""
+    from core.synth import SynthConfig, synthesize
+
+    out = tmp_path_factory.mktemp("relight-3") / "capture"
+    synthesize(out, SynthConfig(frames=3, views=8, width=32, height=32, seed=2, ao_directions=8))
+    return out
+
+
+def add_source(store: JobStore, blobs, capture: Path, run: Path, frames: list[str]) -> str:
+    """A succeeded reconstruct job of `capture` whose artifacts are `run`'s config and its
+    first frame's PLY standing in for each of `frames`."""
+    cap = add_capture(store, blobs, capture, capture_id=new_id("cap"))
+    source = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=cap)
+    blobs.put_file(f"jobs/{source.id}/artifacts/config.json", run / "config.json")
+    for frame in frames:
+        blobs.put_file(f"jobs/{source.id}/artifacts/frames/{frame}/gaussians.ply",
+                       run / "frames" / "000000" / "gaussians.ply")
+    owner = Owner.current()
+    store.claim(source.id, owner, 5, 3)
+    store.finish(source.id, owner, "succeeded")
+    return source.id
+
+
 @pytest.fixture
 def setup(tmp_path: Path, store_url: str, tiny_capture: Path, tiny_run: Path):
     """(settings, store, blobs, source job id, envmap asset id): a succeeded reconstruct job
@@ -45,21 +70,14 @@ def setup(tmp_path: Path, store_url: str, tiny_capture: Path, tiny_run: Path):
                               heartbeat_seconds=0.2, lease_seconds=30)
     store = JobStore(store_url)
     blobs = LocalBlobStore(settings.data_dir / "store")
-    cap = add_capture(store, blobs, tiny_capture)
-    source = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=cap)
-    for path in (tiny_run / "config.json", tiny_run / "frames/000000/gaussians.ply"):
-        blobs.put_file(f"jobs/{source.id}/artifacts/{path.relative_to(tiny_run).as_posix()}",
-                       path)
-    owner = Owner.current()
-    store.claim(source.id, owner, 5, 3)
-    store.finish(source.id, owner, "succeeded")
+    source = add_source(store, blobs, tiny_capture, tiny_run, ["000000"])
     asset = new_id("ast")
     env = tiny_capture / "gt" / "envmaps" / "relight.exr"
     blobs.put_file(f"assets/{asset}/relight.exr", env)
     with store.session() as s:
         s.add(Asset(id=asset, tenant="t1", kind="envmap", filename="relight.exr",
                     size=env.stat().st_size, sha256="0" * 64, content_type="image/x-exr"))
-    return settings, store, blobs, source.id, asset
+    return settings, store, blobs, source, asset
 
 
 def relight(store: JobStore, source: str, params: dict) -> str:
@@ -97,6 +115,27 @@ def test_a_relight_job_publishes_relit_views_an_mp4_and_its_record(setup):
     fractions = [p["fraction"] for p in progress]
     assert fractions == sorted(fractions)
     assert not (settings.scratch / "jobs" / job_id).exists()  # scratch cleaned up
+
+
+def test_a_slice_of_a_sequence_renders_only_its_frames_and_a_video_per_camera(
+        setup, capture3: Path, tiny_run: Path):
+    settings, store, blobs, _, asset = setup
+    source = add_source(store, blobs, capture3, tiny_run, ["000000", "000001", "000002"])
+    job_id = relight(store, source, {"envmap": asset, "frames": "1:"})
+    assert Runner(settings, store, blobs).run(job_id).status == "succeeded", \
+        [r.line for r in store.logs(job_id, 0, 100)]
+    with store.session(write=False) as s:
+        listed = {a.path: (a.kind, a.frame) for a in s.scalars(
+            select(Artifact).where(Artifact.job_id == job_id))}
+    assert set(listed) == {f"relit/{f}/cam00.{ext}" for f in ("000001", "000002")
+                           for ext in ("png", "exr")} | {"relit/videos/cam00.mp4",
+                                                         "relit/relight.json"}
+    assert listed["relit/videos/cam00.mp4"] == ("video", None)
+    record = json.loads(blobs.local_path(f"jobs/{job_id}/artifacts/relit/relight.json")
+                        .read_text())
+    assert record["frames"] == ["000001", "000002"] and record["params"]["frames"] == "1:"
+    job = store.get(job_id)
+    assert (job.frames, job.iterations) == (2, 2)
 
 
 @pytest.mark.parametrize("change, words", [
