@@ -8,6 +8,10 @@ service. Torch-free; only httpx.
     job = c.submit(cap["id"], {"preset": "fast"})
     job = c.wait(job["id"], on_event=print)        # server-sent events, reconnecting
     c.download_all(job["id"], "results/")          # Range-resumed, SHA-256 checked
+    env = c.upload_envmap("studio.exr")            # an environment map asset
+    render = c.render(job["id"], env["id"], orbit=24)
+    render = c.wait(render["id"])                  # a relight job, followed the same way
+    c.download_all(render["id"], "relit/", kind="video")
 """
 
 from __future__ import annotations
@@ -354,6 +358,29 @@ class Client:
                 return job
             time.sleep(1.0)
         raise TimeoutError(f"job {job_id} did not end within {timeout:.0f} s")
+
+    # -- relighting ---------------------------------------------------------------------------
+    def upload_envmap(self, path: str | os.PathLike[str]) -> dict:
+        """Upload an equirectangular .exr or .hdr environment map as an asset (checked by the
+        server: 422 with the reason when it is not one); returns the asset."""
+        path = Path(path)
+        with open(path, "rb") as f:
+            return self._json("POST", "/v1/assets", params={"filename": path.name,
+                                                            "kind": "envmap"},
+                              content=f.read(),
+                              headers={"Content-Type": "application/octet-stream"})
+
+    def render(self, job_id: str, envmap: str, *, lights: list[dict] | None = None,
+               name: str = "", **params: Any) -> dict:
+        """Request relit renders of the succeeded reconstruction `job_id` under envmap asset
+        `envmap` (202); returns the render job (pipeline relight), to follow with `wait` and
+        download like any job (artifacts of kind relit, video, relight). `lights`:
+        [{"kind": "directional", "direction": [x, y, z], "intensity": i, "color": [r, g, b]}
+        or {"kind": "point", "position": [...], ...}]; `params`: rotation_deg, exposure,
+        cameras, frames, orbit, fps, ao, capture_light (GET /v1/pipelines has them all)."""
+        body = {"job_id": job_id, "envmap": envmap, "lights": lights or [], "name": name,
+                **params}
+        return self._json("POST", "/v1/renders", json=body)
 
     # -- artifacts ----------------------------------------------------------------------------
     def artifacts(self, job_id: str, kind: str | None = None) -> list[dict]:

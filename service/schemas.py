@@ -9,6 +9,7 @@ from typing import Any, Literal
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field
 
 from service.errors import ErrorInfo
+from worker.pipelines import LightParams, RelightJobParams
 
 __all__ = [
     "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
@@ -150,6 +151,8 @@ class JobOut(BaseModel):
     id: str
     name: str
     capture_id: str | None
+    source_job_id: str | None = Field(description=(
+        "The reconstruction a relight job renders (null for other jobs, or once deleted)."))
     pipeline: str
     params: dict[str, Any]
     state: JobState
@@ -214,19 +217,25 @@ class AssetPage(BaseModel):
     next_cursor: str | None
 
 
-class LightIn(_In):
-    direction: list[float] = Field(min_length=3, max_length=3, description=(
-        "Direction towards the light, world coordinates."))
-    color: list[float] = Field([1.0, 1.0, 1.0], min_length=3, max_length=3)
-    intensity: float = Field(1.0, ge=0, le=1e6)
+class LightIn(LightParams):
+    """A light: directional (`direction` towards it) or point (`position`), intensity > 0."""
 
 
-class RenderIn(_In):
-    job_id: str = Field(min_length=1, max_length=64, description="A succeeded reconstruction.")
-    envmap: str | None = Field(None, max_length=64, description="An envmap asset id.")
-    lights: list[LightIn] = Field(default_factory=list, max_length=64)
-    cameras: str = Field("heldout", max_length=4096, description="heldout, all or ID,ID,...")
-    frames: str | None = Field(None, pattern=r"^-?\d*(:-?\d*){0,2}$", max_length=32)
+class RenderIn(RelightJobParams):
+    """A reconstruction (job_id) and the relight pipeline's parameters to render it with."""
+
+    job_id: str = Field(min_length=1, max_length=64, description=(
+        "A succeeded reconstruct job of yours; it cannot be deleted while this render is "
+        "queued or running."))
+    lights: list[LightIn] = Field(default_factory=list, max_length=64,
+                                  description="Lights added to the map.")
+    name: str = Field("", max_length=256)
+    expires_at: AwareDatetime | None = None
+
+    def params(self) -> dict[str, Any]:
+        """The relight job's stored parameters."""
+        return RelightJobParams.model_validate(self.model_dump(
+            exclude={"job_id", "name", "expires_at"})).model_dump(mode="json")
 
 
 # -- info ----------------------------------------------------------------------------------------

@@ -24,7 +24,7 @@ from service.ranges import blob_response
 from service.records import get_asset
 from service.schemas import AssetOut, AssetPage
 from worker.models import Asset
-from worker.store import new_id
+from worker.store import JobStore, new_id
 
 __all__ = ["router"]
 
@@ -137,10 +137,16 @@ router.add_api_route("/{asset_id}/content", asset_content, methods=["HEAD"],
                                 304: {"description": "Not modified"}, **error_responses(416)})
 
 
-@router.delete("/{asset_id}", status_code=204, responses={204: {"description": "Deleted"}})
+@router.delete("/{asset_id}", status_code=204, responses={204: {"description": "Deleted"},
+                                                          **error_responses(409)})
 def delete_asset(asset_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
+    """Delete the asset and its file (409 while a queued or running render uses it)."""
     a = get_asset(services.store, asset_id, tenant)
     with services.store.session() as s:
+        users = JobStore.envmap_users(s, tenant, a.id)
+        if users:
+            raise ApiError(409, f"render job {users[0]} uses asset {a.id}; cancel it or wait "
+                                "for it to end, then delete")
         s.execute(Asset.__table__.delete().where(Asset.id == a.id))
     services.blobs.delete_prefix(f"assets/{a.id}")
     return Response(status_code=204)

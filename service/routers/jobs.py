@@ -23,9 +23,9 @@ from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressO
 from worker.celery_app import dispatch
 from worker.models import Job
 from worker.pipelines import get_pipeline
-from worker.store import ACTIVE, TERMINAL, progress_of
+from worker.store import ACTIVE, TERMINAL, JobStore, progress_of
 
-__all__ = ["job_out", "router"]
+__all__ = ["accepted", "job_out", "router", "send"]
 
 log = logging.getLogger("dgs.service")
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=error_responses(*COMMON))
@@ -34,7 +34,8 @@ router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=error_responses(*
 def job_out(job: Job) -> JobOut:
     base = f"/v1/jobs/{job.id}"
     return JobOut(
-        id=job.id, name=job.name, capture_id=job.capture_id, pipeline=job.pipeline,
+        id=job.id, name=job.name, capture_id=job.capture_id, source_job_id=job.source_job_id,
+        pipeline=job.pipeline,
         params=job.params, state=job.state, progress=ProgressOut(**progress_of(job)),
         error=ErrorInfo(**job.error) if job.error else None, attempts=job.attempts,
         cancel_requested=job.cancel_requested, created_at=job.created_at,
@@ -45,13 +46,13 @@ def job_out(job: Job) -> JobOut:
                "cancel": f"{base}/cancel", "retry": f"{base}/retry"})
 
 
-def _accepted(request: Request, services: Services, job: Job) -> JSONResponse:
+def accepted(request: Request, services: Services, job: Job) -> JSONResponse:
     out = job_out(job)
     return JSONResponse(out.model_dump(mode="json"), status_code=202, headers={
         "Location": absolute_url(request, services, out.links["self"])})
 
 
-def _send(services: Services, job: Job) -> None:
+def send(services: Services, job: Job) -> None:
     """Hand the job to the broker. When the broker is away the job stays queued and
     undispatched; the sweeper sends it once the broker is back."""
     services.store.mark_dispatched(job.id)
@@ -66,6 +67,9 @@ def _send(services: Services, job: Job) -> None:
 def _params(pipeline_name: str, params: dict) -> dict:
     try:
         pipeline = get_pipeline(pipeline_name)
+        if pipeline.source != "capture":
+            raise ValueError(f"pipeline: {pipeline.name} runs on a finished job, not on a "
+                             "capture; request it with POST /v1/renders")
     except ValueError as exc:
         raise ApiError(422, str(exc), details=[{"path": "pipeline", "message": str(exc)}]) from None
     try:
@@ -92,8 +96,8 @@ def create_job(body: JobIn, request: Request, services: ServicesDep,
                                     expires_at=default_expiry(services, body.expires_at))
     except IntegrityError:  # the capture was deleted meanwhile
         raise ApiError(404, f"no capture {body.capture_id!r}") from None
-    _send(services, job)
-    return _accepted(request, services, job)
+    send(services, job)
+    return accepted(request, services, job)
 
 
 @router.get("", response_model=JobPage)
@@ -163,18 +167,22 @@ def cancel_job(job_id: str, request: Request, services: ServicesDep,
     job = services.store.request_cancel(job_id, tenant)
     if job is None:
         raise ApiError(404, f"no job {job_id!r}")
-    return _accepted(request, services, job)
+    return accepted(request, services, job)
 
 
 @router.post("/{job_id}/retry", status_code=202, response_model=JobOut,
              responses=error_responses(409))
 def retry_job(job_id: str, request: Request, services: ServicesDep,
               tenant: TenantDep) -> JSONResponse:
-    """Queue a failed or cancelled job again; it resumes from its last checkpoint."""
+    """Queue a failed or cancelled job again: a reconstruction resumes from its last
+    checkpoint, a render starts over."""
     job = get_job(services.store, job_id, tenant)
     if job.state not in ("failed", "cancelled"):
         raise ApiError(409, f"job {job_id} is {job.state}; only failed or cancelled jobs are "
                             "retried")
+    if get_pipeline(job.pipeline).source == "job" and job.source_job_id is None:
+        raise ApiError(409, f"job {job_id}'s source reconstruction was deleted; it cannot run "
+                            "again")
     if job.capture_id is None:
         raise ApiError(409, f"job {job_id}'s capture was deleted; it cannot run again")
     job = services.store.retry(job_id, tenant)
@@ -183,21 +191,27 @@ def retry_job(job_id: str, request: Request, services: ServicesDep,
     if job.state != "queued":
         raise ApiError(409, f"job {job_id} is {job.state}; only failed or cancelled jobs are "
                             "retried")
-    _send(services, job)
-    return _accepted(request, services, job)
+    send(services, job)
+    return accepted(request, services, job)
 
 
 @router.delete("/{job_id}", status_code=204, responses={204: {"description": "Deleted"},
                                                         **error_responses(409)})
 def delete_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
     """Delete a finished job with its artifacts, logs and events (409 while queued or
-    running: cancel it first)."""
+    running: cancel it first; 409 while a queued or running render needs its results)."""
     with services.store.session() as s:
-        job = s.scalar(select(Job).where(Job.id == job_id, Job.tenant == tenant))
+        job = s.scalar(select(Job).where(Job.id == job_id, Job.tenant == tenant)
+                       .with_for_update())
         if job is None:
             raise ApiError(404, f"no job {job_id!r}")
         if job.state in ACTIVE:
             raise ApiError(409, f"job {job_id} is {job.state}; cancel it first")
+        needed = JobStore.dependents(s, job_id)
+        if needed:
+            raise ApiError(409, f"render job {needed[0]} needs the results of job {job_id}; "
+                                "cancel it or wait for it to end, then delete")
+        s.execute(update(Job).where(Job.source_job_id == job_id).values(source_job_id=None))
         s.delete(job)
     services.blobs.delete_prefix(f"jobs/{job_id}")
     shutil.rmtree(services.settings.scratch / "jobs" / job_id, ignore_errors=True)

@@ -1,16 +1,22 @@
 """/v1/renders: relit renders of a finished reconstruction under an environment map and lights.
-The relighting pipeline lands with issue 7; until then a request that names objects the caller
-owns is answered 501, so clients can be written against the final shape now."""
+
+A render is a job of the `relight` pipeline (202 + Location, the same job representation as a
+reconstruction: follow it with /v1/jobs/{id}, its events, logs, cancel, retry and artifacts).
+It runs on the reconstruction's results and capture, and keeps it as `source_job_id`: the
+reconstruction cannot be deleted while the render is queued or running.
+"""
 
 from __future__ import annotations
 
-from fastapi import APIRouter
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
 
 from service.auth import TenantDep
-from service.deps import ServicesDep
+from service.deps import ServicesDep, default_expiry
 from service.errors import COMMON, ApiError, error_responses
 from service.records import get_asset, get_job
-from service.schemas import RenderIn
+from service.routers.jobs import accepted, send
+from service.schemas import JobOut, RenderIn
 
 __all__ = ["router"]
 
@@ -18,15 +24,29 @@ router = APIRouter(prefix="/v1/renders", tags=["renders"],
                    responses=error_responses(*COMMON))
 
 
-@router.post("", status_code=202, responses=error_responses(501),
-             response_description="Not yet: 501 until the relighting pipeline exists")
-def request_render(body: RenderIn, services: ServicesDep, tenant: TenantDep) -> None:
-    """Request relit renders (501 for now; 404 for a job or asset the caller does not own)."""
-    get_job(services.store, body.job_id, tenant)
-    if body.envmap is not None:
-        asset = get_asset(services.store, body.envmap, tenant)
-        if asset.kind != "envmap":
-            raise ApiError(422, f"asset {asset.id} is a {asset.kind}, not an envmap")
-    raise ApiError(501, "relighting lands with the relighting pipeline (issue 7); the job and "
-                        "environment map are kept, so send this request again once "
-                        "GET /v1/pipelines lists 'relight'", code="not_implemented")
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409),
+             response_description="The render job, queued (Location names it)")
+def request_render(body: RenderIn, request: Request, services: ServicesDep,
+                   tenant: TenantDep) -> JSONResponse:
+    """Queue a relight job on a succeeded reconstruction (404 for a job or envmap asset that
+    is not yours; 409 when the job is not a succeeded reconstruction)."""
+    source = get_job(services.store, body.job_id, tenant)
+    asset = get_asset(services.store, body.envmap, tenant)
+    if asset.kind != "envmap":
+        raise ApiError(422, f"envmap: asset {asset.id} is a {asset.kind}, not an envmap",
+                       details=[{"path": "envmap", "message": "not an envmap asset"}])
+    if source.pipeline != "reconstruct":
+        raise ApiError(409, f"job {source.id} is a {source.pipeline} job; renders are made "
+                            "from a reconstruct job")
+    if source.state != "succeeded":
+        raise ApiError(409, f"job {source.id} is {source.state}; renders are made from a "
+                            "succeeded reconstruction" + (
+                                " (wait for it to end)" if source.state in ("queued", "running")
+                                else ""), retryable=source.state in ("queued", "running"))
+    job = services.store.create_render(
+        tenant, source.id, "relight", body.params(), name=body.name,
+        expires_at=default_expiry(services, body.expires_at))
+    if job is None:  # deleted meanwhile
+        raise ApiError(404, f"no job {body.job_id!r}")
+    send(services, job)
+    return accepted(request, services, job)

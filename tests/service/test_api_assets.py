@@ -1,5 +1,5 @@
-"""/v1/assets (environment maps: checked before they are kept) and /v1/renders (501 until the
-relighting pipeline lands, after checking what the request names)."""
+"""/v1/assets: environment maps, checked before they are kept (renders that use them:
+test_api_renders.py)."""
 
 from __future__ import annotations
 
@@ -75,20 +75,3 @@ def test_asset_size_limit(tmp_path):
     r = client.post("/v1/assets?filename=big.exr", content=exr_bytes(tmp_path, 64, 32))
     assert r.status_code == 413
     assert client.app.state.services.blobs.list("assets") == []
-
-
-def test_renders_check_ownership_then_answer_501(client, services, tmp_path):
-    job = services.store.create("local", "reconstruct", {}, capture_id=None)
-    asset = client.post("/v1/assets?filename=a.exr", content=exr_bytes(tmp_path)).json()
-    r = client.post("/v1/renders", json={"job_id": "job_nope", "envmap": asset["id"]})
-    assert r.status_code == 404 and "job" in r.json()["error"]["message"]
-    r = client.post("/v1/renders", json={"job_id": job.id, "envmap": "ast_nope"})
-    assert r.status_code == 404 and "asset" in r.json()["error"]["message"]
-    r = client.post("/v1/renders", json={"job_id": job.id, "lights": [{"direction": [0, 1]}]})
-    assert r.status_code == 422
-    r = client.post("/v1/renders", json={"job_id": job.id, "envmap": asset["id"], "lights": [
-        {"direction": [0, 1, 0], "intensity": 2.0}], "cameras": "heldout", "frames": "0:2"})
-    assert r.status_code == 501
-    error = r.json()["error"]
-    assert error["code"] == "not_implemented" and error["retryable"] is False
-    assert "issue 7" in error["message"]

@@ -90,7 +90,7 @@ def test_tenants_cannot_see_each_others_anything(client, services, tenants, read
         ("GET", f"/v1/jobs/{job}/artifacts/metrics.json", {}),
         ("GET", f"/v1/assets/{asset}", {}), ("GET", f"/v1/assets/{asset}/content", {}),
         ("DELETE", f"/v1/assets/{asset}", {}),
-        ("POST", "/v1/renders", {"json": {"job_id": job}}),
+        ("POST", "/v1/renders", {"json": {"job_id": job, "envmap": asset}}),
         ("POST", "/v1/renders", {"json": {"job_id": "x", "envmap": asset}}),
         ("HEAD", upload, {"headers": TUS}), ("DELETE", upload, {"headers": TUS}),
     ]
