@@ -87,5 +87,14 @@ def _eval(args: argparse.Namespace) -> int:
     normal = "n/a" if cos is None else f"{cos:.3f} ({result['normal_deg']:.1f} deg, vs " \
                                        f"{result['normal_reference']})"
     print(f"{args.run}: {result['views']} held-out view(s): PSNR {result['psnr']:.2f} dB, "
-          f"SSIM {result['ssim']:.3f}, normal cosine {normal}; wrote {args.run}/eval.json")
+          f"SSIM {result['ssim']:.3f}, normal cosine {normal}")
+    if result.get("relight"):
+        r = result["relight"]
+        print(f"  relit under the capture's second light: PSNR {r['psnr']:.2f} dB, SSIM "
+              f"{r['ssim']:.3f} (without the AO term {r['psnr_no_ao']:.2f} dB)")
+    if result.get("mesh"):
+        m = result["mesh"]
+        print(f"  mesh: Chamfer {100 * m['chamfer_relative']:.2f}% of the diagonal, normal "
+              f"consistency {m['normal_consistency']:.3f}")
+    print(f"  wrote {args.run}/eval.json and {args.run}/{result['contact_sheet']}")
     return 0

@@ -19,6 +19,7 @@ _RULES: tuple[tuple[str, str], ...] = (
     (r"renders/(?P<frame>[^/]+)/[^/]+_normal\.png", "normal"),
     (r"renders/(?P<frame>[^/]+)/[^/]+_ao\.png", "ao"),
     (r"renders/(?P<frame>[^/]+)/[^/]+_depth\.npy", "depth"),
+    (r"renders/(?P<frame>[^/]+)/[^/]+_relit\.png", "relit"),
     (r"relit/(?P<frame>[^/]+)/[^/]+\.(png|exr)", "relit"),
     (r"relit/(?P<frame>[^/]+)\.mp4", "video"),
     (r"relit/videos/[^/]+\.mp4", "video"),
