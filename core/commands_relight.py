@@ -17,9 +17,10 @@ __all__ = ["register"]
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("relight", help="relit renders of a run under an environment map")
     p.add_argument("run", help="run directory (of dgs reconstruct)")
-    p.add_argument("--envmap", required=True, metavar="FILE",
+    p.add_argument("--envmap", default=None, metavar="FILE",
                    help="equirectangular environment map, .exr or .hdr (width = 2 x height), "
-                        "or a built-in one: builtin:studio, builtin:sunset, builtin:neon")
+                        "or a built-in one: builtin:studio, builtin:sunset, builtin:neon; "
+                        "without one the environment is black and --light must be given")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--rotation", type=float, default=0.0, metavar="DEG",
                    help="turn the map about the capture's up axis (degrees, right-hand rule)")

@@ -22,10 +22,13 @@ from pydantic_core import PydanticCustomError
 
 from worker.settings import WorkerSettings
 
-__all__ = ["LightParams", "PIPELINES", "Pipeline", "ReconstructParams", "RelightJobParams",
-           "get_pipeline"]
+__all__ = ["BUILTIN_ENVMAPS", "LightParams", "PIPELINES", "Pipeline", "ReconstructParams",
+           "RelightJobParams", "get_pipeline"]
 
 FRAMES = r"^-?\d*(:-?\d*){0,2}$"
+# core.relight.presets.PRESETS, named here so that the API needs no core import (a test keeps
+# the two lists equal).
+BUILTIN_ENVMAPS = ("studio", "sunset", "neon")
 
 
 class ReconstructParams(BaseModel):
@@ -122,11 +125,12 @@ class RelightJobParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    envmap: str = Field(
-        min_length=1, max_length=64,
-        description="An envmap asset id (POST /v1/assets): equirectangular .exr or .hdr. "
-                    "Required: the renderer has no black environment, so a render lit by "
-                    "lights alone is not offered yet.")
+    envmap: str | None = Field(
+        None, min_length=1, max_length=64,
+        description="An envmap asset id (POST /v1/assets: equirectangular .exr or .hdr), or a "
+                    "built-in map: " + ", ".join(f"builtin:{n}" for n in BUILTIN_ENVMAPS)
+                    + ". Without one the environment is black and the lights alone light the "
+                      "render (then at least one light is required).")
     rotation_deg: float = Field(
         0.0, ge=-360, le=360, allow_inf_nan=False,
         description="Turn of the map about the capture's up axis, degrees (right-hand rule).")
@@ -155,15 +159,29 @@ class RelightJobParams(BaseModel):
         description="Uniform irradiance the capture was lit with, which the albedo is divided "
                     "by; default pi (a white dome of radiance 1).")
 
-    @model_validator(mode="before")
+    @field_validator("envmap")
     @classmethod
-    def _envmap_given(cls, data: Any) -> Any:
-        if isinstance(data, dict) and data.get("envmap") is None:
+    def _builtin_known(cls, value: str | None) -> str | None:
+        if value is not None and value.startswith("builtin:") and \
+                value.removeprefix("builtin:") not in BUILTIN_ENVMAPS:
             raise PydanticCustomError(
-                "envmap_required", "envmap: an environment map asset is required (upload one "
-                "with POST /v1/assets); lights alone cannot light a render yet, the renderer "
-                "has no black environment")
-        return data
+                "envmap_builtin", "envmap: no built-in map {name} (built-in: {known})",
+                {"name": value, "known": ", ".join(f"builtin:{n}" for n in BUILTIN_ENVMAPS)})
+        return value
+
+    @model_validator(mode="after")
+    def _something_lights(self) -> RelightJobParams:
+        if self.envmap is None and not self.lights:
+            raise PydanticCustomError(
+                "light_required", "envmap, lights: give an environment map (an asset id or "
+                "builtin:NAME) or at least one light; with neither nothing lights the render")
+        return self
+
+    @property
+    def envmap_asset(self) -> str | None:
+        """The envmap asset id the render uses (None: a built-in map or none)."""
+        return None if self.envmap is None or self.envmap.startswith("builtin:") \
+            else self.envmap
 
 
 @dataclass(frozen=True)

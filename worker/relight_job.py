@@ -128,21 +128,25 @@ class RelightJob:
                              f"store ({exc}); was it deleted?") from None
         return run
 
-    def _envmap(self) -> Path:
+    def _envmap(self) -> str | None:
+        """The map to pass to core: a fetched asset's path, builtin:NAME, or None (black)."""
+        asset_id = self.params.envmap_asset
+        if asset_id is None:
+            return self.params.envmap
         with self.runner.store.session(write=False) as s:
-            asset = s.scalar(select(Asset).where(Asset.id == self.params.envmap,
+            asset = s.scalar(select(Asset).where(Asset.id == asset_id,
                                                  Asset.tenant == self.job.tenant))
         if asset is None or asset.kind != "envmap":
-            raise ValueError(f"envmap: asset {self.params.envmap} was deleted (or is not an "
+            raise ValueError(f"envmap: asset {asset_id} was deleted (or is not an "
                              "environment map); upload the map again and request a new render")
         try:
-            return self._get(f"assets/{asset.id}/{asset.filename}",
-                             self.work / "envmap" / asset.filename)
+            return str(self._get(f"assets/{asset.id}/{asset.filename}",
+                                 self.work / "envmap" / asset.filename))
         except FileNotFoundError:
             raise ValueError(f"envmap: asset {asset.id} is not in the store; upload the map "
                              "again") from None
 
-    def _core_params(self, envmap: Path):
+    def _core_params(self, envmap: str | None):
         """core's RelightParams (its checks raise ValueError: the job fails as invalid_input).
         Frames are already selected: the run directory holds only those."""
         from core.relight.lights import LightSpec
@@ -152,7 +156,7 @@ class RelightJob:
         lights = tuple(LightSpec.from_json(light.model_dump(exclude_none=True))
                        for light in p.lights)
         return RelightParams(
-            envmap=str(envmap), rotation_deg=p.rotation_deg, exposure=p.exposure, lights=lights,
+            envmap=envmap, rotation_deg=p.rotation_deg, exposure=p.exposure, lights=lights,
             cameras=p.cameras, frames=None, orbit=p.orbit,
             capture_light=None if p.capture_light is None else repr(p.capture_light),
             ao=p.ao, fps=p.fps)

@@ -34,8 +34,9 @@ __all__ = ["Plan", "RelightParams", "RelightProgress", "RelightStopped", "compos
 class RelightParams:
     """What to relight and how (the service publishes this as its render job's JSON Schema)."""
 
-    envmap: str
-    """Environment map, equirectangular .exr or .hdr (linear radiance, width = 2 x height)."""
+    envmap: str | None
+    """Environment map, equirectangular .exr or .hdr (linear radiance, width = 2 x height), or
+    builtin:NAME; None: a black environment, lit by `lights` alone."""
     rotation_deg: float = 0.0
     """Turn of the map about the capture's up axis, degrees (right-hand rule)."""
     exposure: float = 0.0
@@ -60,6 +61,9 @@ class RelightParams:
     """Frame rate of the MP4s (a camera path's own fps wins)."""
 
     def __post_init__(self) -> None:
+        if self.envmap is None and not self.lights:
+            raise ValueError("envmap, lights: give an environment map or at least one light "
+                             "(with neither, nothing lights the subject)")
         if self.orbit is not None and self.camera_path is not None:
             raise ValueError("orbit, camera_path: give one of them, not both")
         if self.orbit is not None and (isinstance(self.orbit, bool) or not isinstance(
@@ -112,8 +116,8 @@ class Plan:
     """The run's capture."""
     frames: list[str]
     """Frames to relight."""
-    env: EnvMap
-    """The environment map."""
+    env: EnvMap | None
+    """The environment map (None: black, lights only)."""
     capture_light: CaptureLight
     """The lighting the albedo is divided by."""
     linear: bool
@@ -124,6 +128,11 @@ class Plan:
     """MP4 frame rate."""
     files: list[str] = field(default_factory=list)
     """Files written so far (relative to the output folder)."""
+
+    @property
+    def env_sh9(self) -> np.ndarray:
+        """(9, 3) radiance SH of the environment (zero for a black one)."""
+        return np.zeros((9, 3)) if self.env is None else self.env.sh9
 
 
 def prepare(run: Path, params: RelightParams, capture_dir) -> Plan:
@@ -136,7 +145,8 @@ def prepare(run: Path, params: RelightParams, capture_dir) -> Plan:
 
     settings = run_render(run, capture_dir)
     capture = load_capture(settings.capture)
-    env = load_envmap(params.envmap, capture.up, params.rotation_deg, params.exposure)
+    env = None if params.envmap is None else load_envmap(params.envmap, capture.up,
+                                                         params.rotation_deg, params.exposure)
     cap_light = load_capture_light(params.capture_light, capture.up)
     finished = [f for f in capture.frames if (run / "frames" / f / "gaussians.ply").is_file()]
     if not finished:
@@ -215,11 +225,11 @@ def compose(g, plan: Plan, env_sh9, lights=(), *, ao: bool = True,
 
 def relight_view(model, camera, plan: Plan, params: RelightParams, *, ao: bool | None = None):
     """(sRGB composited (H, W, 3) numpy, linear premultiplied RGBA (H, W, 4) numpy)."""
-    return compose(view_gbuffer(model, camera, plan), plan, plan.env.sh9, params.lights,
+    return compose(view_gbuffer(model, camera, plan), plan, plan.env_sh9, params.lights,
                    ao=params.ao if ao is None else ao)
 
 
-def relight_run(run_dir, out_dir, *, envmap, rotation_deg: float = 0.0, exposure: float = 0.0,
+def relight_run(run_dir, out_dir, *, envmap=None, rotation_deg: float = 0.0, exposure: float = 0.0,
                 lights=(), cameras: str = "heldout", frames: str | None = None,
                 orbit: int | None = None, camera_path=None, capture_dir=None,
                 on_progress: Callable[[RelightProgress], None] | None = None,
@@ -233,7 +243,7 @@ def relight_run(run_dir, out_dir, *, envmap, rotation_deg: float = 0.0, exposure
     when it returns True `RelightStopped` is raised (files already written stay)."""
     lights = tuple(lt if isinstance(lt, LightSpec) else LightSpec.from_json(lt) for lt in lights)
     params = RelightParams(
-        envmap=str(envmap), rotation_deg=float(rotation_deg), exposure=float(exposure),
+        envmap=None if envmap is None else str(envmap), rotation_deg=float(rotation_deg), exposure=float(exposure),
         lights=lights, cameras=cameras, frames=frames, orbit=orbit,
         camera_path=None if camera_path is None else str(camera_path),
         capture_light=None if capture_light is None else str(capture_light), ao=ao, fps=fps)
@@ -281,7 +291,7 @@ def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
     if not orbit and len(plan.frames) > 1:
         videos += _camera_videos(out, plan, params, emit, done, total)
     record = {"version": 1, "run": str(run.resolve()), "params": params.to_json(),
-              "envmap_sh9": plan.env.sh9.tolist(), "capture_light": plan.capture_light.source,
+              "envmap_sh9": plan.env_sh9.tolist(), "capture_light": plan.capture_light.source,
               "frames": plan.frames, "views": done, "files": plan.files, "videos": videos,
               "seconds": round(time.perf_counter() - start, 3)}
     write_json(out / "relight.json", record)

@@ -28,13 +28,15 @@ router = APIRouter(prefix="/v1/renders", tags=["renders"],
              response_description="The render job, queued (Location names it)")
 def request_render(body: RenderIn, request: Request, services: ServicesDep,
                    tenant: TenantDep) -> JSONResponse:
-    """Queue a relight job on a succeeded reconstruction (404 for a job or envmap asset that
-    is not yours; 409 when the job is not a succeeded reconstruction)."""
+    """Queue a relight job on a succeeded reconstruction under an envmap asset, a built-in map
+    (builtin:NAME) or lights alone (404 for a job or envmap asset that is not yours; 409 when
+    the job is not a succeeded reconstruction)."""
     source = get_job(services.store, body.job_id, tenant)
-    asset = get_asset(services.store, body.envmap, tenant)
-    if asset.kind != "envmap":
-        raise ApiError(422, f"envmap: asset {asset.id} is a {asset.kind}, not an envmap",
-                       details=[{"path": "envmap", "message": "not an envmap asset"}])
+    if body.envmap_asset is not None:
+        asset = get_asset(services.store, body.envmap_asset, tenant)
+        if asset.kind != "envmap":
+            raise ApiError(422, f"envmap: asset {asset.id} is a {asset.kind}, not an envmap",
+                           details=[{"path": "envmap", "message": "not an envmap asset"}])
     if source.pipeline != "reconstruct":
         raise ApiError(409, f"job {source.id} is a {source.pipeline} job; renders are made "
                             "from a reconstruct job")

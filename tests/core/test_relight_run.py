@@ -103,6 +103,24 @@ def test_relight_camera_path(tiny_run: Path, synth_capture: Path, tmp_path: Path
     assert read_image(tmp_path / "path" / "000000" / "path000.png").shape == (40, 60, 3)
 
 
+def test_lights_alone_in_a_black_environment(tiny_run: Path, synth_capture: Path,
+                                             tmp_path: Path):
+    """No map: only the added light shines, on the side that faces it (cam01 looks from -x)."""
+    cam = json.loads((synth_capture / "capture.json").read_text())["cameras"][1]
+    assert np.linalg.inv(np.asarray(cam["world_to_camera"]))[0, 3] < -1  # on the -x side
+
+    def relit(direction, name):
+        record = relight_run(tiny_run, tmp_path / name, cameras="cam01", lights=[
+            {"kind": "directional", "direction": direction, "intensity": 3}])
+        assert record["params"]["envmap"] is None and not np.any(record["envmap_sh9"])
+        image = read_image(tmp_path / name / "000000" / "cam01.exr")
+        return image[..., :3].sum(-1)[image[..., 3] > 0.5]
+
+    front, back = relit([-1, 0, 0], "front"), relit([1, 0, 0], "back")
+    # Lambert's max(0, n . l): lit from behind the subject, the camera sees mostly shadow.
+    assert back.mean() < 0.2 * front.mean() and (back < 0.05).mean() > 0.5
+
+
 def test_no_ao_baseline_differs_only_by_visibility(tiny_run: Path, envmap: Path,
                                                    tmp_path: Path):
     a = relight_run(tiny_run, tmp_path / "ao", envmap=envmap, cameras="cam01")
@@ -129,6 +147,7 @@ def _bad_map(tmp_path: Path, name: str, image: np.ndarray) -> Path:
     ("empty frames", "selects no frame"),
     ("unknown camera", "no camera camXX"),
     ("not a run", "not a run directory"),
+    ("no light at all", "give an environment map or at least one light"),
 ])
 def test_cli_relight_bad_input(case: str, message: str, tiny_run: Path, envmap: Path,
                                tmp_path: Path, capsys: pytest.CaptureFixture):
@@ -148,6 +167,8 @@ def test_cli_relight_bad_input(case: str, message: str, tiny_run: Path, envmap: 
         args += ["--frames", "1:1"]
     elif case == "unknown camera":
         args += ["--cameras", "camXX"]
+    elif case == "no light at all":
+        args = [tiny_run, "--out", tmp_path / "out"]
     else:
         args[0] = tmp_path
     rc, _, err = _cli(capsys, "relight", *args)

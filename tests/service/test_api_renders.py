@@ -72,7 +72,7 @@ def test_the_relight_pipeline_is_published(client):
     props = relight["params_schema"]["properties"]
     assert {"envmap", "rotation_deg", "exposure", "lights", "cameras", "frames", "orbit", "fps",
             "ao", "capture_light"} <= set(props)
-    assert relight["params_schema"]["required"] == ["envmap"]
+    assert "required" not in relight["params_schema"]  # a map or lights: checked together
     light = client.get("/openapi.json").json()["components"]["schemas"]["LightIn"]
     assert {"kind", "direction", "position", "intensity", "color"} <= set(light["properties"])
 
@@ -100,7 +100,8 @@ LIGHT = {"kind": "directional", "direction": [0, 1, 0], "intensity": 1}
     ({"fps": 0}, "fps"),
     ({"capture_light": 0}, "capture_light"),
     ({"frames": "a:b"}, "frames"),
-    ({"envmap": None}, "environment map asset is required"),
+    ({"envmap": None}, "give an environment map (an asset id or builtin:NAME) or at least one"),
+    ({"envmap": "builtin:moon"}, "no built-in map builtin:moon"),
     ({"unknown": 1}, "body.unknown"),
 ])
 def test_render_requests_that_are_refused(client, services, envmap, extra, words):
@@ -110,10 +111,14 @@ def test_render_requests_that_are_refused(client, services, envmap, extra, words
     assert [j["id"] for j in client.get("/v1/jobs").json()["items"]] == [source]
 
 
-def test_an_envmap_is_required(client, services):
-    r = client.post("/v1/renders", json={"job_id": finished(services), "lights": [LIGHT]})
-    error = r.json()["error"]
-    assert r.status_code == 422 and "POST /v1/assets" in error["message"], r.text
+@pytest.mark.parametrize("envmap", ["builtin:sunset", None])
+def test_a_built_in_map_or_lights_alone_need_no_asset(client, services, envmap):
+    body = {"job_id": finished(services), "lights": [LIGHT]}
+    if envmap is not None:
+        body["envmap"] = envmap
+    r = client.post("/v1/renders", json=body)
+    assert r.status_code == 202, r.text
+    assert r.json()["params"]["envmap"] == envmap
 
 
 @pytest.mark.parametrize("state", ["queued", "running", "failed", "cancelled"])

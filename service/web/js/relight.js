@@ -21,9 +21,12 @@ async function renderSchema() {
 async function loadEnvmaps(select) {
   const assets = await listAll('/v1/assets');
   const keep = select || $('envmap-select').value;
-  $('envmap-select').replaceChildren(el('option', { value: '', textContent: 'none (lights only)' }),
+  $('envmap-select').replaceChildren(
     ...assets.filter((a) => a.kind === 'envmap').map((a) => el('option', {
-      value: a.id, textContent: `${a.filename} (${a.width}x${a.height})` })));
+      value: a.id, textContent: `${a.filename} (${a.width}x${a.height})` })),
+    ...['studio', 'sunset', 'neon'].map((name) => el('option', {
+      value: `builtin:${name}`, textContent: `built-in: ${name}` })),
+    el('option', { value: '', textContent: 'none (black: lights only)' }));
   if ([...$('envmap-select').options].some((o) => o.value === keep)) $('envmap-select').value = keep;
 }
 
