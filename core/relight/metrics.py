@@ -101,8 +101,8 @@ def relit_heldout(run: Path, capture_dir: Path, frame: str, cameras: list[str],
                             for name, sh in maps.items()}
         if truth is None:
             continue
-        relit, _ = compose(g, plan, plan.env.sh9)
-        no_ao, _ = compose(g, plan, plan.env.sh9, ao=False)
+        relit, _ = compose(g, plan, plan.env_sh9)
+        no_ao, _ = compose(g, plan, plan.env_sh9, ao=False)
         target = _target(truth["images"] / frame / f"{cam.id}.png", plan.capture, frame, cam.id,
                          sample, background)
         fg = (sample.mask.numpy()[..., 0] > 0.5 if sample.mask is not None
