@@ -1,6 +1,7 @@
 """The web page in headless Chromium against a real `dgs serve`: sign in with a key, upload a
 capture folder (tus), run a test-preset job, watch it finish live, browse its renders and
-Gaussians, and relight a frame; no console errors. Screenshots go to test-artifacts/browser/.
+Gaussians and contact sheet, relight a frame under an uploaded map and as an orbit video under
+a built-in one; no console errors. Screenshots go to test-artifacts/browser/.
 
 Needs Debian's chromium and chromium-driver (`apt-get install -y chromium chromium-driver`);
 without them the test is skipped with that message."""
@@ -134,14 +135,6 @@ def drawn_fraction(driver) -> float:
         return n / (t.width * t.height);""")
 
 
-def relight_available(server) -> bool:
-    import httpx
-
-    info = httpx.get(f"{server.url}/v1/info",
-                     headers={"Authorization": f"Bearer {server.key}"}).json()
-    return "relight" in info["pipelines"]
-
-
 def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, envmap):
     d = browser
     started = time.monotonic()
@@ -183,6 +176,9 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     assert any(p.endswith("_rgb.png") for p in maps) and any(p.endswith("_normal.png") for p in maps)
     assert any(p.endswith("_depth.npy") for p in maps) and any(p.endswith("_ao.png") for p in maps)
     wait_for(d, "the training plots", lambda d: image_loaded(d, "#plots img"), 30)
+    pictures = [i.get_attribute("data-path")
+                for i in d.find_elements(By.CSS_SELECTOR, "#plots img")]
+    assert "contact_sheet.png" in pictures and "plots/loss.png" in pictures, pictures
     d.find_element(By.ID, "viewer-load").click()
     wait_for(d, "the splat viewer", lambda d: d.find_element(By.ID, "viewer-status")
              .get_attribute("data-state") in ("succeeded", "error"), 30)
@@ -203,13 +199,20 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
              .get_attribute("data-state") in ("succeeded", "error"), 180)
     d.execute_script("document.getElementById('relight').scrollIntoView()")
     shot(d, "05-relight")
+    assert "relit" in text(d, "relight-status"), text(d, "relight-status")
+    assert image_loaded(d, "#relight-result img")
+
+    # 5. An orbit under a built-in map: an MP4 that plays in the page.
+    Select(d.find_element(By.ID, "envmap-select")).select_by_value("builtin:sunset")
+    orbit = d.find_element(By.ID, "relight-orbit")
+    orbit.clear()
+    orbit.send_keys("4")
+    d.find_element(By.ID, "relight-render").click()
+    wait_for(d, "the orbit video", lambda d: d.execute_script(
+        "const v = document.querySelector('#relight-result video');"
+        "return v !== null && v.readyState >= 1 && v.duration > 0;"), 180)
+    assert "relit" in text(d, "relight-status"), text(d, "relight-status")
+    shot(d, "06-relight-orbit")
     severe = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
-    if relight_available(server):
-        assert "relit" in text(d, "relight-status"), text(d, "relight-status")
-        assert image_loaded(d, "#relight-result img")
-        assert not severe, severe
-    else:
-        # Until the relight pipeline lands the API answers 501, and the page says so.
-        assert "501" in text(d, "relight-status") and "relight" in text(d, "relight-status")
-        assert all("/v1/renders" in e["message"] and "501" in e["message"] for e in severe), severe
+    assert not severe, severe
     print(f"browser test: {time.monotonic() - started:.1f} s")

@@ -72,12 +72,17 @@ function lights(lightSchema) {
 }
 
 async function show(items) {
-  const images = items.filter((a) => a.content_type === 'image/png');
-  const figs = await Promise.all(images.map(async (a) => {
-    const src = await blobUrl(new URL(a.url, location.href).pathname);
-    return el('figure', {}, el('img', { alt: a.path, src, className: 'relit' }),
-              el('figcaption', { textContent: a.path }));
-  }));
+  // The videos (an orbit per frame) first, then at most a dozen pictures.
+  const videos = items.filter((a) => a.content_type === 'video/mp4');
+  const images = items.filter((a) => a.content_type === 'image/png').slice(0, videos.length ? 4 : 12);
+  const path = (a) => new URL(a.url, location.href).pathname;
+  const figs = await Promise.all([
+    ...videos.map(async (a) => el('figure', {}, el('video', {
+      src: await blobUrl(path(a)), controls: true, loop: true, autoplay: true, muted: true,
+      className: 'relit' }), el('figcaption', { textContent: a.path }))),
+    ...images.map(async (a) => el('figure', {}, el('img', {
+      alt: a.path, src: await blobUrl(path(a)), className: 'relit' }),
+    el('figcaption', { textContent: a.path })))]);
   $('relight-result').replaceChildren(...figs);
   return figs.length;
 }
@@ -95,6 +100,8 @@ async function render() {
     const body = { job_id: state.job.id, lights: lights(schema.light), cameras: 'heldout',
                    frames: String(state.index) };
     if ($('envmap-select').value) body.envmap = $('envmap-select').value;
+    const orbit = Number($('relight-orbit').value);
+    if (orbit > 0) body.orbit = orbit;
     const rotation = ROTATION_NAMES.find((n) => n in schema.render);
     const degrees = Number($('envmap-rotation').value);
     if (rotation) body[rotation] = degrees;
@@ -113,7 +120,7 @@ async function render() {
       items = (await listAll(`/v1/jobs/${job.id}/artifacts`)).filter((a) => a.kind === 'relit' || a.path.startsWith('relit/'));
     }
     const n = await show(items || []);
-    showStatus(status, n ? `relit: ${n} image(s)` : 'the render finished without images', n ? 'succeeded' : 'error');
+    showStatus(status, n ? `relit: ${n} picture(s) or video(s)` : 'the render finished without images', n ? 'succeeded' : 'error');
   } catch (err) {
     showError(status, err, 'render failed: ');
   } finally {

@@ -1,13 +1,14 @@
-// Panel 3: a job's artifacts: held-out renders with their normal, depth and AO maps per frame
-// (a scrubber over the frames of a sequence), training plots, metrics, every file, and the
-// splat viewer of a frame's PLY.
+// Panel 3: a job's artifacts: held-out renders with their normal, depth, AO and relit maps per
+// frame (a scrubber over the frames of a sequence), training plots and the contact sheet,
+// metrics, every file, and the splat viewer of a frame's PLY.
 
 import { arrayBuffer, blobUrl, formatBytes, listAll } from './api.js';
 import { SplatViewer, parsePly } from './splat.js';
 import { $, el, emit, on, showError, showStatus } from './ui.js';
 
 const MAPS = [['render', '_rgb.png', 'render'], ['normal', '_normal.png', 'normals'],
-              ['depth', '_depth.npy', 'depth'], ['ao', '_ao.png', 'ambient occlusion']];
+              ['depth', '_depth.npy', 'depth'], ['ao', '_ao.png', 'ambient occlusion'],
+              ['relit', '_relit.png', 'relit (second light)']];
 const state = { job: null, artifacts: [], frames: [], cameras: [], viewer: null, timer: 0,
                 shown: '' };
 
@@ -85,8 +86,13 @@ async function showFrame() {
 }
 
 async function showPlots() {
-  const plots = state.artifacts.filter((a) => a.kind === 'plot');
-  const figs = await Promise.allSettled(plots.map((a) => figure(a, a.path.split('/').pop())));
+  // Training plots, and the run's pictures (the contact sheet of dgs eval).
+  const plots = state.artifacts.filter((a) => a.kind === 'plot' || a.kind === 'image');
+  const figs = await Promise.allSettled(plots.map(async (a) => {
+    const fig = await figure(a, a.path.split('/').pop());
+    if (a.kind === 'image') fig.className = 'wide';  // the contact sheet: a row of its own
+    return fig;
+  }));
   $('plots').replaceChildren(...figs.filter((r) => r.status === 'fulfilled').map((r) => r.value));
 }
 
@@ -95,7 +101,10 @@ async function showMetrics() {
   const evalFile = state.artifacts.find((a) => a.kind === 'eval');
   if (!evalFile) { table.replaceChildren(); return; }
   const data = JSON.parse(new TextDecoder().decode(await arrayBuffer(url(evalFile))));
-  const rows = Object.entries(data).filter(([, v]) => v === null || typeof v === 'number');
+  // Numbers at the top level, and one level down (relight.psnr, mesh.chamfer_relative, ...).
+  const rows = Object.entries(data).flatMap(([k, v]) => (v !== null && typeof v === 'object' && !Array.isArray(v)
+    ? Object.entries(v).map(([k2, v2]) => [`${k}.${k2}`, v2]) : [[k, v]]))
+    .filter(([, v]) => v === null || typeof v === 'number');
   const show = (v) => (v === null ? '—' : Number.isInteger(v) ? String(v) : v.toFixed(4));
   table.replaceChildren(...rows.map(([k, v]) => el('tr', {},
     el('th', { textContent: k }), el('td', { textContent: show(v) }))));
