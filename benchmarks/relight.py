@@ -29,10 +29,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def reconstruct_once(capture: Path, run: Path, preset: str) -> dict:
+    """The run's metrics: a finished run is reused, an interrupted one resumed."""
     from core.commands_demo import DEMO_OVERRIDES
     from core.pipeline import reconstruct
 
-    if (run / "metrics.json").is_file() and not (run / "checkpoints").glob("*.pt"):
+    if (run / "metrics.json").is_file() and not any((run / "checkpoints").glob("*.pt")):
         metrics = json.loads((run / "metrics.json").read_text())
         if metrics.get("frames"):
             return metrics

@@ -25,6 +25,7 @@ from core.data.capture import Camera
 from core.losses import (
     LossWeights,
     depth_normal_consistency,
+    geometry_mask_loss,
     normal_prior_loss,
     photometric_loss,
     visibility_loss,
@@ -298,6 +299,9 @@ class Trainer:
         terms = {"photometric": photometric_loss(r.rgb, self.target(index, background), w)}
         if p.normal_prior and view.normal is not None:
             terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
+        if p.geometry_branch and not p.tie_opacity and view.mask is not None \
+                and w.geometry_mask > 0:
+            terms["mask"] = geometry_mask_loss(r.alpha_g, view.mask, w)
         if p.consistency:
             terms["consistency"] = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K,
                                                             cam.viewmat, w)

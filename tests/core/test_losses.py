@@ -12,6 +12,7 @@ from core.losses import (
     depth_normal_consistency,
     depth_to_normals,
     depth_to_points,
+    geometry_mask_loss,
     normal_prior_loss,
     photometric_loss,
     ssim,
@@ -185,3 +186,19 @@ def test_visibility_loss_known_values():
     assert torch.isfinite(v.grad).all()
     with pytest.raises(ValueError, match="visibility, target"):
         visibility_loss(v, torch.zeros(5, 6, 1))
+
+
+def test_geometry_mask_loss_known_values():
+    alpha = torch.zeros(4, 4, 1, requires_grad=True)
+    mask = torch.zeros(4, 4, 1)
+    mask[:2] = 1.0  # half the image is the subject
+    # 1.0 * mean |0 - mask| = 0.5
+    assert geometry_mask_loss(alpha, mask).item() == pytest.approx(0.5)
+    assert geometry_mask_loss(mask.clone(), mask).item() == pytest.approx(0.0)
+    floater = mask.clone()
+    floater[3, 3] = 0.8  # geometry in the background costs its coverage
+    assert geometry_mask_loss(floater, mask).item() == pytest.approx(0.8 / 16)
+    geometry_mask_loss(alpha, mask).backward()
+    assert (alpha.grad[:2] < 0).all() and (alpha.grad[2:] == 0).all()
+    with pytest.raises(ValueError, match="alpha_g, mask"):
+        geometry_mask_loss(alpha, torch.zeros(4, 3, 1))
