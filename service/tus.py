@@ -171,50 +171,82 @@ class HashCache:
 class PartWriter:
     """Appends a request's bytes to a part file from `offset` (bytes past it are cut off first),
     hashing them into `sha` (the whole file's SHA-256) and `check` (this request's checksum).
-    Blocking: call its methods in a worker thread."""
+
+    The event loop `add`s what arrives and `take`s a block when enough has gathered; a worker
+    thread `write`s and hashes that block (both release the GIL) while the loop goes on
+    receiving the next, one block in flight at a time. The other methods block: call them in a
+    worker thread with no block in flight."""
 
     def __init__(self, path: Path, offset: int, sha, check=None):
         self.path, self.start, self.offset = path, offset, offset
         self.sha, self.check = sha, check
-        self.buf = bytearray()
+        self.buf: list[bytes] = []
+        self.buffered = 0
+        """Bytes in `buf` (the chunks as they arrived: gathered by one writev, never copied)."""
+        self.inflight = 0
+        """Bytes taken from the buffer and not yet written."""
         self.synced = offset
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o600)
-        self.f = os.fdopen(fd, "r+b")
-        self.f.truncate(offset)
-        self.f.seek(offset)
+        self.fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o600)
+        os.ftruncate(self.fd, offset)
+        os.lseek(self.fd, offset, os.SEEK_SET)
 
     @property
     def received(self) -> int:
-        """Bytes of this request so far (written and buffered)."""
-        return self.offset + len(self.buf) - self.start
+        """Bytes of this request so far (written, in flight and buffered)."""
+        return self.offset + self.inflight + self.buffered - self.start
 
     def add(self, chunk: bytes) -> None:
-        self.buf += chunk
+        if chunk:
+            self.buf.append(chunk)
+            self.buffered += len(chunk)
+
+    def take(self) -> list[bytes]:
+        """The buffered chunks, handed over for `write`."""
+        data, self.buf = self.buf, []
+        self.inflight += self.buffered
+        self.buffered = 0
+        return data
+
+    def write(self, data: list[bytes]) -> None:
+        """Append and hash chunks from `take`."""
+        size = sum(len(c) for c in data)
+        try:
+            views = [memoryview(c) for c in data if len(c)]
+            while views:  # writev may write less than asked (a signal, a full disk)
+                n = os.writev(self.fd, views[:1024])
+                if n == 0:
+                    raise OSError(f"{self.path}: the file system took no bytes")
+                while views and n >= len(views[0]):
+                    n -= len(views[0])
+                    views.pop(0)
+                if n:
+                    views[0] = views[0][n:]
+            for chunk in data:
+                self.sha.update(chunk)
+                if self.check is not None:
+                    self.check.update(chunk)
+            self.offset += size
+        finally:
+            self.inflight -= size
 
     def flush(self) -> None:
-        if not self.buf:
-            return
-        data, self.buf = self.buf, bytearray()  # handed over, not copied
-        self.f.write(data)
-        self.sha.update(data)
-        if self.check is not None:
-            self.check.update(data)
-        self.offset += len(data)
+        if self.buf:
+            self.write(self.take())
 
     def sync(self) -> int:
         """Flush and fsync; the returned offset is durable."""
         self.flush()
-        self.f.flush()
-        os.fsync(self.f.fileno())
+        os.fsync(self.fd)
         self.synced = self.offset
         return self.offset
 
     def rewind(self, offset: int) -> None:
         """Drop everything past `offset` (a failed checksum, an aborted request)."""
         self.buf.clear()
-        self.f.flush()
-        self.f.truncate(offset)
+        self.buffered = 0
+        os.ftruncate(self.fd, offset)
+        os.lseek(self.fd, offset, os.SEEK_SET)
         self.offset = offset
 
     def close(self) -> None:
-        self.f.close()
+        os.close(self.fd)

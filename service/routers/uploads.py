@@ -2,12 +2,13 @@
 termination, checksum), so standard clients (tuspy, tus-js-client, Uppy) upload and resume.
 
 Creation metadata: `capture` (the capture id) and `path` (the manifest path; `filename` is
-accepted instead). Bodies are written in chunks of about 1 MiB from a worker thread, so a slow
-disk never blocks the event loop.
+accepted instead). Bodies are written and hashed in blocks of about 1 MiB in a worker thread
+while the event loop receives the next block, so a slow disk never blocks the event loop.
 """
 
 from __future__ import annotations
 
+import asyncio
 import base64
 from typing import Annotated
 
@@ -28,7 +29,7 @@ from worker.models import Upload
 
 __all__ = ["router"]
 
-WRITE_CHUNK = 1 << 20
+WRITE_CHUNK = 4 << 20
 
 
 def require_tus(tenant: TenantDep,
@@ -181,16 +182,29 @@ async def _receive(request: Request, services: Services, upload: Upload, offset:
 
 async def _stream_body(request: Request, services: Services, upload: Upload,
                        writer: PartWriter, checked: bool) -> None:
+    """Receive the body into `writer`: each WRITE_CHUNK block is written and hashed in a worker
+    thread while the next one arrives (at most one in flight, so memory stays at two blocks)."""
     sync_every = services.settings.upload_sync_bytes
-    async for chunk in request.stream():
-        if writer.offset + len(writer.buf) + len(chunk) > upload.length:
-            raise ApiError(413, f"the body passes Upload-Length {upload.length}; the request "
-                                "was refused (HEAD gives the offset kept)")
-        writer.add(chunk)
-        if len(writer.buf) >= WRITE_CHUNK:
-            await run(writer.flush)
-        if not checked and writer.offset - writer.synced >= sync_every:
-            await run(record_offset, services, upload.id, await run(writer.sync))
+    inflight: asyncio.Future | None = None
+    try:
+        async for chunk in request.stream():
+            if writer.start + writer.received + len(chunk) > upload.length:
+                raise ApiError(413, f"the body passes Upload-Length {upload.length}; the "
+                                    "request was refused (HEAD gives the offset kept)")
+            writer.add(chunk)
+            if writer.buffered >= WRITE_CHUNK:
+                if inflight is not None:
+                    await inflight
+                inflight = asyncio.ensure_future(run(writer.write, writer.take()))
+            if not checked and writer.offset - writer.synced >= sync_every:
+                await inflight
+                inflight = None
+                await run(record_offset, services, upload.id, await run(writer.sync))
+    finally:
+        # Whatever happens next (a flush, a sync, a rewind) needs the block written first;
+        # shielded, so that a cancelled request still waits for the thread it started.
+        if inflight is not None:
+            await asyncio.shield(inflight)
 
 
 @router.delete("/{upload_id}", status_code=204, dependencies=[Tus],
