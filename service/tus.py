@@ -19,6 +19,7 @@ import os
 import threading
 import time
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from service.errors import ApiError
@@ -168,6 +169,11 @@ class HashCache:
             self._items.pop(upload_id, None)
 
 
+_HASHER = ThreadPoolExecutor(max_workers=4, thread_name_prefix="dgs-upload-hash")
+"""Hashes upload blocks beside their writes (PartWriter.write); a thread each for up to four
+uploads at once, more wait their turn."""
+
+
 class PartWriter:
     """Appends a request's bytes to a part file from `offset` (bytes past it are cut off first),
     hashing them into `sha` (the whole file's SHA-256) and `check` (this request's checksum).
@@ -208,26 +214,35 @@ class PartWriter:
         return data
 
     def write(self, data: list[bytes]) -> None:
-        """Append and hash chunks from `take`."""
+        """Append and hash chunks from `take`: the hashes run in a helper thread while this one
+        writes (both release the GIL), so a block costs the longer of the two, not the sum."""
         size = sum(len(c) for c in data)
         try:
-            views = [memoryview(c) for c in data if len(c)]
-            while views:  # writev may write less than asked (a signal, a full disk)
-                n = os.writev(self.fd, views[:1024])
-                if n == 0:
-                    raise OSError(f"{self.path}: the file system took no bytes")
-                while views and n >= len(views[0]):
-                    n -= len(views[0])
-                    views.pop(0)
-                if n:
-                    views[0] = views[0][n:]
-            for chunk in data:
-                self.sha.update(chunk)
-                if self.check is not None:
-                    self.check.update(chunk)
+            hashed = _HASHER.submit(self._hash, data)
+            try:
+                self._writev([memoryview(c) for c in data if len(c)])
+            finally:
+                hashed.result()  # also when the write failed: nothing may hash behind our back
             self.offset += size
         finally:
             self.inflight -= size
+
+    def _hash(self, data: list[bytes]) -> None:
+        for chunk in data:
+            self.sha.update(chunk)
+            if self.check is not None:
+                self.check.update(chunk)
+
+    def _writev(self, views: list[memoryview]) -> None:
+        while views:  # writev may write less than asked (a signal, a full disk)
+            n = os.writev(self.fd, views[:1024])
+            if n == 0:
+                raise OSError(f"{self.path}: the file system took no bytes")
+            while views and n >= len(views[0]):
+                n -= len(views[0])
+                views.pop(0)
+            if n:
+                views[0] = views[0][n:]
 
     def flush(self) -> None:
         if self.buf:
