@@ -5,7 +5,8 @@ method: without the temporal L1 and without the anisotropy loss.
 Variants (same capture, same key-frame schedule):
 - sequential: GoPs of --gop frames; key frames get K steps, the others deform + refine;
 - independent: every frame a key frame with the static stages scaled to total / frames steps,
-  where total is the sequential run's total step count (equal budget);
+  where total is the sequential run's total count of rendered training images (equal budget:
+  a deform step that averages 4 views costs 4);
 - no-temporal, no-anisotropy: sequential with that loss off.
 Reported: held-out PSNR (figure pixels) and normal cosine (against ground truth), flicker of the
 normal and AO maps (core.sequence.metrics), the largest PSNR drop between consecutive frames of
@@ -37,7 +38,8 @@ def _schedule(iterations: int) -> dict:
 
 
 def overrides(variant: str, iterations: int, total: int | None, frames: int, gop: int) -> dict:
-    """The run's configuration overrides for `variant` (`total`: the sequential step count)."""
+    """The run's configuration overrides for `variant` (`total`: the sequential run's rendered
+    training images)."""
     base = {"gop": gop, "checkpoint_every": 100_000,
             "train": {"schedule": _schedule(iterations), "init_points": 2_000}}
     if variant == "independent":
@@ -67,6 +69,7 @@ def summarize(run: Path) -> dict:
             "seconds_key": seq["timings"]["seconds_per_key_frame"],
             "seconds_other": seq["timings"]["seconds_per_deformed_frame"],
             "steps_total": sum(m["iterations"] for m in metrics.values()),
+            "renders_total": sum(m.get("renders", m["iterations"]) for m in metrics.values()),
             "psnr_per_frame": [round(p, 2) for p in t["psnr_per_frame"]]}
 
 
@@ -104,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     for variant in args.variants.split(","):
         run = out / variant
         if variant != "sequential" and total is None:
-            total = results.get("sequential", {}).get("steps_total")
+            total = results.get("sequential", {}).get("renders_total")
             if total is None:
                 raise SystemExit("run the sequential variant first (its step count is the budget)")
         if variant in results and (run / "eval.json").is_file():
@@ -117,12 +120,12 @@ def main(argv: list[str] | None = None) -> int:
         row["wall_s"] = round(time.perf_counter() - start, 1)
         results[variant] = row
         if variant == "sequential":
-            total = row["steps_total"]
+            total = row["renders_total"]
         results_path.write_text(json.dumps(results, indent=2) + "\n")
         print(variant, json.dumps({k: v for k, v in row.items() if k != "psnr_per_frame"}),
               flush=True)
     print("| variant | PSNR | normal cos | flicker (normal / AO) | largest drop in GoP (dB) | "
-          "Gaussians / frame | s / frame (key / other) | steps |")
+          "Gaussians / frame | s / frame (key / other) | renders |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for v in VARIANTS:
         r = results.get(v)
@@ -131,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"({r['flicker_normal']:.4f} / {r['flicker_ao']:.4f}) | "
                   f"{r['largest_drop_db'] if r['largest_drop_db'] is None else round(r['largest_drop_db'], 2)} | "
                   f"{r['gaussians_per_frame']:.0f} | {r['seconds_per_frame']:.1f} "
-                  f"({r['seconds_key']} / {r['seconds_other']}) | {r['steps_total']} |")
+                  f"({r['seconds_key']} / {r['seconds_other']}) | {r.get('renders_total', r['steps_total'])} |")
     return 0
 
 

@@ -378,10 +378,12 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
             continue
         label = f"frame {frame} ({i + 1}/{len(chosen)})"
         hooks = _Hooks(frame, i, len(chosen), on_progress, should_stop)
-        next_id = None if role.key else metrics["frames"][role.previous]["next_track_id"]
+        before = None if role.key else metrics["frames"][role.previous]
         metrics["frames"][frame] = {**_reconstruct_frame(
             capture, frame, run, cfg, estimator, label if show else None, hooks,
-            previous=role.previous, next_id=next_id), "gop": role.gop, "position": role.position}
+            previous=role.previous, next_id=None if before is None else before["next_track_id"],
+            reference_psnr=None if before is None else before.get("train_psnr")),
+            "gop": role.gop, "position": role.position}
         write_json(metrics_path, metrics)
         write_json(run / "sequence.json",
                    sequence_record(chosen, cfg.gop, cfg.sequence, metrics["frames"]))
@@ -396,7 +398,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
 
 def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator,
                        label: str | None, hooks: _Hooks, previous: str | None = None,
-                       next_id: int | None = None) -> dict:
+                       next_id: int | None = None,
+                       reference_psnr: float | None = None) -> dict:
     """A key frame (`previous` None) with the static stages, or a frame deformed from
     `previous` and refined; `next_id` is its group's next unused track id."""
     from core.priors import fill_priors
@@ -419,7 +422,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     else:
         trainer = tracker_from_capture(capture, frame, run / "frames" / previous / "gaussians.ply",
                                        next_id, cfg.train, cfg.sequence, downscale=cfg.downscale,
-                                       callbacks=callbacks)
+                                       callbacks=callbacks, reference_psnr=reference_psnr)
     priors = fill_priors(trainer.views, estimator)
     ckpt = ckpt_dir / f"{frame}.pt"
     resumed_at = 0
@@ -436,6 +439,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     last = history.records[-1] if history.records else {}
     return {
         "iterations": _iterations(trainer),
+        "renders": getattr(trainer, "renders", None) or _iterations(trainer),
         "seconds": round(time.perf_counter() - start, 3),
         "resumed_at": resumed_at,
         "gaussians": len(trainer.model),

@@ -3,10 +3,11 @@ and then refined. It runs like `core.train.Trainer` for the pipeline's callbacks
 history, checkpoints): `step`, `iterations`, `model`, `train()`, `save_checkpoint` /
 `load_checkpoint` with exact resume.
 
-Steps [0, D) are the deform stage (graph node parameters only), [D, D + R) the refine stage (every
-attribute, temporal L1 to the deformed values, anisotropy, densification and pruning with track
-ids). Both render with the key frame's last-step plan (full SH degree, final beta, geometry
-branch on).
+Steps [0, D) are the deform stage (graph node parameters only; each step averages the losses of
+`deform_views` training views and adds a silhouette term; D grows by a round when a retry starts),
+[D, D + R) the refine stage (every attribute, temporal L1 to the deformed values, anisotropy,
+densification and pruning with track ids). Both render with the key frame's last-step plan (full
+SH degree, final beta, geometry branch on).
 """
 
 from __future__ import annotations
@@ -50,7 +51,8 @@ class FrameTracker:
 
     def __init__(self, views: Sequence[View], previous: GaussianModel, ids: Tensor, next_id: int,
                  config: TrainConfig, sequence: SequenceConfig = SequenceConfig(), *,
-                 callbacks: Sequence[Callback] = (), ao_baker=None):
+                 callbacks: Sequence[Callback] = (), ao_baker=None,
+                 reference_psnr: float | None = None):
         if not views:
             raise ValueError("views: expected at least one training view")
         if tuple(ids.shape) != (len(previous),):
@@ -58,8 +60,14 @@ class FrameTracker:
         self.views, self.config, self.seq = list(views), config, sequence
         self.callbacks = list(callbacks)
         self.previous, self.prev_ids, self.next_id = previous, ids.long(), int(next_id)
-        self.deform_steps, self.refine_steps = sequence.steps(config.schedule.iterations)
-        self.iterations = self.deform_steps + self.refine_steps
+        self.round_steps, self.refine_steps = sequence.steps(config.schedule.iterations)
+        self.deform_steps = self.round_steps
+        """Steps of the deform stage: one round, plus one per retry (`deform_retries`)."""
+        self.round_start = 0
+        """First step of the current deform round (its rates and blur count from there)."""
+        self.retries = 0
+        self.reference_psnr = reference_psnr
+        """The previous frame's final training PSNR (None: no retries)."""
         self.plan = plan(config.schedule.iterations - 1, config.schedule)
         if ao_baker is None and sequence.bake_ao and config.bake_ao:
             from core.ao import GaussianAOBaker
@@ -123,17 +131,31 @@ class FrameTracker:
     # -- stages ------------------------------------------------------------------------------
     def _deform_step(self, index: int, bg: Tensor) -> tuple[dict, object]:
         s = self.seq
-        decay = 0.1 ** (self.step / self.deform_steps)  # exponential, to a tenth by the end
+        k = self.step - self.round_start  # step within this round
+        decay = 0.1 ** (k / self.round_steps)  # exponential, to a tenth by the round's end
         for group, base in zip(self.optimizer.param_groups,
                                (s.lr_rotation, s.lr_translation * self.extent)):
             group["lr"] = base * decay
         posed = DeformedGaussians(self.previous, self.graph, self.node_q, self.node_t)
-        r = self._render(posed, index, bg)
-        sigma = blur_sigma(self.step, self.deform_steps, s.coarse_sigma)
-        terms = self._image_terms(r, index, bg, sigma)
+        sigma = blur_sigma(k, self.round_steps, s.coarse_sigma)
+        views = [(index, bg)] + [(i, self._background(i)) for i in
+                                 (self._next_view() for _ in range(s.deform_views - 1))]
+        terms: dict[str, Tensor] = {}
+        first = None  # the step's own view (index), which StepInfo's PSNR compares
+        for i, b in views:
+            r = self._render(posed, i, b)
+            if first is None:
+                first = r
+            view_terms = self._image_terms(r, i, b, sigma)
+            mask = self.views[i].mask
+            if s.deform_mask > 0 and mask is not None:
+                view_terms["silhouette"] = s.deform_mask * (
+                    blur(r.alpha_c, sigma) - blur(mask, sigma)).abs().mean()
+            for name, value in view_terms.items():
+                terms[name] = terms.get(name, 0.0) + value / len(views)
         terms.update(deform_losses(self.graph, self.node_q, self.node_t, arap=s.arap,
                                    quat_norm=s.quat_norm))
-        return terms, r
+        return terms, first
 
     def _start_refine(self) -> None:
         """The deformed Gaussians become the model; anchors, ids, optimizer, strategy start."""
@@ -185,8 +207,25 @@ class FrameTracker:
             prune_transparent(self.model, self.optimizer, self.state,
                               self.config.densify.transparent)
 
+    def _maybe_retry(self) -> None:
+        """At the end of a deform round: another round when the deformed frame's training PSNR
+        falls `retry_below_db` short of the previous frame's."""
+        s = self.seq
+        if self.reference_psnr is None or self.retries >= s.deform_retries:
+            return
+        reached = self.evaluate()
+        if reached > self.reference_psnr - s.retry_below_db:
+            return
+        self.retries += 1
+        self.round_start = self.step
+        self.deform_steps += self.round_steps
+        self.notes.append(f"deform round {self.retries + 1}: training PSNR {reached:.2f} dB "
+                          f"after {self.step} steps, previous frame {self.reference_psnr:.2f}")
+
     def train_step(self) -> StepInfo:
         start = time.perf_counter()
+        if self.step == self.deform_steps and self.state is None:
+            self._maybe_retry()
         if self.step == self.deform_steps:
             self._start_refine()
         index = self._next_view()
@@ -219,6 +258,16 @@ class FrameTracker:
         return self.model
 
     @property
+    def iterations(self) -> int:
+        """Steps of the frame (grows by a deform round when a retry starts)."""
+        return self.deform_steps + self.refine_steps
+
+    @property
+    def renders(self) -> int:
+        """Images rendered (and back-propagated) in all: the frame's cost in key-frame steps."""
+        return self.deform_steps * self.seq.deform_views + self.refine_steps
+
+    @property
     def phase(self) -> str:
         """'deform' or 'refine': the stage of the next step."""
         return "deform" if self.step < self.deform_steps else "refine"
@@ -246,7 +295,9 @@ class FrameTracker:
         from the previous frame, deterministically)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        blob = {"step": self.step, "node_q": self.node_q.detach(), "node_t": self.node_t.detach(),
+        blob = {"step": self.step, "deform_steps": self.deform_steps, "retries": self.retries,
+                "round_start": self.round_start,
+                "node_q": self.node_q.detach(), "node_t": self.node_t.detach(),
                 "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
                 "order": list(self._order), "notes": list(self.notes), "extra": extra}
         if self.state is not None:
@@ -263,6 +314,9 @@ class FrameTracker:
             self.node_q.copy_(blob["node_q"])
             self.node_t.copy_(blob["node_t"])
         self.step = int(blob["step"])
+        self.deform_steps = int(blob.get("deform_steps", self.deform_steps))
+        self.retries = int(blob.get("retries", 0))
+        self.round_start = int(blob.get("round_start", 0))
         if "params" in blob:
             self._start_refine_from(blob)
         self.optimizer.load_state_dict(blob["optimizer"])

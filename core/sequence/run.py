@@ -48,9 +48,10 @@ def load_frame(path: str | os.PathLike[str]) -> tuple[GaussianModel, torch.Tenso
 
 def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, train,
                          sequence: SequenceConfig, *, downscale: float = 1.0,
-                         callbacks=(), ao_baker=None) -> FrameTracker:
+                         callbacks=(), ao_baker=None,
+                         reference_psnr: float | None = None) -> FrameTracker:
     """A `FrameTracker` on the training cameras of `frame`, starting from the previous frame's
-    PLY."""
+    PLY (`reference_psnr`: that frame's final training PSNR, for deform retries)."""
     from core.data.dataset import CaptureDataset
     from core.train import View, training_cameras
 
@@ -62,7 +63,7 @@ def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, 
     views = [View.from_sample(ds[i]) for i in range(len(ds))]
     model, track = load_frame(previous_ply)
     return FrameTracker(views, model, track, next_id, train, sequence, callbacks=callbacks,
-                        ao_baker=ao_baker)
+                        ao_baker=ao_baker, reference_psnr=reference_psnr)
 
 
 def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,

@@ -211,7 +211,8 @@ TINY_RUN = {"train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3
                                    "densify_from": 2, "densify_until": 24, "densify_interval": 5,
                                    "reset_interval": 15, "sh_interval": 5},
                       "init_points": 300},
-            "sequence": {"num_nodes": 64, "deform_fraction": 0.25, "refine_fraction": 0.25},
+            "sequence": {"num_nodes": 64, "deform_fraction": 0.25, "refine_fraction": 0.25,
+                         "deform_retries": 0},
             "checkpoint_every": 4, "gop": 3}
 
 
@@ -238,7 +239,10 @@ def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp
 
     straight = tmp_path / "straight"
     events = []
-    _reconstruct(capture3, straight, on_progress=events.append)
+    straight_metrics = _reconstruct(capture3, straight, on_progress=events.append)
+    # Cost in rendered images: D steps of 2 views (the default) and R steps of one.
+    assert straight_metrics["frames"]["000001"]["renders"] == 10 * 2 + 10
+    assert straight_metrics["frames"]["000000"]["renders"] == 40
     seq = json.loads((straight / "sequence.json").read_text())
     assert [f["role"] for f in seq["frames"]] == ["key", "deformed", "deformed"]
     assert [g["frames"] for g in seq["gops"]] == [["000000", "000001", "000002"]]
@@ -289,3 +293,91 @@ def test_independent_mode_makes_every_frame_a_key_frame(capture3, tmp_path, one_
     reconstruct(capture3, run, preset="test", overrides=cfg, progress=False, frames="0:2")
     seq = json.loads((run / "sequence.json").read_text())
     assert [f["role"] for f in seq["frames"]] == ["key", "key"] and seq["gop"] == 1
+
+
+def test_a_deform_step_averages_its_views_and_scores_the_silhouette(capture3, tmp_path,
+                                                                    one_thread, monkeypatch):
+    """deform_views renders per step, each view's terms averaged; the silhouette term is
+    deform_mask x mean |blur(alpha_c) - blur(mask)| at the step's coarse-to-fine blur."""
+    import core.sequence.frame as frame_mod
+    from core.data import load_capture
+    from core.pipeline import apply_overrides, reconstruct, resolve_config
+    from core.sequence import SequenceConfig
+    from core.sequence.deform import blur, blur_sigma
+    from core.sequence.run import tracker_from_capture
+
+    run = tmp_path / "key"
+    reconstruct(capture3, run, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
+    cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
+    seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
+                         deform_views=3, deform_mask=2.0, coarse_sigma=1.5)
+    tracker = tracker_from_capture(load_capture(capture3), "000001",
+                                   run / "frames" / "000000" / "gaussians.ply", 10 ** 6,
+                                   cfg.train, seq)
+    assert tracker.renders == 10 * 3 + 10 and tracker.iterations == 20
+    drawn = []
+    real = frame_mod.render
+
+    def counting(model, camera, **kw):
+        out = real(model, camera, **kw)
+        drawn.append((next(k for k, c in enumerate(tracker.cameras) if c is camera),
+                      out.alpha_c.detach()))
+        return out
+
+    monkeypatch.setattr(frame_mod, "render", counting)
+    info = tracker.train_step()
+    assert len(drawn) == 3 and len({i for i, _ in drawn}) == 3  # three different views
+    sigma = blur_sigma(0, tracker.deform_steps, 1.5)
+    want = sum(2.0 * float((blur(a, sigma) - blur(tracker.views[i].mask, sigma)).abs().mean())
+               for i, a in drawn) / 3
+    assert info.losses["silhouette"] == pytest.approx(want, rel=1e-5)
+    assert {"photometric", "normal", "consistency", "arap", "quat_norm"} <= set(info.losses)
+    with pytest.raises(ValueError, match="deform_views"):
+        SequenceConfig(deform_views=0)
+
+
+def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(capture3, tmp_path,
+                                                                             one_thread):
+    """With the previous frame's PSNR out of reach, the deform stage runs a second round (rates
+    and blur afresh), once; a checkpoint inside the second round resumes to the same model."""
+    from core.data import load_capture
+    from core.pipeline import apply_overrides, reconstruct, resolve_config
+    from core.sequence import SequenceConfig
+    from core.sequence.run import tracker_from_capture
+
+    run = tmp_path / "key"
+    reconstruct(capture3, run, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
+    cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
+    seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
+                         deform_retries=1, retry_below_db=1.5)
+    capture = load_capture(capture3)
+    ply = run / "frames" / "000000" / "gaussians.ply"
+
+    def tracker(reference):
+        return tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, seq,
+                                    reference_psnr=reference)
+
+    calm = tracker(None)  # no reference: never retries
+    calm.train()
+    assert calm.deform_steps == 10 and calm.retries == 0 and calm.step == 20
+    reachable = tracker(0.0)  # anything beats 0 dB: no retry either
+    reachable.train()
+    assert reachable.retries == 0 and reachable.renders == 10 * 2 + 10
+    assert torch.equal(reachable.model.means, calm.model.means)
+
+    behind = tracker(1000.0)
+    phases = []
+    while behind.step < behind.iterations:
+        behind.train_step()
+        phases.append("deform" if behind.step - 1 < behind.deform_steps else "refine")
+        if behind.step == 13:
+            behind.save_checkpoint(tmp_path / "mid.pt")
+    assert behind.retries == 1 and behind.deform_steps == 20 and behind.iterations == 30
+    assert behind.renders == 20 * 2 + 10 and phases.count("deform") == 20
+    assert "deform round 2" in behind.notes[0]
+    resumed = tracker(1000.0)
+    resumed.load_checkpoint(tmp_path / "mid.pt")
+    assert (resumed.deform_steps, resumed.round_start, resumed.step) == (20, 10, 13)
+    resumed.train()
+    for k, v in behind.model.params.items():
+        assert torch.equal(v, resumed.model.params[k]), k
