@@ -130,11 +130,13 @@ def main(argv: list[str] | None = None) -> int:
     for v in VARIANTS:
         r = results.get(v)
         if r:
+            drop = r["largest_drop_db"]
+            renders = r.get("renders_total", r["steps_total"])
             print(f"| {v} | {r['psnr']:.2f} | {r['normal_cos']:.3f} | {r['flicker']:.4f} "
                   f"({r['flicker_normal']:.4f} / {r['flicker_ao']:.4f}) | "
-                  f"{r['largest_drop_db'] if r['largest_drop_db'] is None else round(r['largest_drop_db'], 2)} | "
+                  f"{drop if drop is None else round(drop, 2)} | "
                   f"{r['gaussians_per_frame']:.0f} | {r['seconds_per_frame']:.1f} "
-                  f"({r['seconds_key']} / {r['seconds_other']}) | {r.get('renders_total', r['steps_total'])} |")
+                  f"({r['seconds_key']} / {r['seconds_other']}) | {renders} |")
     return 0
 
 
