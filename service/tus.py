@@ -248,6 +248,12 @@ class PartWriter:
         if self.buf:
             self.write(self.take())
 
+    def sync_to(self, offset: int) -> None:
+        """fsync, for bytes already written up to `offset` (blocks may be written meanwhile:
+        they are past it); `synced` becomes `offset`."""
+        os.fsync(self.fd)
+        self.synced = max(self.synced, offset)
+
     def sync(self) -> int:
         """Flush and fsync; the returned offset is durable."""
         self.flush()

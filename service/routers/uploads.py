@@ -183,9 +183,19 @@ async def _receive(request: Request, services: Services, upload: Upload, offset:
 async def _stream_body(request: Request, services: Services, upload: Upload,
                        writer: PartWriter, checked: bool) -> None:
     """Receive the body into `writer`: each WRITE_CHUNK block is written and hashed in a worker
-    thread while the next one arrives (at most one in flight, so memory stays at two blocks)."""
+    thread while the next one arrives (at most one in flight, so memory stays at two blocks).
+    Unchecked bodies are made durable every `upload_sync_bytes` by an fsync that also runs
+    beside the receiving (the offset it covers is recorded when it returns), so a dropped
+    connection or a crash keeps what was synced."""
     sync_every = services.settings.upload_sync_bytes
     inflight: asyncio.Future | None = None
+    syncing: asyncio.Future | None = None
+    last_sync = writer.synced
+
+    async def durable(offset: int) -> None:
+        await run(writer.sync_to, offset)
+        await run(record_offset, services, upload.id, offset)
+
     try:
         async for chunk in request.stream():
             if writer.start + writer.received + len(chunk) > upload.length:
@@ -196,15 +206,19 @@ async def _stream_body(request: Request, services: Services, upload: Upload,
                 if inflight is not None:
                     await inflight
                 inflight = asyncio.ensure_future(run(writer.write, writer.take()))
-            if not checked and writer.offset - writer.synced >= sync_every:
-                await inflight
-                inflight = None
-                await run(record_offset, services, upload.id, await run(writer.sync))
+            if (not checked and writer.offset - last_sync >= sync_every
+                    and (syncing is None or syncing.done())):
+                if syncing is not None:
+                    syncing.result()  # a failed fsync ends the request here
+                last_sync = writer.offset  # written (not in flight): what this fsync covers
+                syncing = asyncio.ensure_future(durable(last_sync))
     finally:
-        # Whatever happens next (a flush, a sync, a rewind) needs the block written first;
-        # shielded, so that a cancelled request still waits for the thread it started.
-        if inflight is not None:
-            await asyncio.shield(inflight)
+        # Whatever happens next (a flush, a sync, a rewind) needs the block written and the
+        # fsync done first; shielded, so that a cancelled request still waits for the threads
+        # it started.
+        for pending in (inflight, syncing):
+            if pending is not None:
+                await asyncio.shield(pending)
 
 
 @router.delete("/{upload_id}", status_code=204, dependencies=[Tus],

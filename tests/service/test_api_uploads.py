@@ -291,3 +291,48 @@ def test_browsers_on_allowed_origins_can_speak_tus(tmp_path):
     other = client.options("/v1/uploads", headers={
         "Origin": "https://evil.example.com", "Access-Control-Request-Method": "PATCH"})
     assert "access-control-allow-origin" not in other.headers
+
+
+def test_a_long_body_is_made_durable_while_it_streams(client, app, services, new_capture):
+    """Every upload_sync_bytes an fsync runs beside the receiving and records the offset it
+    covers, while the request is still open: a crash then keeps what was synced."""
+    import asyncio
+    import os
+
+    import httpx
+
+    from service.records import get_upload
+
+    mib = 1 << 20
+    services.settings = services.settings.model_copy(update={"upload_sync_bytes": mib})
+    data = os.urandom(10 * mib + 123)
+    cap = new_capture({"capture.json": b"{}", "images/000000/cam00.png": data})
+    url = tus_create(client, cap["id"], "images/000000/cam00.png", len(data)).headers["Location"]
+    upload_id = url.rsplit("/", 1)[1]
+    seen: list[int] = []
+
+    async def body():
+        step = 256 << 10
+        for i in range(0, len(data), step):
+            yield data[i:i + step]
+            if i + step == 6 * mib:
+                await asyncio.sleep(0.2)  # the first 4 MiB block is written meanwhile
+            if i + step == 7 * mib:  # the chunks since then started its sync: wait for it
+                for _ in range(500):
+                    offset = get_upload(services.store, upload_id, "local").offset
+                    if offset > 0:
+                        break
+                    await asyncio.sleep(0.01)
+                seen.append(offset)
+
+    async def patch():
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://testserver") as c:
+            return await c.patch(url, content=body(), headers={
+                **TUS, "Upload-Offset": "0", "Content-Length": str(len(data)),
+                "Content-Type": "application/offset+octet-stream"})
+
+    r = asyncio.run(patch())
+    assert r.status_code == 204 and r.headers["Upload-Offset"] == str(len(data))
+    assert seen and seen[0] >= 4 * mib and seen[0] % (4 * mib) == 0  # recorded mid-request
+    assert services.staging.file(cap["id"], "images/000000/cam00.png").read_bytes() == data
