@@ -6,7 +6,7 @@ Variants (same capture, same key-frame schedule):
 - sequential: GoPs of --gop frames; key frames get K steps, the others deform + refine;
 - independent: every frame a key frame with the static stages scaled to total / frames steps,
   where total is the sequential run's total count of rendered training images (equal budget:
-  a deform step that averages 4 views costs 4);
+  a deform step that averages k views costs k);
 - no-temporal, no-anisotropy: sequential with that loss off.
 Reported: held-out PSNR (figure pixels) and normal cosine (against ground truth), flicker of the
 normal and AO maps (core.sequence.metrics), the largest PSNR drop between consecutive frames of
@@ -109,7 +109,7 @@ def main(argv: list[str] | None = None) -> int:
         if variant != "sequential" and total is None:
             total = results.get("sequential", {}).get("renders_total")
             if total is None:
-                raise SystemExit("run the sequential variant first (its step count is the budget)")
+                raise SystemExit("run the sequential variant first (its rendered images are the budget)")
         if variant in results and (run / "eval.json").is_file():
             continue
         start = time.perf_counter()

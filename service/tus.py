@@ -193,8 +193,7 @@ class PartWriter:
         """Bytes taken from the buffer and not yet written."""
         self.synced = offset
         self.fd = os.open(path, os.O_WRONLY | os.O_CREAT, 0o600)
-        os.ftruncate(self.fd, offset)
-        os.lseek(self.fd, offset, os.SEEK_SET)
+        self.rewind(offset)
 
     @property
     def received(self) -> int:
@@ -257,8 +256,7 @@ class PartWriter:
     def sync(self) -> int:
         """Flush and fsync; the returned offset is durable."""
         self.flush()
-        os.fsync(self.fd)
-        self.synced = self.offset
+        self.sync_to(self.offset)
         return self.offset
 
     def rewind(self, offset: int) -> None:

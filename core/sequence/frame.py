@@ -61,11 +61,8 @@ class FrameTracker:
         self.callbacks = list(callbacks)
         self.previous, self.prev_ids, self.next_id = previous, ids.long(), int(next_id)
         self.round_steps, self.refine_steps = sequence.steps(config.schedule.iterations)
-        self.deform_steps = self.round_steps
-        """Steps of the deform stage: one round, plus one per retry (`deform_retries`)."""
-        self.round_start = 0
-        """First step of the current deform round (its rates and blur count from there)."""
         self.retries = 0
+        """Deform rounds added so far (`deform_retries`)."""
         self.reference_psnr = reference_psnr
         """The previous frame's final training PSNR (None: no retries)."""
         self.plan = plan(config.schedule.iterations - 1, config.schedule)
@@ -217,8 +214,6 @@ class FrameTracker:
         if reached > self.reference_psnr - s.retry_below_db:
             return
         self.retries += 1
-        self.round_start = self.step
-        self.deform_steps += self.round_steps
         self.notes.append(f"deform round {self.retries + 1}: training PSNR {reached:.2f} dB "
                           f"after {self.step} steps, previous frame {self.reference_psnr:.2f}")
 
@@ -258,6 +253,16 @@ class FrameTracker:
         return self.model
 
     @property
+    def deform_steps(self) -> int:
+        """Steps of the deform stage: one round, plus one per retry."""
+        return self.round_steps * (1 + self.retries)
+
+    @property
+    def round_start(self) -> int:
+        """First step of the current deform round (its rates and blur count from there)."""
+        return self.round_steps * self.retries
+
+    @property
     def iterations(self) -> int:
         """Steps of the frame (grows by a deform round when a retry starts)."""
         return self.deform_steps + self.refine_steps
@@ -295,8 +300,7 @@ class FrameTracker:
         from the previous frame, deterministically)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        blob = {"step": self.step, "deform_steps": self.deform_steps, "retries": self.retries,
-                "round_start": self.round_start,
+        blob = {"step": self.step, "retries": self.retries,
                 "node_q": self.node_q.detach(), "node_t": self.node_t.detach(),
                 "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
                 "order": list(self._order), "notes": list(self.notes), "extra": extra}
@@ -314,9 +318,7 @@ class FrameTracker:
             self.node_q.copy_(blob["node_q"])
             self.node_t.copy_(blob["node_t"])
         self.step = int(blob["step"])
-        self.deform_steps = int(blob.get("deform_steps", self.deform_steps))
         self.retries = int(blob.get("retries", 0))
-        self.round_start = int(blob.get("round_start", 0))
         if "params" in blob:
             self._start_refine_from(blob)
         self.optimizer.load_state_dict(blob["optimizer"])

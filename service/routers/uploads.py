@@ -2,7 +2,7 @@
 termination, checksum), so standard clients (tuspy, tus-js-client, Uppy) upload and resume.
 
 Creation metadata: `capture` (the capture id) and `path` (the manifest path; `filename` is
-accepted instead). Bodies are written and hashed in blocks of about 1 MiB in a worker thread
+accepted instead). Bodies are written and hashed in blocks of about 4 MiB in a worker thread
 while the event loop receives the next block, so a slow disk never blocks the event loop.
 """
 
