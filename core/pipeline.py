@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from core.sequence.config import SequenceConfig
+from core.progress import LogLines, TerminalBar, frame_iterations
 from core.train import Callback, CheckpointCallback, StepInfo, TrainConfig, Trainer, train_config
 
 __all__ = ["Progress", "RunConfig", "RunMesh", "Stopped", "apply_overrides", "parse_frames", "reconstruct",
@@ -227,11 +228,6 @@ def write_json(path: Path, data) -> None:
     os.replace(tmp, path)
 
 
-def _iterations(trainer) -> int:
-    """Steps of the frame: a key frame's schedule, or a tracked frame's deform + refine."""
-    return getattr(trainer, "iterations", None) or trainer.config.schedule.iterations
-
-
 class _History(Callback):
     """Per-step records for metrics.json and the plots (survives resume via the checkpoint)."""
 
@@ -263,7 +259,7 @@ class _Hooks(Callback):
             return
         self.on_progress(Progress(
             kind=kind, frame=self.frame, frame_index=self.index, frames=self.frames,
-            step=trainer.step, iterations=_iterations(trainer), stage=self.stage,
+            step=trainer.step, iterations=frame_iterations(trainer), stage=self.stage,
             gaussians=len(trainer.model), loss=self.loss if kind == "step" else None, path=path,
             phase=getattr(trainer, "phase", "key")))
 
@@ -274,33 +270,11 @@ class _Hooks(Callback):
     def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
         self.stage, self.loss = info.plan.stage, info.losses["total"]
         self.emit("step", trainer)
-        last = trainer.step >= _iterations(trainer)
+        last = trainer.step >= frame_iterations(trainer)
         if self.should_stop is not None and not last and self.should_stop():
             if self.saver is not None:
                 self.saver.save(trainer)
             raise Stopped(self.frame, trainer.step)
-
-
-class _Tqdm(Callback):
-    """A progress bar: stage, iteration, loss, Gaussians, ETA."""
-
-    def __init__(self, label: str):
-        self.label, self.bar = label, None
-
-    def on_train_start(self, trainer: Trainer) -> None:
-        from tqdm import tqdm
-
-        self.bar = tqdm(total=_iterations(trainer), initial=trainer.step,
-                        desc=self.label, unit="it", dynamic_ncols=True, leave=True)
-
-    def on_step_end(self, trainer: Trainer, info: StepInfo) -> None:
-        self.bar.update(1)
-        if info.step % 10 == 0 or info.step == _iterations(trainer) - 1:
-            self.bar.set_postfix(stage=info.plan.stage, loss=f"{info.losses['total']:.4f}",
-                                 gaussians=info.n_gaussians, refresh=False)
-
-    def on_train_end(self, trainer: Trainer) -> None:
-        self.bar.close()
 
 
 def _check_run_dir(run: Path, resume: bool) -> None:
@@ -368,7 +342,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     metrics.update({"version": 1, "preset": preset, "gop": cfg.gop,
                     "note": SEQUENCE_NOTE if cfg.sequence.enabled else INDEPENDENT_NOTE})
     metrics.setdefault("frames", {})
-    show = progress and sys.stderr.isatty()
+    # A bar on a terminal; elsewhere (a log, nohup) a line every 30 s, so long runs never go quiet.
+    display = None if not progress else "bar" if sys.stderr.isatty() else "lines"
     from core.sequence.gop import roles
     from core.sequence.run import sequence_record
 
@@ -380,7 +355,7 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
         hooks = _Hooks(frame, i, len(chosen), on_progress, should_stop)
         before = None if role.key else metrics["frames"][role.previous]
         metrics["frames"][frame] = {**_reconstruct_frame(
-            capture, frame, run, cfg, estimator, label if show else None, hooks,
+            capture, frame, run, cfg, estimator, (label, display), hooks,
             previous=role.previous, next_id=None if before is None else before["next_track_id"],
             reference_psnr=None if before is None else before.get("train_psnr")),
             "gop": role.gop, "position": role.position}
@@ -397,7 +372,7 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
 
 
 def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator,
-                       label: str | None, hooks: _Hooks, previous: str | None = None,
+                       shown: tuple[str, str | None], hooks: _Hooks, previous: str | None = None,
                        next_id: int | None = None,
                        reference_psnr: float | None = None) -> dict:
     """A key frame (`previous` None) with the static stages, or a frame deformed from
@@ -412,8 +387,9 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
                                on_saved=lambda path: hooks.emit("checkpoint", None, path=str(path)))
     hooks.saver = saver
     callbacks: list[Callback] = [history, saver]
-    if label is not None:
-        callbacks.append(_Tqdm(label))
+    label, display = shown
+    if display is not None:
+        callbacks.append(TerminalBar(label) if display == "bar" else LogLines(label))
     callbacks.append(hooks)  # last: a stop sees the step's history and checkpoint
     start = time.perf_counter()
     if previous is None:
@@ -438,8 +414,8 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     mesh = _mesh_frame(run, capture, frame, cfg.mesh)
     last = history.records[-1] if history.records else {}
     return {
-        "iterations": _iterations(trainer),
-        "renders": getattr(trainer, "renders", None) or _iterations(trainer),
+        "iterations": frame_iterations(trainer),
+        "renders": getattr(trainer, "renders", None) or frame_iterations(trainer),
         "seconds": round(time.perf_counter() - start, 3),
         "resumed_at": resumed_at,
         "gaussians": len(trainer.model),

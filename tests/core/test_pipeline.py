@@ -247,12 +247,17 @@ def test_progress_events_and_cooperative_stop(capture: Path, short_config: Path,
     assert metrics["frames"]["000000"]["resumed_at"] == 45
 
 
-def test_progress_bar_only_on_a_terminal(capture: Path, short_config: Path, tmp_path: Path,
-                                         capsys: pytest.CaptureFixture,
-                                         monkeypatch: pytest.MonkeyPatch):
+def test_progress_bar_on_a_terminal_lines_elsewhere(capture: Path, short_config: Path,
+                                                    tmp_path: Path, capsys: pytest.CaptureFixture,
+                                                    monkeypatch: pytest.MonkeyPatch):
     reconstruct(capture, tmp_path / "a", preset="test", frames="0:1",
                 config_file=short_config)
-    assert capsys.readouterr().err == ""  # pytest's stderr is not a TTY
+    # pytest's stderr is not a TTY: timed lines (the first, the last, and the summary), no bar.
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "frame 000000 (1/1): started, step 0/100"
+    assert lines[-2].startswith("frame 000000 (1/1): step 100/100 stage 3 loss ")
+    assert lines[-1].startswith("frame 000000 (1/1): trained 100 step(s) in ")
+    assert not any("\r" in line or "gaussians=" in line for line in lines)
     monkeypatch.setattr("sys.stderr.isatty", lambda: True)
     reconstruct(capture, tmp_path / "b", preset="test", frames="0:1",
                 config_file=short_config)

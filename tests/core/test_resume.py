@@ -37,7 +37,7 @@ def setup(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
 
 def _dgs(capture: Path, config: Path, out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "core.cli", "reconstruct", str(capture), "--out", str(out),
-            "--preset", "test", "--config", str(config), "--no-progress", *extra]
+            "--preset", "test", "--config", str(config), *extra]
 
 
 def _env() -> dict[str, str]:
@@ -45,15 +45,16 @@ def _env() -> dict[str, str]:
     return {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-def _run(cmd: list[str]) -> None:
+def _run(cmd: list[str]) -> str:
     done = subprocess.run(cmd, env=_env(), capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr
+    return done.stderr
 
 
 def test_sigkilled_run_resumes_to_the_same_parameters(setup: tuple[Path, Path], tmp_path: Path):
     capture, config = setup
     straight = tmp_path / "straight"
-    _run(_dgs(capture, config, straight))
+    _run(_dgs(capture, config, straight, "--no-progress"))
 
     killed = tmp_path / "killed"
     ckpt = killed / "checkpoints" / "000000.pt"
@@ -73,7 +74,11 @@ def test_sigkilled_run_resumes_to_the_same_parameters(setup: tuple[Path, Path], 
     saved_at = torch.load(ckpt, weights_only=True)["step"]
     assert 20 <= saved_at < 150
 
-    _run(_dgs(capture, config, killed, "--resume"))
+    # stderr is a pipe, not a terminal: progress comes as timed lines instead of a bar.
+    log = _run(_dgs(capture, config, killed, "--resume"))
+    assert f"frame 000000 (1/1): resumed at step {saved_at}/150" in log
+    assert "frame 000000 (1/1): step 150/150 stage 3 loss " in log
+    assert "\r" not in log  # no bar
     metrics = json.loads((killed / "metrics.json").read_text())["frames"]["000000"]
     assert metrics["resumed_at"] == saved_at
     a = GaussianModel.load_ply(straight / "frames" / "000000" / "gaussians.ply")
