@@ -10,8 +10,9 @@ Variants (same capture, same key-frame schedule):
 - no-temporal, no-anisotropy: sequential with that loss off.
 Reported: held-out PSNR (figure pixels) and normal cosine (against ground truth), flicker of the
 normal and AO maps (core.sequence.metrics), the largest PSNR drop between consecutive frames of
-a group, Gaussians per frame, seconds per key frame and per other frame. Results go to
-OUT/results.json (updated after each variant; finished variants are reused).
+a group, the track error (how far tracked Gaussians are from the body points they were born
+on, core.sequence.correspondence), Gaussians per frame, seconds per key frame and per other frame.
+Results go to OUT/results.json (updated after each variant; finished variants are reused).
 
     python benchmarks/sequence.py [--quick] [--frames 24] [--views 16] [--size 64]
                                   [--iterations 500] [--gop 20] [--out DIR]
@@ -64,6 +65,7 @@ def summarize(run: Path) -> dict:
     return {"psnr": ev["psnr"], "normal_cos": ev["normal_cos"], "flicker": t["flicker"],
             "flicker_normal": t["flicker_normal"], "flicker_ao": t["flicker_ao"],
             "largest_drop_db": t["largest_psnr_drop_in_group"],
+            "track_error": t.get("track_error"), "track_error_mm": t.get("track_error_mm"),
             "gaussians_per_frame": seq["gaussians"]["mean"],
             "seconds_per_frame": round(seq["timings"]["seconds_total"] / len(metrics), 2),
             "seconds_key": seq["timings"]["seconds_per_key_frame"],
@@ -71,6 +73,13 @@ def summarize(run: Path) -> dict:
             "steps_total": sum(m["iterations"] for m in metrics.values()),
             "renders_total": sum(m.get("renders", m["iterations"]) for m in metrics.values()),
             "psnr_per_frame": [round(p, 2) for p in t["psnr_per_frame"]]}
+
+
+def _track(row: dict) -> str:
+    """The track error cell: % of the diagonal (mm); '-' for independent frames (no tracks)."""
+    if row.get("track_error") is None:
+        return "-"
+    return f"{row['track_error']:.2f} ({row['track_error_mm']:.0f})"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -125,8 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         print(variant, json.dumps({k: v for k, v in row.items() if k != "psnr_per_frame"}),
               flush=True)
     print("| variant | PSNR | normal cos | flicker (normal / AO) | largest drop in GoP (dB) | "
-          "Gaussians / frame | s / frame (key / other) | renders |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+          "track error (% diag., mm) | Gaussians / frame | s / frame (key / other) | renders |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for v in VARIANTS:
         r = results.get(v)
         if r:
@@ -135,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {v} | {r['psnr']:.2f} | {r['normal_cos']:.3f} | {r['flicker']:.4f} "
                   f"({r['flicker_normal']:.4f} / {r['flicker_ao']:.4f}) | "
                   f"{drop if drop is None else round(drop, 2)} | "
-                  f"{r['gaussians_per_frame']:.0f} | {r['seconds_per_frame']:.1f} "
+                  f"{_track(r)} | {r['gaussians_per_frame']:.0f} | {r['seconds_per_frame']:.1f} "
                   f"({r['seconds_key']} / {r['seconds_other']}) | {renders} |")
     return 0
 

@@ -10,7 +10,8 @@ for the normal map (unit normals decoded from the PNG, components averaged; unco
 count as the zero vector) and the AO map (0..1). A method whose renders follow the true motion
 and nothing else scores 0; `change` and `gt_change` (mean |R_t - R_{t-1}|, mean |G_t - G_{t-1}|)
 are reported beside it. The largest PSNR drop between consecutive frames of one group
-(RUN/sequence.json) is reported too.
+(RUN/sequence.json) is reported too, and where the ground truth has correspondences, how far
+tracked Gaussians drift from the points they were born on (`core.sequence.correspondence`).
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ import json
 from pathlib import Path
 
 import numpy as np
+
+from core.sequence.correspondence import track_errors
 
 __all__ = ["temporal_metrics"]
 
@@ -122,5 +125,6 @@ def temporal_metrics(run_dir, capture_dir, frames: list[str], cameras: list[str]
         "psnr_per_frame": [r.get("psnr") for r in per_frame],
         "normal_cos_per_frame": [r.get("normal_cos") for r in per_frame],
         "largest_psnr_drop_in_group": _largest_drop(run, per_frame),
+        **(track_errors(run, capture_dir) or {"track_error": None}),
         "pairs": pairs,
     }
