@@ -23,6 +23,7 @@ __all__ = [
     "depth_normal_consistency",
     "depth_to_normals",
     "depth_to_points",
+    "coverage_l1",
     "geometry_mask_loss",
     "normal_prior_loss",
     "photometric_loss",
@@ -186,11 +187,17 @@ def visibility_loss(visibility: Tensor, target: Tensor, mask: Tensor | None = No
     return weights.visibility_l1 * l1 + weights.visibility_smooth * smooth
 
 
+def coverage_l1(alpha: Tensor, mask: Tensor) -> Tensor:
+    """mean |alpha - mask| over an (H, W, 1) image: how far a rendered coverage is from the
+    capture's coverage mask."""
+    if alpha.shape != mask.shape:
+        raise ValueError(f"alpha, mask: expected equal shapes, got {tuple(alpha.shape)} "
+                         f"and {tuple(mask.shape)}")
+    return (alpha - mask).abs().mean()
+
+
 def geometry_mask_loss(alpha_g: Tensor, mask: Tensor,
                        weights: LossWeights = LossWeights()) -> Tensor:
     """w * mean |alpha_g - mask| over the (H, W, 1) image: the geometry branch covers what the
     capture's coverage mask covers, and nothing else."""
-    if alpha_g.shape != mask.shape:
-        raise ValueError(f"alpha_g, mask: expected equal shapes, got {tuple(alpha_g.shape)} "
-                         f"and {tuple(mask.shape)}")
-    return weights.geometry_mask * (alpha_g - mask).abs().mean()
+    return weights.geometry_mask * coverage_l1(alpha_g, mask)

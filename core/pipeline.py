@@ -138,7 +138,8 @@ class RunConfig:
 
 def _convert(current: object, value: object, where: str, annotation: str = "") -> object:
     """`value` from JSON in the type of `current` (tuples from lists, floats from ints); for an
-    optional field (`annotation` such as 'int | None'), None or a value of the named type."""
+    optional field (`annotation` such as 'int | None'), None or a value of the named type; a
+    field annotated `tuple[T, ...]` takes a list of any length (empty included)."""
     optional = annotation.replace(" ", "").endswith("|None")
     if optional and value is None:
         return None
@@ -152,6 +153,12 @@ def _convert(current: object, value: object, where: str, annotation: str = "") -
     elif isinstance(current, float):
         ok, value = isinstance(value, (int, float)), float(value) if isinstance(
             value, (int, float)) else value
+    elif isinstance(current, tuple) and annotation.replace(" ", "").endswith(",...]"):
+        like = {"int": 0, "float": 0.0, "bool": False}.get(
+            annotation.split("[", 1)[1].split(",")[0].strip(), "")
+        ok = isinstance(value, list)
+        value = tuple(_convert(like, v, f"{where}[{i}]") for i, v in enumerate(value)) \
+            if ok else value
     elif isinstance(current, tuple):
         ok = isinstance(value, list) and len(value) == len(current)
         value = tuple(_convert(c, v, where) for c, v in zip(current, value)) if ok else value
@@ -357,7 +364,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
         metrics["frames"][frame] = {**_reconstruct_frame(
             capture, frame, run, cfg, estimator, (label, display), hooks,
             previous=role.previous, next_id=None if before is None else before["next_track_id"],
-            reference_psnr=None if before is None else before.get("train_psnr")),
+            reference_loss=None if before is None else before.get("deform_loss"),
+            earlier=None if before is None else before.get("previous")),
             "gop": role.gop, "position": role.position}
         write_json(metrics_path, metrics)
         write_json(run / "sequence.json",
@@ -373,10 +381,11 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
 
 def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator,
                        shown: tuple[str, str | None], hooks: _Hooks, previous: str | None = None,
-                       next_id: int | None = None,
-                       reference_psnr: float | None = None) -> dict:
+                       next_id: int | None = None, reference_loss: float | None = None,
+                       earlier: str | None = None) -> dict:
     """A key frame (`previous` None) with the static stages, or a frame deformed from
-    `previous` and refined; `next_id` is its group's next unused track id."""
+    `previous` (whose own predecessor in the group, `earlier`, gives the motion to continue)
+    and refined; `next_id` is its group's next unused track id."""
     from core.priors import fill_priors
     from core.sequence.run import save_frame, tracker_from_capture
 
@@ -398,7 +407,9 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     else:
         trainer = tracker_from_capture(capture, frame, run / "frames" / previous / "gaussians.ply",
                                        next_id, cfg.train, cfg.sequence, downscale=cfg.downscale,
-                                       callbacks=callbacks, reference_psnr=reference_psnr)
+                                       callbacks=callbacks, reference_loss=reference_loss,
+                                       earlier_ply=None if earlier is None
+                                       else run / "frames" / earlier / "gaussians.ply")
     priors = fill_priors(trainer.views, estimator)
     ckpt = ckpt_dir / f"{frame}.pt"
     resumed_at = 0
@@ -427,6 +438,11 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         "previous": previous,
         "next_track_id": len(trainer.model) if previous is None else trainer.group_next_id,
         "new_tracks": None if previous is None else trainer.state.born,
+        "start": None if previous is None else {  # JSON keys are strings: so are they here
+            "damping": trainer.start_damping,
+            "scores": {str(a): v for a, v in trainer.rounds.scores.items()}},
+        "deform_loss": getattr(trainer, "deform_loss", None),
+        "deform_rounds": None if previous is None else [r[0] for r in trainer.rounds.ended],
         "notes": trainer.notes,
         "mesh": mesh,
         "history": _thin(history.records),

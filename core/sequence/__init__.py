@@ -4,6 +4,7 @@ deformation graph, then refined with temporal regularisation, keeping Gaussian c
 (track ids) inside a group."""
 
 from core.sequence.config import SequenceConfig
+from core.sequence.correspondence import track_errors
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
 from core.sequence.frame import FrameTracker
 from core.sequence.gop import FrameRole, Gop, roles, segment
@@ -16,6 +17,7 @@ from core.sequence.graph import (
     quat_multiply,
     quat_norm_loss,
 )
+from core.sequence.motion import align_tracks, predict_node_motion
 from core.sequence.refine import (
     TemporalWeights,
     TrackedState,
@@ -25,17 +27,21 @@ from core.sequence.refine import (
     relabel,
     temporal_loss,
 )
+from core.sequence.rounds import DeformRounds, RoundEnd
 from core.sequence.run import load_frame, save_frame, sequence_record, tracker_from_capture
 
 __all__ = [
+    "DeformRounds",
     "DeformationGraph",
     "DeformedGaussians",
     "FrameRole",
     "FrameTracker",
     "Gop",
+    "RoundEnd",
     "SequenceConfig",
     "TemporalWeights",
     "TrackedState",
+    "align_tracks",
     "anchors_of",
     "anisotropy_loss",
     "arap_loss",
@@ -46,6 +52,7 @@ __all__ = [
     "deform_losses",
     "farthest_point_sampling",
     "load_frame",
+    "predict_node_motion",
     "prune_transparent",
     "quat_multiply",
     "quat_norm_loss",
@@ -55,5 +62,6 @@ __all__ = [
     "segment",
     "sequence_record",
     "temporal_loss",
+    "track_errors",
     "tracker_from_capture",
 ]

@@ -15,8 +15,9 @@ class SequenceConfig:
     enabled: bool = True
     """Deform + refine the frames after each GoP's first; off: every frame is a key frame
     (independent per-frame reconstruction)."""
-    deform_fraction: float = 0.2
-    """Deform-stage steps per frame, as a fraction of a key frame's iterations."""
+    deform_fraction: float = 0.19
+    """Deform-stage steps per frame, as a fraction of a key frame's iterations (0.19 with 2
+    views a step and 4 start views: a tracked frame renders half a key frame's images)."""
     refine_fraction: float = 0.1
     """Refine-stage steps per frame, as a fraction of a key frame's iterations."""
     num_nodes: int = 1024
@@ -28,6 +29,16 @@ class SequenceConfig:
     sequence: 128 nodes for 4000 Gaussians reach in 60 steps what 1024 do not in 300)."""
     node_neighbors: int = 8
     """ARAP neighbours of each node."""
+    motion_candidates: tuple[float, ...] = (0.5, 1.0)
+    """Deform stage: starts to try besides rest, as dampings of the previous frame's motion
+    (fitted per node from the two frames before, `core.sequence.motion`): 1 continues it, 0.5
+    half of it. The start whose blurred photometric + silhouette loss on `start_views` training
+    views is lowest wins (rest included), so a limb that reverses or stops costs no overshoot.
+    Used from a group's third frame on (the second has no motion to continue); () never
+    predicts."""
+    start_views: int = 4
+    """Training views (evenly spaced) that score the candidate starts; each costs a render
+    without gradient per candidate."""
     lr_rotation: float = 2e-2
     """Adam rate of the node quaternions (decays exponentially to a tenth over the stage)."""
     lr_translation: float = 1e-2
@@ -53,15 +64,18 @@ class SequenceConfig:
     (blurred) mask, a silhouette term whose basin does not depend on the figure's colours
     (with ARAP 0.05: 15.8 -> 19.7 dB held-out on the synthetic sequence; 0 turns it off)."""
     deform_retries: int = 0
-    """Deform rounds a frame may add when tracking falls behind (0: never): after the deform
-    stage, a frame whose training PSNR is `retry_below_db` or more under the previous frame's
-    final one deforms again for the same number of steps, the rates and the coarse-to-fine
-    blur started afresh (fast motion: the graph has not arrived yet). Costs a no-gradient
-    render of every training view at the check. Off by default: on the synthetic sequence one
-    retry halved the drops it was made for but raised a tracked frame's mean cost from 0.5 to
-    0.6 of a key frame's (docs/method.md)."""
-    retry_below_db: float = 1.5
-    """The shortfall (dB of training PSNR against the previous frame) that starts a retry."""
+    """Deform rounds a frame may add when tracking falls behind (0: never). A round whose end
+    loss (mean colour + silhouette L1 of its last sixth of steps, unblurred by then) is
+    `retry_loss_ratio` times the previous frame's or more is followed by another from the next
+    best start (`motion_candidates`), or from where it ended when no start is left, with fresh
+    rates, blur and Adam moments; the round that ended lowest is kept. The signal is free (the
+    losses were computed anyway); a group's second frame has no reference and never retries.
+    Measured on the synthetic sequence (docs/method.md): good frames end at 0.8-1.16x their
+    predecessor's loss, frames whose feet lost track at 1.24-1.93x; off by default because a
+    retried quarter of the frames lifts a tracked frame past half a key frame's renders for
+    +0.1 dB."""
+    retry_loss_ratio: float = 1.2
+    """The end-loss ratio to the previous frame's that starts a retry."""
     temporal: bool = True
     """Refine stage: temporal L1 to the deformed values (off for the ablation)."""
     temporal_opacity_g: float = 0.01
@@ -94,6 +108,14 @@ class SequenceConfig:
                 raise ValueError(f"sequence.{f.name}: expected >= 0, got {value}")
         if self.deform_views < 1:
             raise ValueError(f"sequence.deform_views: expected >= 1, got {self.deform_views}")
+        if any(not 0 < a <= 2 for a in self.motion_candidates):
+            raise ValueError(f"sequence.motion_candidates: expected dampings in (0, 2], got "
+                             f"{self.motion_candidates}")
+        if self.retry_loss_ratio < 1:
+            raise ValueError(f"sequence.retry_loss_ratio: expected >= 1 (a round no worse than "
+                             f"the previous frame's never retries), got {self.retry_loss_ratio}")
+        if self.start_views < 1:
+            raise ValueError(f"sequence.start_views: expected >= 1, got {self.start_views}")
         if self.num_nodes < 5:
             raise ValueError(f"sequence.num_nodes: expected >= 5 (4 blended + the 5th for d_max), "
                              f"got {self.num_nodes}")

@@ -21,14 +21,21 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from core.losses import depth_normal_consistency, normal_prior_loss, photometric_loss
-from core.losses import visibility_loss
+from core.losses import (
+    coverage_l1,
+    depth_normal_consistency,
+    normal_prior_loss,
+    photometric_loss,
+    visibility_loss,
+)
 from core.model import GaussianModel
 from core.render import RenderCamera, render
 from core.seeding import scene_extent
 from core.sequence.config import SequenceConfig
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
 from core.sequence.graph import build_graph
+from core.sequence.motion import predict_node_motion
+from core.sequence.rounds import DeformRounds
 from core.sequence.refine import (
     TemporalWeights,
     TrackedState,
@@ -47,12 +54,15 @@ __all__ = ["FrameTracker"]
 
 class FrameTracker:
     """Deform + refine one frame from `previous` (the last frame's model, its track ids (N,) and
-    the group's next unused id)."""
+    the group's next unused id); `earlier` (positions (N, 3) and known (N,) of `previous`'s
+    Gaussians one frame before, `core.sequence.motion.align_tracks`) starts the deformation from
+    the continued motion."""
 
     def __init__(self, views: Sequence[View], previous: GaussianModel, ids: Tensor, next_id: int,
                  config: TrainConfig, sequence: SequenceConfig = SequenceConfig(), *,
                  callbacks: Sequence[Callback] = (), ao_baker=None,
-                 reference_psnr: float | None = None):
+                 reference_loss: float | None = None,
+                 earlier: tuple[Tensor, Tensor] | None = None):
         if not views:
             raise ValueError("views: expected at least one training view")
         if tuple(ids.shape) != (len(previous),):
@@ -61,10 +71,6 @@ class FrameTracker:
         self.callbacks = list(callbacks)
         self.previous, self.prev_ids, self.next_id = previous, ids.long(), int(next_id)
         self.round_steps, self.refine_steps = sequence.steps(config.schedule.iterations)
-        self.retries = 0
-        """Deform rounds added so far (`deform_retries`)."""
-        self.reference_psnr = reference_psnr
-        """The previous frame's final training PSNR (None: no retries)."""
         self.plan = plan(config.schedule.iterations - 1, config.schedule)
         if ao_baker is None and sequence.bake_ao and config.bake_ao:
             from core.ao import GaussianAOBaker
@@ -77,7 +83,14 @@ class FrameTracker:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.graph = build_graph(previous.means.detach(), sequence.nodes(len(previous)),
                                  node_neighbors=sequence.node_neighbors)
-        q, t = self.graph.identity()
+        starts, scores = self._candidate_starts(earlier)
+        self.rounds = DeformRounds(starts, scores, self.round_steps,
+                                   reference_loss=reference_loss,
+                                   retries=sequence.deform_retries,
+                                   ratio=sequence.retry_loss_ratio)
+        """The deform rounds: starts, end losses, retries, the kept round (`reference_loss`:
+        the previous frame's `deform_loss`, None for no retries)."""
+        q, t = self.rounds.first()
         self.node_q, self.node_t = torch.nn.Parameter(q), torch.nn.Parameter(t)
         self.optimizer: torch.optim.Optimizer = torch.optim.Adam(
             [{"params": [self.node_q], "lr": sequence.lr_rotation, "name": "node_q"},
@@ -115,15 +128,52 @@ class FrameTracker:
                       geometry=True, tie_opacity=False, background=background,
                       eps2d=self.config.eps2d, antialiased=self.config.antialiased)
 
+    def _photometric(self, r, index: int, background: Tensor, sigma: float) -> Tensor:
+        return photometric_loss(blur(r.rgb, sigma), blur(self.target(index, background), sigma),
+                                self.config.losses)
+
+    def _silhouette(self, r, index: int, sigma: float) -> Tensor | None:
+        """`deform_mask` x mean |blur(alpha_c) - blur(mask)|; None without a mask (or weight)."""
+        mask = self.views[index].mask
+        if self.seq.deform_mask <= 0 or mask is None:
+            return None
+        return self.seq.deform_mask * coverage_l1(blur(r.alpha_c, sigma), blur(mask, sigma))
+
     def _image_terms(self, r, index: int, background: Tensor, sigma: float = 0.0) -> dict:
         w, view, cam = self.config.losses, self.views[index], self.cameras[index]
-        terms = {"photometric": photometric_loss(blur(r.rgb, sigma),
-                                                 blur(self.target(index, background), sigma), w)}
+        terms = {"photometric": self._photometric(r, index, background, sigma)}
         if view.normal is not None:
             terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
         terms["consistency"] = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K,
                                                         cam.viewmat, w)
         return terms
+
+    def _candidate_starts(self, earlier) -> tuple[dict, dict[float, float]]:
+        """Node parameters to start from by damping, rest (0) and with `earlier` the previous
+        motion continued at each of `motion_candidates`, and their scores on `start_views`
+        evenly spaced views (none without candidates)."""
+        starts = {0.0: self.graph.identity()}
+        if earlier is None or not self.seq.motion_candidates:
+            return starts, {}
+        for a in self.seq.motion_candidates:
+            starts[float(a)] = predict_node_motion(self.graph, self.previous.means.detach(),
+                                                   *earlier, damping=float(a))
+        count = min(self.seq.start_views, len(self.views))
+        views = sorted({round(k * len(self.views) / count) for k in range(count)})
+        return starts, {a: self._start_score(q, t, views) for a, (q, t) in starts.items()}
+
+    @torch.no_grad()
+    def _start_score(self, q: Tensor, t: Tensor, views: list[int]) -> float:
+        """Mean over `views` of the image loss (photometric + silhouette) a round's first step
+        would see, at its blur."""
+        posed = DeformedGaussians(self.previous, self.graph, q, t)
+        sigma, total = self.seq.coarse_sigma, 0.0
+        for i in views:
+            r = self._render(posed, i, self.background)
+            silhouette = self._silhouette(r, i, sigma)
+            total += float(self._photometric(r, i, self.background, sigma)) + (
+                0.0 if silhouette is None else float(silhouette))
+        return total / len(views)
 
     # -- stages ------------------------------------------------------------------------------
     def _deform_step(self, index: int, bg: Tensor) -> tuple[dict, object]:
@@ -144,12 +194,13 @@ class FrameTracker:
             if first is None:
                 first = r
             view_terms = self._image_terms(r, i, b, sigma)
-            mask = self.views[i].mask
-            if s.deform_mask > 0 and mask is not None:
-                view_terms["silhouette"] = s.deform_mask * (
-                    blur(r.alpha_c, sigma) - blur(mask, sigma)).abs().mean()
+            silhouette = self._silhouette(r, i, sigma)
+            if silhouette is not None:
+                view_terms["silhouette"] = silhouette
             for name, value in view_terms.items():
                 terms[name] = terms.get(name, 0.0) + value / len(views)
+        self.rounds.record(float(terms["photometric"].detach())
+                           + float(terms.get("silhouette", torch.zeros(())).detach()))
         terms.update(deform_losses(self.graph, self.node_q, self.node_t, arap=s.arap,
                                    quat_norm=s.quat_norm))
         return terms, first
@@ -204,24 +255,24 @@ class FrameTracker:
             prune_transparent(self.model, self.optimizer, self.state,
                               self.config.densify.transparent)
 
-    def _maybe_retry(self) -> None:
-        """At the end of a deform round: another round when the deformed frame's training PSNR
-        falls `retry_below_db` short of the previous frame's."""
-        s = self.seq
-        if self.reference_psnr is None or self.retries >= s.deform_retries:
-            return
-        reached = self.evaluate()
-        if reached > self.reference_psnr - s.retry_below_db:
-            return
-        self.retries += 1
-        self.notes.append(f"deform round {self.retries + 1}: training PSNR {reached:.2f} dB "
-                          f"after {self.step} steps, previous frame {self.reference_psnr:.2f}")
+    def _end_round(self) -> None:
+        """A deform round ended: start another (fresh rates, blur and Adam moments) or keep the
+        best round's node parameters (`DeformRounds.end`)."""
+        end = self.rounds.end(self.node_q, self.node_t)
+        start = end.start if end.retry else (end.q, end.t)
+        if start is not None:
+            with torch.no_grad():
+                self.node_q.copy_(start[0])
+                self.node_t.copy_(start[1])
+        if end.retry:
+            self.optimizer.state.clear()
+            self.notes.append(end.note)
 
     def train_step(self) -> StepInfo:
         start = time.perf_counter()
         if self.step == self.deform_steps and self.state is None:
-            self._maybe_retry()
-        if self.step == self.deform_steps:
+            self._end_round()
+        if self.step == self.deform_steps and self.state is None:
             self._start_refine()
         index = self._next_view()
         bg = self._background(index)
@@ -253,6 +304,21 @@ class FrameTracker:
         return self.model
 
     @property
+    def retries(self) -> int:
+        """Deform rounds added (`deform_retries`)."""
+        return self.rounds.retries
+
+    @property
+    def deform_loss(self) -> float | None:
+        """End loss of the kept deform round (the next frame's reference for retries)."""
+        return self.rounds.deform_loss
+
+    @property
+    def start_damping(self) -> float:
+        """Damping of the previous motion the kept deform round started from (0: rest)."""
+        return self.rounds.start_damping
+
+    @property
     def deform_steps(self) -> int:
         """Steps of the deform stage: one round, plus one per retry."""
         return self.round_steps * (1 + self.retries)
@@ -269,8 +335,11 @@ class FrameTracker:
 
     @property
     def renders(self) -> int:
-        """Images rendered (and back-propagated) in all: the frame's cost in key-frame steps."""
-        return self.deform_steps * self.seq.deform_views + self.refine_steps
+        """Images rendered and back-propagated in all: the frame's cost in key-frame steps. The
+        start's scoring renders (forward only: the rasterizer's forward is about 40% of a
+        training render's time) count half each, rounded up."""
+        scoring = len(self.rounds.scores) * min(self.seq.start_views, len(self.views))
+        return self.deform_steps * self.seq.deform_views + self.refine_steps + (scoring + 1) // 2
 
     @property
     def phase(self) -> str:
@@ -300,7 +369,7 @@ class FrameTracker:
         from the previous frame, deterministically)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        blob = {"step": self.step, "retries": self.retries,
+        blob = {"step": self.step, "rounds": self.rounds.state_dict(),
                 "node_q": self.node_q.detach(), "node_t": self.node_t.detach(),
                 "optimizer": self.optimizer.state_dict(), "generator": self.generator.get_state(),
                 "order": list(self._order), "notes": list(self.notes), "extra": extra}
@@ -318,7 +387,10 @@ class FrameTracker:
             self.node_q.copy_(blob["node_q"])
             self.node_t.copy_(blob["node_t"])
         self.step = int(blob["step"])
-        self.retries = int(blob.get("retries", 0))
+        if "rounds" in blob:
+            self.rounds.load_state_dict(blob["rounds"])
+        else:  # a checkpoint from before the rounds were kept: its retry count only
+            self.rounds.retries = int(blob.get("retries", 0))
         if "params" in blob:
             self._start_refine_from(blob)
         self.optimizer.load_state_dict(blob["optimizer"])

@@ -3,7 +3,7 @@ PLYs with track ids, and RUN/sequence.json (DESIGN.md 3.3).
 
 sequence.json is derived from metrics.json (which a resumed run, also on another machine, always
 has), so it is rewritten whole after every frame: frames with their group, role, Gaussian count,
-seconds and steps; the groups; totals.
+seconds, steps and how their deform stage went (rounds, start); the groups; totals.
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ from core.model import GaussianModel
 from core.sequence.config import SequenceConfig
 from core.sequence.frame import FrameTracker
 from core.sequence.gop import roles, segment
+from core.sequence.motion import align_tracks
 
 __all__ = ["load_frame", "save_frame", "sequence_record", "tracker_from_capture"]
 
@@ -48,10 +49,11 @@ def load_frame(path: str | os.PathLike[str]) -> tuple[GaussianModel, torch.Tenso
 
 def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, train,
                          sequence: SequenceConfig, *, downscale: float = 1.0,
-                         callbacks=(), ao_baker=None,
-                         reference_psnr: float | None = None) -> FrameTracker:
+                         callbacks=(), ao_baker=None, reference_loss: float | None = None,
+                         earlier_ply: Path | None = None) -> FrameTracker:
     """A `FrameTracker` on the training cameras of `frame`, starting from the previous frame's
-    PLY (`reference_psnr`: that frame's final training PSNR, for deform retries)."""
+    PLY (`reference_loss`: that frame's `deform_loss`, for deform retries; `earlier_ply`:
+    the frame before that in the same group, whose motion the deformation continues)."""
     from core.data.dataset import CaptureDataset
     from core.train import View, training_cameras
 
@@ -62,8 +64,15 @@ def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, 
     ds = CaptureDataset(capture, frames=[frame], cameras=ids, downscale=downscale)
     views = [View.from_sample(ds[i]) for i in range(len(ds))]
     model, track = load_frame(previous_ply)
+    earlier = None
+    if earlier_ply is not None and sequence.motion_candidates:
+        if not Path(earlier_ply).is_file():
+            raise ValueError(f"earlier frame: {earlier_ply} not found; the two frames before "
+                             f"{frame!r} in its group must be finished first")
+        before, before_ids = load_frame(earlier_ply)
+        earlier = align_tracks(track, before_ids, before.means.detach())
     return FrameTracker(views, model, track, next_id, train, sequence, callbacks=callbacks,
-                        ao_baker=ao_baker, reference_psnr=reference_psnr)
+                        ao_baker=ao_baker, reference_loss=reference_loss, earlier=earlier)
 
 
 def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
@@ -79,7 +88,13 @@ def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
                      "gaussians": None if m is None else m.get("gaussians"),
                      "seconds": None if m is None else m.get("seconds"),
                      "iterations": None if m is None else m.get("iterations"),
-                     "new_tracks": None if m is None else m.get("new_tracks")})
+                     "new_tracks": None if m is None else m.get("new_tracks"),
+                     # How the deform stage went: rounds run (2+: a retry) and the damping of
+                     # the previous motion its kept round started from (0: at rest).
+                     "deform_rounds": None if m is None or not m.get("deform_rounds")
+                     else len(m["deform_rounds"]),
+                     "start_damping": None if m is None or not m.get("start")
+                     else m["start"]["damping"]})
     done = [r for r in rows if r["done"]]
 
     def mean(role: str, key: str) -> float | None:

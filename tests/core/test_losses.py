@@ -200,5 +200,5 @@ def test_geometry_mask_loss_known_values():
     assert geometry_mask_loss(floater, mask).item() == pytest.approx(0.8 / 16)
     geometry_mask_loss(alpha, mask).backward()
     assert (alpha.grad[:2] < 0).all() and (alpha.grad[2:] == 0).all()
-    with pytest.raises(ValueError, match="alpha_g, mask"):
+    with pytest.raises(ValueError, match="alpha, mask"):
         geometry_mask_loss(alpha, torch.zeros(4, 3, 1))

@@ -128,6 +128,18 @@ def test_overrides_validate_keys_and_types(tmp_path: Path):
         resolve_config("test", bad)
     with pytest.raises(ValueError, match="preset"):
         resolve_config("huge")
+    # A fixed-size tuple (the background's RGB) keeps its length; a tuple[T, ...] takes any.
+    with pytest.raises(ValueError, match="config.train.background"):
+        apply_overrides(cfg, {"train": {"background": [1, 1]}})
+    assert apply_overrides(cfg, {"sequence": {"motion_candidates": []}}).sequence \
+        .motion_candidates == ()
+    out = apply_overrides(cfg, {"sequence": {"motion_candidates": [1, 0.25, 0.5]}})
+    assert out.sequence.motion_candidates == (1.0, 0.25, 0.5)
+    assert all(isinstance(a, float) for a in out.sequence.motion_candidates)
+    with pytest.raises(ValueError, match=r"config.sequence.motion_candidates\[1\]"):
+        apply_overrides(cfg, {"sequence": {"motion_candidates": [0.5, "fast"]}})
+    with pytest.raises(ValueError, match="motion_candidates"):
+        apply_overrides(cfg, {"sequence": {"motion_candidates": 0.5}})
 
 
 def test_overrides_of_optional_fields():

@@ -243,8 +243,17 @@ def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp
     # Cost in rendered images: D steps of 2 views (the default) and R steps of one.
     assert straight_metrics["frames"]["000001"]["renders"] == 10 * 2 + 10
     assert straight_metrics["frames"]["000000"]["renders"] == 40
+    # The third frame chooses its start among rest and the first two frames' motion continued
+    # at the candidate dampings (the second frame has no motion to go on).
+    starts = [straight_metrics["frames"][f]["start"] for f in ("000001", "000002")]
+    assert starts[0] == {"damping": 0.0, "scores": {}}
+    assert set(starts[1]["scores"]) == {"0.0", "0.5", "1.0"}
+    assert starts[1]["scores"][str(starts[1]["damping"])] == min(starts[1]["scores"].values())
     seq = json.loads((straight / "sequence.json").read_text())
     assert [f["role"] for f in seq["frames"]] == ["key", "deformed", "deformed"]
+    assert [f["deform_rounds"] for f in seq["frames"]][:2] == [None, 1]  # no reference: 1
+    kept = straight_metrics["frames"]["000002"]["start"]["damping"]
+    assert seq["frames"][2]["start_damping"] == kept
     assert [g["frames"] for g in seq["gops"]] == [["000000", "000001", "000002"]]
     assert seq["timings"]["seconds_per_deformed_frame"] > 0 and seq["gaussians"]["mean"] > 0
     assert {e.phase for e in events if e.frame_index > 0} == {"deform", "refine"}
@@ -338,34 +347,44 @@ def test_a_deform_step_averages_its_views_and_scores_the_silhouette(capture3, tm
 
 def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(capture3, tmp_path,
                                                                              one_thread):
-    """With the previous frame's PSNR out of reach, the deform stage runs a second round (rates
-    and blur afresh), once; a checkpoint inside the second round resumes to the same model."""
+    """A deform round ending at retry_loss_ratio x the previous frame's loss or more is followed
+    by one more (fresh rates, blur and Adam moments), from the next start when there is one;
+    the round that ended lowest is kept, and a checkpoint inside the second round resumes to
+    the same model."""
     from core.data import load_capture
     from core.pipeline import apply_overrides, reconstruct, resolve_config
     from core.sequence import SequenceConfig
-    from core.sequence.run import tracker_from_capture
+    from core.sequence.motion import align_tracks
+    from core.sequence.run import load_frame, tracker_from_capture
 
     run = tmp_path / "key"
     reconstruct(capture3, run, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
     cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
     seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
-                         deform_retries=1, retry_below_db=1.5)
+                         deform_retries=1, retry_loss_ratio=1.2)
     capture = load_capture(capture3)
     ply = run / "frames" / "000000" / "gaussians.ply"
 
-    def tracker(reference):
-        return tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, seq,
-                                    reference_psnr=reference)
+    def tracker(reference, earlier=None):
+        t = tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, seq,
+                                 reference_loss=reference)
+        if earlier is None:
+            return t
+        from core.sequence.frame import FrameTracker
+
+        return FrameTracker(t.views, t.previous, t.prev_ids, 10 ** 6, cfg.train, seq,
+                            reference_loss=reference, earlier=earlier)
 
     calm = tracker(None)  # no reference: never retries
     calm.train()
     assert calm.deform_steps == 10 and calm.retries == 0 and calm.step == 20
-    reachable = tracker(0.0)  # anything beats 0 dB: no retry either
+    assert len(calm.rounds.ended) == 1 and calm.deform_loss == calm.rounds.ended[0][0] > 0
+    reachable = tracker(1e9)  # every round ends far below it: no retry either
     reachable.train()
     assert reachable.retries == 0 and reachable.renders == 10 * 2 + 10
     assert torch.equal(reachable.model.means, calm.model.means)
 
-    behind = tracker(1000.0)
+    behind = tracker(1e-9)  # every round ends above it: one retry, from where round 1 ended
     phases = []
     while behind.step < behind.iterations:
         behind.train_step()
@@ -374,10 +393,39 @@ def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(cap
             behind.save_checkpoint(tmp_path / "mid.pt")
     assert behind.retries == 1 and behind.deform_steps == 20 and behind.iterations == 30
     assert behind.renders == 20 * 2 + 10 and phases.count("deform") == 20
-    assert "deform round 2" in behind.notes[0]
-    resumed = tracker(1000.0)
+    assert "deform round 2 from where round 1 ended" in behind.notes[0]
+    assert len(behind.rounds.ended) == 2
+    assert behind.deform_loss == min(r[0] for r in behind.rounds.ended)
+    resumed = tracker(1e-9)
     resumed.load_checkpoint(tmp_path / "mid.pt")
     assert (resumed.deform_steps, resumed.round_start, resumed.step) == (20, 10, 13)
     resumed.train()
     for k, v in behind.model.params.items():
         assert torch.equal(v, resumed.model.params[k]), k
+    assert resumed.rounds.ended[0][0] == behind.rounds.ended[0][0]
+    assert resumed.deform_loss == behind.deform_loss
+
+    # With the previous motion known (here: every Gaussian 2 cm lower one frame before), the
+    # second round starts from the second-best start, with no Adam moments carried over.
+    model, ids = load_frame(ply)
+    earlier = align_tracks(ids, ids, model.means.detach() - torch.tensor([0.0, 0.0, 0.02]))
+    switch = tracker(1e-9, earlier)
+    order = switch.rounds.order
+    assert len(order) == 3 and switch.start_damping == order[0]
+    scores = switch.rounds.scores
+    assert [scores[a] for a in order] == sorted(scores.values())
+    while switch.step < switch.round_steps:
+        switch.train_step()
+    assert switch.optimizer.state
+    switch._end_round()
+    q, t = switch.rounds.starts[order[1]]
+    assert torch.equal(switch.node_q.detach(), q) and torch.equal(switch.node_t.detach(), t)
+    assert not switch.optimizer.state and switch.retries == 1
+    assert f"start damping {order[1]:g}" in switch.notes[0]
+    switch.train()
+    kept = min(range(2), key=lambda r: switch.rounds.ended[r][0])
+    assert switch.start_damping == order[kept]
+    q, t = switch.rounds.ended[kept][1:]
+    assert torch.equal(switch.node_q.detach(), q) and torch.equal(switch.node_t.detach(), t)
+    with pytest.raises(ValueError, match="retry_loss_ratio"):
+        SequenceConfig(retry_loss_ratio=0.5)
