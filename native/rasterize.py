@@ -59,9 +59,13 @@ def rasterize(
         check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
                      width, height, beta, eps2d, near, far, background, require_contiguous=True)
     if means.device.type != "cpu":
-        raise ValueError(
-            f"means is on {means.device}, but the native rasterizer has no build for that device "
-            "yet; pass backend='reference' or move the tensors to the CPU")
+        from native._backend import has_cuda
+
+        if means.device.type != "cuda" or not has_cuda():
+            raise ValueError(
+                f"means is on {means.device}, but the native extension was built without CUDA "
+                "(it needs a CUDA build of torch and nvcc); pass backend='reference' or move "
+                "the tensors to the CPU")
     from native._wrapper import Projection, Rasterization, intersect_tiles
 
     width, height = int(width), int(height)

@@ -63,10 +63,16 @@ def trace_visibility(origins: Tensor, normals: Tensor, means: Tensor, quats: Ten
         raise ValueError("normals must be unit vectors")
     if isinstance(n_dirs, bool) or not isinstance(n_dirs, int) or n_dirs < 1:
         raise ValueError(f"n_dirs must be a positive integer, got {n_dirs!r}")
+    device = origins.device
     if exclude is None:
-        exclude = torch.full((m,), -1, dtype=torch.int64)
+        exclude = torch.full((m,), -1, dtype=torch.int64, device=device)
     _check("exclude", exclude, (m,), torch.int64)
-    offset = torch.as_tensor(offset, dtype=dtype)
+    for name, t in (("normals", normals), ("means", means), ("quats", quats), ("scales", scales),
+                    ("opacity", opacity), ("exclude", exclude)):
+        if t.device != device:
+            raise ValueError(f"{name} is on {t.device} but origins is on {device}; "
+                             "every tensor must be on one device")
+    offset = torch.as_tensor(offset, dtype=dtype, device=device)
     if offset.dim() not in (0, 1) or (offset.dim() == 1 and offset.shape[0] != m):
         raise ValueError(f"offset must be a scalar or have shape ({m},), got {tuple(offset.shape)}")
     if not bool(torch.isfinite(offset).all()) or bool((offset < 0).any()):
@@ -79,10 +85,14 @@ def trace_visibility(origins: Tensor, normals: Tensor, means: Tensor, quats: Ten
                          exclude=exclude)
     if backend != "native":
         raise ValueError(f"backend must be 'native' or 'reference', got {backend!r}")
-    if origins.device.type != "cpu":
-        raise ValueError(f"origins is on {origins.device}; the ray tracer runs on the CPU for now")
     from native._backend import load
 
+    if device.type == "cuda":
+        if not getattr(load(), "has_cuda", lambda: False)():
+            raise ValueError(f"origins is on {device} but the native extension was built without "
+                             "CUDA; move the tensors to the CPU or pass backend='reference'")
+    elif device.type != "cpu":
+        raise ValueError(f"origins is on {device}; the native ray tracer runs on the CPU or CUDA")
     c = lambda t: t.detach().contiguous()  # noqa: E731
     return load().trace_visibility(c(origins), c(normals), c(means), c(quats), c(scales),
                                    c(opacity), c(exclude), n_dirs)
@@ -97,5 +107,5 @@ def gaussian_visibility(means: Tensor, quats: Tensor, scales: Tensor, opacity: T
     same thickness that overlap it on a surface."""
     n = means.shape[0]
     return trace_visibility(means, normals, means, quats, scales, opacity, n_dirs=n_dirs,
-                            exclude=torch.arange(n, dtype=torch.int64),
+                            exclude=torch.arange(n, dtype=torch.int64, device=means.device),
                             offset=3 * scales.detach().amin(dim=-1), backend=backend)

@@ -169,9 +169,9 @@ def rasterize(means, quats, scales, opacity_c, opacity_g, colors, geometry, view
 
 
 
-def fibonacci_hemisphere(n: int, dtype=torch.float64) -> Tensor:
+def fibonacci_hemisphere(n: int, dtype=torch.float64, device=None) -> Tensor:
     """(n, 3) directions on the hemisphere z >= 0 (see raytrace_math.h)."""
-    i = torch.arange(n, dtype=torch.float64)
+    i = torch.arange(n, dtype=torch.float64, device=device)
     z = 1 - (i + 0.5) / n
     r = torch.sqrt(torch.clamp(1 - z * z, min=0))
     phi = 2.39996322972865332 * i
@@ -179,8 +179,8 @@ def fibonacci_hemisphere(n: int, dtype=torch.float64) -> Tensor:
 
 
 def _normal_frame(n: Tensor) -> tuple[Tensor, Tensor]:
-    x = torch.tensor([1.0, 0.0, 0.0], dtype=n.dtype).expand_as(n)
-    y = torch.tensor([0.0, 1.0, 0.0], dtype=n.dtype).expand_as(n)
+    x = torch.tensor([1.0, 0.0, 0.0], dtype=n.dtype, device=n.device).expand_as(n)
+    y = torch.tensor([0.0, 1.0, 0.0], dtype=n.dtype, device=n.device).expand_as(n)
     a = torch.where((n[:, :1].abs() < 0.9), x, y)
     t = torch.linalg.cross(n, a)
     t = t / t.norm(dim=-1, keepdim=True)
@@ -195,9 +195,9 @@ def trace_visibility(origins, normals, means, quats, scales, opacity, *, n_dirs:
     """
     M, N = origins.shape[0], means.shape[0]
     if exclude is None:
-        exclude = torch.full((M,), -1, dtype=torch.int64)
+        exclude = torch.full((M,), -1, dtype=torch.int64, device=origins.device)
     t, b = _normal_frame(normals)
-    local = fibonacci_hemisphere(n_dirs, origins.dtype)  # (D, 3)
+    local = fibonacci_hemisphere(n_dirs, origins.dtype, origins.device)  # (D, 3)
     dirs = (local[None, :, 0:1] * t[:, None] + local[None, :, 1:2] * b[:, None]
             + local[None, :, 2:3] * normals[:, None])  # (M, D, 3)
     R = quat_to_rotmat(quats)
@@ -224,7 +224,7 @@ def trace_visibility(origins, normals, means, quats, scales, opacity, *, n_dirs:
         alpha = opacity * torch.exp(-0.5 * q)
         alpha = torch.where(alpha < ALPHA_MIN, torch.zeros_like(alpha),
                             torch.clamp(alpha, max=ALPHA_MAX))
-        own = torch.arange(N)[None, None, :] == exclude[:, None, None]
+        own = torch.arange(N, device=exclude.device)[None, None, :] == exclude[:, None, None]
         alpha = torch.where(hit & ~own, alpha, torch.zeros_like(alpha))
         trans = torch.prod(1 - alpha, dim=-1)           # (M, D)
         w = local[:, 2]

@@ -9,9 +9,8 @@
 
 namespace dgs {
 
-inline void check_cpu_input(const at::Tensor& t, const char* name,
-                            std::initializer_list<int64_t> shape) {
-  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor, got ", t.device());
+inline void check_shape(const at::Tensor& t, const char* name,
+                        std::initializer_list<int64_t> shape) {
   TORCH_CHECK(t.is_contiguous(), name, " must be contiguous");
   TORCH_CHECK(t.dim() == int64_t(shape.size()), name, " must have ", shape.size(),
               " dimensions, got shape ", t.sizes());
@@ -21,6 +20,20 @@ inline void check_cpu_input(const at::Tensor& t, const char* name,
                 " in dimension ", d);
     ++d;
   }
+}
+
+inline void check_cpu_input(const at::Tensor& t, const char* name,
+                            std::initializer_list<int64_t> shape) {
+  TORCH_CHECK(t.device().is_cpu(), name, " must be a CPU tensor, got ", t.device());
+  check_shape(t, name, shape);
+}
+
+// The CUDA ops' twin: every tensor on `device` (the first input's), which must be a GPU.
+inline void check_cuda_input(const at::Tensor& t, const char* name,
+                             std::initializer_list<int64_t> shape, const at::Device& device) {
+  TORCH_CHECK(t.device() == device && device.is_cuda(), name, " must be on ", device, ", got ",
+              t.device());
+  check_shape(t, name, shape);
 }
 
 inline void check_same_dtype(std::initializer_list<at::Tensor> ts) {

@@ -28,6 +28,9 @@ void sort_tiles(const T* depth, const int64_t* offsets, int32_t* ids, int64_t n_
 std::tuple<at::Tensor, at::Tensor> intersect_tiles(const at::Tensor& rects,
                                                    const at::Tensor& depths, int64_t width,
                                                    int64_t height, int64_t tile_size) {
+#ifdef DGS_WITH_CUDA
+  if (rects.is_cuda()) return intersect_tiles_cuda(rects, depths, width, height, tile_size);
+#endif
   const int64_t n = rects.size(0);
   check_cpu_input(rects, "rects", {n, 4});
   check_cpu_input(depths, "depths", {n});

@@ -14,4 +14,11 @@ std::tuple<at::Tensor, at::Tensor> intersect_tiles(const at::Tensor& rects,
                                                    const at::Tensor& depths, int64_t width,
                                                    int64_t height, int64_t tile_size);
 
+#ifdef DGS_WITH_CUDA
+// The same op on CUDA tensors (intersect_cuda.cpp); intersect_tiles calls it for CUDA inputs.
+std::tuple<at::Tensor, at::Tensor> intersect_tiles_cuda(const at::Tensor& rects,
+                                                        const at::Tensor& depths, int64_t width,
+                                                        int64_t height, int64_t tile_size);
+#endif
+
 }  // namespace dgs

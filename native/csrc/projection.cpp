@@ -119,6 +119,11 @@ projection_fwd(const at::Tensor& means, const at::Tensor& quats, const at::Tenso
                const at::Tensor& opacity_c, const at::Tensor& opacity_g, const at::Tensor& viewmat,
                const at::Tensor& K, int64_t width, int64_t height, double beta, double eps2d,
                bool antialiased, double near_plane, double far_plane) {
+#ifdef DGS_WITH_CUDA
+  if (means.is_cuda())
+    return projection_fwd_cuda(means, quats, scales, opacity_c, opacity_g, viewmat, K, width,
+                               height, beta, eps2d, antialiased, near_plane, far_plane);
+#endif
   const int64_t n = means.size(0);
   check_cpu_input(means, "means", {n, 3});
   check_cpu_input(quats, "quats", {n, 4});
@@ -152,6 +157,12 @@ projection_bwd(const at::Tensor& means, const at::Tensor& quats, const at::Tenso
                bool antialiased, double near_plane, double far_plane,
                const at::Tensor& v_means2d, const at::Tensor& v_conics,
                const at::Tensor& v_depths, const at::Tensor& v_opacities) {
+#ifdef DGS_WITH_CUDA
+  if (means.is_cuda())
+    return projection_bwd_cuda(means, quats, scales, opacity_c, opacity_g, viewmat, K, width,
+                               height, beta, eps2d, antialiased, near_plane, far_plane,
+                               v_means2d, v_conics, v_depths, v_opacities);
+#endif
   const int64_t n = means.size(0);
   check_cpu_input(v_means2d, "v_means2d", {n, 2});
   check_cpu_input(v_conics, "v_conics", {n, 3});

@@ -26,4 +26,23 @@ projection_bwd(const at::Tensor& means, const at::Tensor& quats, const at::Tenso
                const at::Tensor& v_means2d, const at::Tensor& v_conics,
                const at::Tensor& v_depths, const at::Tensor& v_opacities);
 
+#ifdef DGS_WITH_CUDA
+// The same ops on CUDA tensors (projection_cuda.cpp); the functions above call them for CUDA
+// inputs.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+projection_fwd_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                    const at::Tensor& opacity_c, const at::Tensor& opacity_g,
+                    const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
+                    double beta, double eps2d, bool antialiased, double near_plane,
+                    double far_plane);
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+projection_bwd_cuda(const at::Tensor& means, const at::Tensor& quats, const at::Tensor& scales,
+                    const at::Tensor& opacity_c, const at::Tensor& opacity_g,
+                    const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
+                    double beta, double eps2d, bool antialiased, double near_plane,
+                    double far_plane, const at::Tensor& v_means2d, const at::Tensor& v_conics,
+                    const at::Tensor& v_depths, const at::Tensor& v_opacities);
+#endif
+
 }  // namespace dgs

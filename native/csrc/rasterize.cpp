@@ -312,6 +312,11 @@ rasterize_fwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
               const at::Tensor& depths, const at::Tensor& colors, const at::Tensor& geometry,
               const at::Tensor& rects, const at::Tensor& tile_offsets, const at::Tensor& flat_ids,
               int64_t width, int64_t height, int64_t tile_size, bool geometry_branch) {
+#ifdef DGS_WITH_CUDA
+  if (means2d.is_cuda())
+    return rasterize_fwd_cuda(means2d, conics, opacities, depths, colors, geometry, rects,
+                              tile_offsets, flat_ids, width, height, tile_size, geometry_branch);
+#endif
   check_raster_inputs(means2d, conics, opacities, depths, colors, geometry, rects, tile_offsets,
                       flat_ids);
   const Tiling tl = make_tiling(width, height, tile_size, tile_offsets);
@@ -354,6 +359,13 @@ rasterize_bwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
               const at::Tensor& out_depth, const at::Tensor& transmittance,
               const at::Tensor& stops, const at::Tensor& v_color, const at::Tensor& v_geometry,
               const at::Tensor& v_depth, const at::Tensor& v_alpha) {
+#ifdef DGS_WITH_CUDA
+  if (means2d.is_cuda())
+    return rasterize_bwd_cuda(means2d, conics, opacities, depths, colors, geometry, rects,
+                              tile_offsets, flat_ids, width, height, tile_size, geometry_branch,
+                              out_color, out_geometry, out_depth, transmittance, stops, v_color,
+                              v_geometry, v_depth, v_alpha);
+#endif
   check_raster_inputs(means2d, conics, opacities, depths, colors, geometry, rects, tile_offsets,
                       flat_ids);
   const Tiling tl = make_tiling(width, height, tile_size, tile_offsets);

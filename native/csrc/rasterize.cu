@@ -31,7 +31,7 @@ constexpr int kDynamic = -1;
 template <typename T> struct Staged {
   T mx, my;
   Sym2<T> conic;
-  T oc, og, z, kq;
+  T oc, og, z;
   int32_t gid;
   int32_t rect[4];
 };
@@ -39,7 +39,7 @@ template <typename T> struct Staged {
 template <typename T>
 __device__ __forceinline__ void stage(Staged<T>& s, int32_t gid, const T* means2d,
                                       const T* conics, const T* opac, const T* depths,
-                                      const int32_t* rects, bool geometry_branch) {
+                                      const int32_t* rects) {
   s.gid = gid;
   s.mx = means2d[2 * gid];
   s.my = means2d[2 * gid + 1];
@@ -47,8 +47,6 @@ __device__ __forceinline__ void stage(Staged<T>& s, int32_t gid, const T* means2
   s.oc = opac[2 * gid];
   s.og = opac[2 * gid + 1];
   s.z = depths[gid];
-  // The ellipse level of the larger opacity among the branches that run, as on the CPU.
-  s.kq = level_k(geometry_branch && s.og > s.oc ? s.og : s.oc);
   for (int j = 0; j < 4; ++j) s.rect[j] = rects[4 * gid + j];
 }
 
@@ -59,18 +57,25 @@ __device__ __forceinline__ int stage_batch(Staged<T>* batch, const Params& p, in
                                            int64_t end) {
   if (b0 + threadIdx.x < end)
     stage(batch[threadIdx.x], p.flat_ids[b0 + threadIdx.x], p.means2d, p.conics, p.opacities,
-          p.depths, p.rects, p.geometry_branch);
+          p.depths, p.rects);
   return int(end - b0 < int64_t(blockDim.x) ? end - b0 : int64_t(blockDim.x));
 }
 
-// Whether the CPU kernel evaluates this Gaussian at pixel (u, v): inside its box and inside the
-// row span of its ellipse. Outside, alpha < 1/255 anyway; testing the same set keeps results equal.
+// The Gaussian falloff exp(x), x <= 0, of every (pixel, Gaussian) pair, in both passes: the
+// hardware exp2 for float (__expf: within a few ulp over the range where alpha can reach 1/255,
+// |x| < 6, i.e. ~1e-6 relative, against the 1e-4 the outputs are held to; about half the
+// instructions of expf), the accurate one for double. Forward and backward call the same one, so
+// they make the same threshold decisions.
+__device__ __forceinline__ float falloff(float x) { return __expf(x); }
+__device__ __forceinline__ double falloff(double x) { return exp(x); }
+
+// Whether pixel (u, v) lies in the Gaussian's box. The CPU kernel also skips the pixels of the box
+// outside the row span of the ellipse where alpha reaches 1/255; there alpha < 1/255 anyway, so
+// evaluating them gives the same result (up to rounding at the threshold itself) and is cheaper
+// on the GPU than the span's square root for every pixel.
 template <typename T>
-__device__ __forceinline__ bool covers(const Staged<T>& s, int64_t u, int64_t v, T dy) {
-  if (u < s.rect[0] || u > s.rect[2] || v < s.rect[1] || v > s.rect[3]) return false;
-  int64_t s0, s1;
-  if (!row_span(s.conic, s.kq, s.mx, dy, s0, s1)) return false;
-  return u >= s0 && u <= s1;
+__device__ __forceinline__ bool in_box(const Staged<T>& s, int32_t u, int32_t v) {
+  return u >= s.rect[0] && u <= s.rect[2] && v >= s.rect[1] && v <= s.rect[3];
 }
 
 // The pixel a thread owns; ghost threads (past the tile or the image) still take part in the
@@ -148,6 +153,9 @@ template <typename T, int CC, int GG>
 __global__ void __launch_bounds__(kMaxThreads)
     rasterize_fwd_kernel(RasterizeFwdParams<T> p, int64_t tiles_x) {
   __shared__ Staged<T> batch[kMaxThreads];
+  // Per batch entry, the block's max of alpha * T: warps raise it in shared memory, and one
+  // global atomic per entry and batch follows (instead of one per warp).
+  __shared__ T batch_best[kMaxThreads];
   const PixelSlot px = pixel_slot(p.tile_size, tiles_x, p.width, p.height);
   const int64_t start = p.tile_offsets[blockIdx.x], end = p.tile_offsets[blockIdx.x + 1];
   const int32_t n_list = int32_t(end - start);
@@ -168,14 +176,15 @@ __global__ void __launch_bounds__(kMaxThreads)
     // Also the barrier that lets the batch be overwritten.
     if (__syncthreads_count(done_c && done_g) == int(blockDim.x)) break;
     const int nb = stage_batch(batch, p, b0, end);
+    batch_best[threadIdx.x] = T(0);
     __syncthreads();
     for (int j = 0; j < nb; ++j) {
       const Staged<T>& s = batch[j];
       const T dy = pv - s.my;
       T best = T(0);
-      if (!(done_c && done_g) && covers(s, px.u, px.v, dy)) {
+      if (!(done_c && done_g) && in_box(s, int32_t(px.u), int32_t(px.v))) {
         const T dx = pu - s.mx;
-        const T vis = m_exp(gaussian_exponent(s.conic, dx, dy));
+        const T vis = falloff(gaussian_exponent(s.conic, dx, dy));
         const int32_t k = int32_t(b0 - start) + j;
         if (!done_c) {
           const T w = forward_branch(s.oc, vis, tc, done_c);
@@ -196,10 +205,13 @@ __global__ void __launch_bounds__(kMaxThreads)
         }
       }
       if (__any_sync(kFullMask, best > T(0))) {
-        best = warp_max(best);
-        if (lane == 0 && best > T(0)) atomic_max_nonneg(p.contribution + s.gid, best);
+        best = warp_max_nonneg(best);
+        if (lane == 0 && best > T(0)) atomic_max_nonneg(batch_best + j, best);
       }
     }
+    __syncthreads();
+    if (int(threadIdx.x) < nb && batch_best[threadIdx.x] > T(0))
+      atomic_max_nonneg(p.contribution + batch[threadIdx.x].gid, batch_best[threadIdx.x]);
   }
   if (!px.inside) return;
   store_out<T, CC>(acc_c, out_c);
@@ -289,6 +301,28 @@ __device__ __forceinline__ void add_feature_grads(T* dst, T w, const PixelGrad<T
   }
 }
 
+// The per-Gaussian gradient scalars of one pixel, in the order the packed reduction keeps them:
+// means2d (2), conic (3), opacities (2), depth (1), AbsGS sums (4), colors (C), geometry (G).
+constexpr int kCommonGrads = 12;
+
+template <typename T>
+__device__ __forceinline__ T* grad_slot(const RasterizeBwdParams<T>& p, int64_t g, int idx, int C,
+                                        int G) {
+  if (idx < 2) return p.g_means2d + 2 * g + idx;
+  if (idx < 5) return p.g_conics + 3 * g + (idx - 2);
+  if (idx < 7) return p.g_opacities + 2 * g + (idx - 5);
+  if (idx == 7) return p.g_depths + g;
+  if (idx < kCommonGrads) return p.absgrad + 4 * g + (idx - 8);
+  if (idx < kCommonGrads + C) return p.g_colors + int64_t(C) * g + (idx - kCommonGrads);
+  return p.g_geometry + int64_t(G) * g + (idx - kCommonGrads - C);
+}
+
+// Fixed channel counts whose scalars fit one packed warp reduction (warp_sum_many).
+template <int CC, int GG>
+constexpr bool kPackedGrads = CC >= 0 && GG >= 0 && kCommonGrads + CC + GG <= kWarpSize;
+template <int CC, int GG>
+constexpr int kPackedWidth = kCommonGrads + CC + GG <= 16 ? 16 : kWarpSize;
+
 template <typename T, int CC, int GG>
 __global__ void __launch_bounds__(kMaxThreads)
     rasterize_bwd_kernel(RasterizeBwdParams<T> p, int64_t tiles_x) {
@@ -341,9 +375,9 @@ __global__ void __launch_bounds__(kMaxThreads)
       T ve_c = T(0), ve_g = T(0), w_c = T(0), w_g = T(0), g_oc = T(0), g_og = T(0);
       Vec2<T> dm = {T(0), T(0)};
       Sym2<T> dcn = {T(0), T(0), T(0)};
-      if ((in_c || in_g) && covers(s, px.u, px.v, dy)) {
+      if ((in_c || in_g) && in_box(s, int32_t(px.u), int32_t(px.v))) {
         const T dx = pu - s.mx;
-        const T vis = m_exp(gaussian_exponent(s.conic, dx, dy));
+        const T vis = falloff(gaussian_exponent(s.conic, dx, dy));
         if (in_c)
           ve_c = backward_branch<T, CC>(sc, s.oc, vis, p.colors + int64_t(C) * s.gid, vc, C,
                                         T(0), T(0), w_c, g_oc);
@@ -357,6 +391,28 @@ __global__ void __launch_bounds__(kMaxThreads)
       if (!__any_sync(kFullMask, any_w || ve_c != T(0) || ve_g != T(0))) continue;
       const T ve = ve_c + ve_g;
       const int32_t g = s.gid;
+      if constexpr (kPackedGrads<CC, GG>) {
+        // One packed reduction: 16 or 31 shuffles for all scalars instead of 5 per scalar, and
+        // the atomics spread over the lanes instead of serialized in lane 0.
+        constexpr int K = kPackedWidth<CC, GG>;
+        T v[K];
+        v[0] = dm.x * ve; v[1] = dm.y * ve;
+        v[2] = dcn.a * ve; v[3] = dcn.b * ve; v[4] = dcn.c * ve;
+        v[5] = g_oc; v[6] = g_og; v[7] = w_g * v_depth;
+        v[8] = fabs(dm.x * ve_c); v[9] = fabs(dm.y * ve_c);
+        v[10] = fabs(dm.x * ve_g); v[11] = fabs(dm.y * ve_g);
+#pragma unroll
+        for (int c = 0; c < CC; ++c) v[kCommonGrads + c] = w_c * vc.v[c];
+#pragma unroll
+        for (int c = 0; c < GG; ++c) v[kCommonGrads + CC + c] = w_g * vg.v[c];
+#pragma unroll
+        for (int i = kCommonGrads + CC + GG; i < K; ++i) v[i] = T(0);
+        warp_sum_many<T, K>(v, lane);
+        const int idx = warp_sum_many_index<K>(lane);
+        if (lane % (kWarpSize / K) == 0 && idx < kCommonGrads + CC + GG && v[0] != T(0))
+          atomicAdd(grad_slot(p, g, idx, CC, GG), v[0]);
+        continue;
+      }
       add_reduced(p.g_means2d + 2 * g, dm.x * ve, lane);
       add_reduced(p.g_means2d + 2 * g + 1, dm.y * ve, lane);
       add_reduced(p.g_conics + 3 * g, dcn.a * ve, lane);
@@ -390,6 +446,7 @@ template <typename T, typename F> cudaError_t dispatch_channels(int C, int G, F&
         case 1: return f(Int<3>{}, Int<1>{});
         case 3: return f(Int<3>{}, Int<3>{});
         case 4: return f(Int<3>{}, Int<4>{});
+        case 5: return f(Int<3>{}, Int<5>{});
         default: break;
       }
     }

@@ -31,4 +31,27 @@ rasterize_bwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
               const at::Tensor& stops, const at::Tensor& v_color, const at::Tensor& v_geometry,
               const at::Tensor& v_depth, const at::Tensor& v_alpha);
 
+#ifdef DGS_WITH_CUDA
+// The same ops on CUDA tensors (rasterize_cuda.cpp); the functions above call them for CUDA
+// inputs.
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+rasterize_fwd_cuda(const at::Tensor& means2d, const at::Tensor& conics,
+                   const at::Tensor& opacities, const at::Tensor& depths,
+                   const at::Tensor& colors, const at::Tensor& geometry, const at::Tensor& rects,
+                   const at::Tensor& tile_offsets, const at::Tensor& flat_ids, int64_t width,
+                   int64_t height, int64_t tile_size, bool geometry_branch);
+
+std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
+rasterize_bwd_cuda(const at::Tensor& means2d, const at::Tensor& conics,
+                   const at::Tensor& opacities, const at::Tensor& depths,
+                   const at::Tensor& colors, const at::Tensor& geometry, const at::Tensor& rects,
+                   const at::Tensor& tile_offsets, const at::Tensor& flat_ids, int64_t width,
+                   int64_t height, int64_t tile_size, bool geometry_branch,
+                   const at::Tensor& out_color, const at::Tensor& out_geometry,
+                   const at::Tensor& out_depth, const at::Tensor& transmittance,
+                   const at::Tensor& stops, const at::Tensor& v_color,
+                   const at::Tensor& v_geometry, const at::Tensor& v_depth,
+                   const at::Tensor& v_alpha);
+#endif
+
 }  // namespace dgs

@@ -5,7 +5,7 @@
 //
 // Limits (checked; the launchers return cudaErrorInvalidValue instead of computing garbage):
 // 1 <= tile_size <= 16 (one thread per pixel of a tile, 256 threads at most); C >= 0, G >= 0 of
-// any size (C = 3 with G in {0, 1, 3, 4} keeps the per-pixel features in registers; every other
+// any size (C = 3 with G in {0, 1, 3, 4, 5} keeps the per-pixel features in registers; every other
 // combination runs a generic path that loops over channels in global memory); G must be 0 when
 // geometry_branch is false; n < 2^31 (Gaussian ids are int32).
 // T is float or double (double always takes the generic channel path; it is for gradcheck).

@@ -15,4 +15,13 @@ at::Tensor trace_visibility(const at::Tensor& origins, const at::Tensor& normals
                             const at::Tensor& scales, const at::Tensor& opacity,
                             const at::Tensor& exclude, int64_t n_dirs);
 
+#ifdef DGS_WITH_CUDA
+// The same op on CUDA tensors (raytrace_cuda.cpp): the tree is built on the host from copies of
+// the Gaussians, the rays are traced on the inputs' device, and the result stays there.
+at::Tensor trace_visibility_cuda(const at::Tensor& origins, const at::Tensor& normals,
+                                 const at::Tensor& means, const at::Tensor& quats,
+                                 const at::Tensor& scales, const at::Tensor& opacity,
+                                 const at::Tensor& exclude, int64_t n_dirs);
+#endif
+
 }  // namespace dgs

@@ -1,5 +1,6 @@
 // Ray tracing through Gaussians for ambient occlusion: per-ray math shared by the CPU tracer and
-// a later CUDA one (DESIGN.md section 5, "Ambient occlusion"). Plain structs, no torch.
+// the CUDA one (DESIGN.md section 5, "Ambient occlusion"); the tree and its walk are in
+// raytrace_bvh.h. Plain structs, no torch.
 #pragma once
 
 #include "gaussian_math.h"

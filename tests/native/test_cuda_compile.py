@@ -21,7 +21,7 @@ import pytest
 CSRC = Path(__file__).resolve().parents[2] / "native" / "csrc"
 NVCC = shutil.which("nvcc")
 FLAGS = ["-std=c++17", "-O3", "-arch=sm_90", "-I", str(CSRC)]
-EXPECTED = {"projection.cu", "intersect.cu", "rasterize.cu"}
+EXPECTED = {"projection.cu", "intersect.cu", "rasterize.cu", "raytrace.cu"}
 
 pytestmark = pytest.mark.skipif(
     NVCC is None, reason="nvcc is not on PATH: the CUDA kernels cannot be compiled here")
@@ -32,6 +32,7 @@ LINK_PROBE = r"""
 #include "intersect_cuda.h"
 #include "projection_cuda.h"
 #include "rasterize_cuda.h"
+#include "raytrace_cuda.h"
 
 #include <cstdio>
 
@@ -43,6 +44,7 @@ template <typename T> int probe() {
       reinterpret_cast<const void*>(&launch_intersect_sort<T>),
       reinterpret_cast<const void*>(&launch_rasterize_fwd<T>),
       reinterpret_cast<const void*>(&launch_rasterize_bwd<T>),
+      reinterpret_cast<const void*>(&launch_trace_visibility<T>),
   };
   int n = 0;
   for (const void* f : fns) n += f != nullptr;
@@ -58,7 +60,7 @@ int main() {
   int n = probe<float>() + probe<double>();
   for (const void* f : plain) n += f != nullptr;
   std::printf("%d\n", n);
-  return n == 13 ? 0 : 1;
+  return n == 15 ? 0 : 1;
 }
 """
 
