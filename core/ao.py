@@ -79,19 +79,22 @@ def _filter(ao: np.ndarray, guide: np.ndarray, config: AOConfig) -> np.ndarray:
 @torch.no_grad()
 def ao_map(model: GaussianModel, camera: RenderCamera, *, beta: float = 0.0,
            config: AOConfig = AOConfig()) -> Tensor:
-    """(H, W, 1) ambient occlusion of one view at the camera's full resolution."""
+    """(H, W, 1) ambient occlusion of one view at the camera's full resolution, on the model's
+    device (the joint bilateral filter runs on the CPU, OpenCV)."""
+    device = model.means.device
+    camera = camera.to(device)
     small = scaled_camera(camera, config.scale)
     r = render(model, small, sh_degree=0, beta=beta, geometry=True, tie_opacity=False)
     covered = r.alpha_g[..., 0] > config.min_alpha
     normal = torch.nn.functional.normalize(r.normal, dim=-1)
-    ao = torch.ones(small.height, small.width)
+    ao = torch.ones(small.height, small.width, device=device)
     if bool(covered.any()):
         points = depth_to_points(r.depth, small.K, small.viewmat)[covered]
         normals = normal[covered]
         ok = normals.norm(dim=-1) > 0.5
         depth = r.depth[..., 0][covered]
         footprint = depth / camera.K[0, 0]
-        vis = torch.ones(points.shape[0])
+        vis = torch.ones(points.shape[0], device=device)
         vis[ok] = trace_visibility(points[ok].contiguous(), normals[ok].contiguous(),
                                    model.means.detach(), model.quats.detach(),
                                    model.scales.detach(), model.opacity_g.detach(),
@@ -103,8 +106,8 @@ def ao_map(model: GaussianModel, camera: RenderCamera, *, beta: float = 0.0,
                                          align_corners=False)[0, 0]
     guide = torch.nn.functional.interpolate(normal.permute(2, 0, 1)[None], size=size,
                                             mode="bilinear", align_corners=False)[0]
-    filtered = _filter(up.numpy(), guide.permute(1, 2, 0).numpy(), config)
-    return torch.from_numpy(np.clip(filtered, 0.0, 1.0)).float()[..., None]
+    filtered = _filter(up.cpu().numpy(), guide.permute(1, 2, 0).cpu().numpy(), config)
+    return torch.from_numpy(np.clip(filtered, 0.0, 1.0)).float()[..., None].to(device)
 
 
 class GaussianAOBaker:

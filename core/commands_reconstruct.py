@@ -26,6 +26,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--downscale", type=float, default=None, metavar="F",
                    help="train and score on the images reduced by F (e.g. 4 for 1/4 resolution; "
                         "recorded in config.json)")
+    p.add_argument("--device", default=None, metavar="DEVICE",
+                   help="auto | cpu | cuda | cuda:N: where to train (default: the config's "
+                        "train.device, auto = CUDA when usable, else CPU; recorded in "
+                        "config.json)")
     p.add_argument("--resume", action="store_true",
                    help="continue an interrupted run in --out (finished frames are skipped)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -34,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("eval", help="score a run's held-out views; writes RUN/eval.json")
     e.add_argument("run", help="run directory")
     e.add_argument("--capture", default=None, help="capture folder (default: the run's own)")
+    e.add_argument("--device", default="auto", metavar="DEVICE",
+                   help="auto | cpu | cuda | cuda:N: where the relit views are rendered "
+                        "(default auto)")
     e.set_defaults(func=_eval)
 
 
@@ -65,7 +72,7 @@ def _reconstruct(args: argparse.Namespace) -> int:
     try:
         metrics = reconstruct(args.capture, args.out, preset=args.preset, frames=args.frames,
                               config_file=args.config, resume=args.resume, gop=args.gop,
-                              progress=not args.no_progress,
+                              progress=not args.no_progress, device=args.device,
                               overrides=None if args.downscale is None
                               else {"downscale": args.downscale})
     except ValueError as exc:  # CaptureError is a ValueError
@@ -80,7 +87,7 @@ def _eval(args: argparse.Namespace) -> int:
     from core.evaluate import evaluate_run
 
     try:
-        result = evaluate_run(args.run, args.capture)
+        result = evaluate_run(args.run, args.capture, device=args.device)
     except ValueError as exc:
         return _fail("eval", _one_line(exc))
     cos = result["normal_cos"]

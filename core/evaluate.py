@@ -117,12 +117,15 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def evaluate_run(run_dir: str | os.PathLike[str],
-                 capture_dir: str | os.PathLike[str] | None = None) -> dict:
+                 capture_dir: str | os.PathLike[str] | None = None, device: str = "auto") -> dict:
     """Score the held-out renders of every finished frame of `run_dir`; writes RUN/eval.json and
-    returns its content. `capture_dir` defaults to the capture recorded in RUN/config.json."""
+    returns its content. `capture_dir` defaults to the capture recorded in RUN/config.json;
+    `device` (auto, cpu, cuda, cuda:N) is where the relit views are rendered."""
     from core.data import CaptureDataset, load_capture
+    from core.device import resolve_device
     from core.pipeline import write_json
 
+    torch_device = resolve_device(device)
     run = Path(run_dir)
     if not (run / "config.json").is_file():
         raise ValueError(f"run_dir: {run} is not a run directory (no config.json)")
@@ -159,7 +162,8 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     result = {**_summary(rows), "lpips": None, "chamfer": None,
               "normal_reference": rows[0]["normal_reference"], "capture": str(capture_dir),
               "views": len(rows), "per_frame": per_frame}
-    result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame))
+    result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame,
+                                      torch_device))
     from core.sequence.metrics import temporal_metrics  # flicker, per-frame series (sequences)
 
     result["temporal"] = temporal_metrics(run, capture_dir, frames, held, per_frame)
@@ -185,7 +189,7 @@ def _mesh_scores(run: Path, capture_dir: Path, frame: str) -> dict | None:
 
 
 def _relight_and_meshes(run: Path, capture_dir: Path, frames: list[str], held: list[str],
-                        downscale: float, per_frame: list[dict]) -> dict:
+                        downscale: float, per_frame: list[dict], device="cpu") -> dict:
     """Relit held-out views against the second light's ground truth, meshes against the
     ground-truth meshes (added to each `per_frame` entry), and RUN/contact_sheet.png (the first
     and last frames' held-out views)."""
@@ -196,7 +200,7 @@ def _relight_and_meshes(run: Path, capture_dir: Path, frames: list[str], held: l
     shown = list(dict.fromkeys([frames[0], frames[-1]]))
     for entry in per_frame:
         frame = entry["frame"]
-        relit = (relit_heldout(run, capture_dir, frame, held, downscale)
+        relit = (relit_heldout(run, capture_dir, frame, held, downscale, device=device)
                  if (run / "frames" / frame / "gaussians.ply").is_file()
                  else {"scores": [], "pictures": {cam: {} for cam in held}})
         relit_rows += relit["scores"]

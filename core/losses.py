@@ -55,11 +55,13 @@ class LossWeights:
 
 
 @functools.lru_cache(maxsize=8)
-def _window(size: int, sigma: float, channels: int) -> Tensor:
+def _window(size: int, sigma: float, channels: int,
+            device: torch.device = torch.device("cpu")) -> Tensor:
+    # Computed on the CPU and cached per device: no host-to-device copy per call.
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     g = torch.exp(-x * x / (2 * sigma * sigma))
     g = (g / g.sum()).float()
-    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous().to(device)
 
 
 def ssim(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
@@ -69,7 +71,7 @@ def ssim(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
         raise ValueError(f"a, b: expected equal (H, W, C) shapes, got {tuple(a.shape)} and "
                          f"{tuple(b.shape)}")
     c = a.shape[2]
-    w = _window(window, sigma, c).to(a)
+    w = _window(window, sigma, c, a.device).to(a)
     x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
 
     def blur(t: Tensor) -> Tensor:

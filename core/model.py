@@ -90,11 +90,12 @@ def _nn_sq_dist(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
     n = points.shape[0]
     k = min(k, n - 1)
     if k <= 0:
-        return torch.full((n,), 1e-4, dtype=points.dtype)
+        return torch.full((n,), 1e-4, dtype=points.dtype, device=points.device)
     out = []
     for start in range(0, n, chunk):
         d = torch.cdist(points[start:start + chunk], points).square()
-        d[torch.arange(d.shape[0]), torch.arange(start, start + d.shape[0])] = float("inf")
+        rows = torch.arange(d.shape[0], device=d.device)
+        d[rows, rows + start] = float("inf")
         out.append(d.topk(k, largest=False).values.mean(dim=1))
     return torch.cat(out)
 
@@ -104,6 +105,7 @@ class GaussianModel:
 
     Shapes: means (N,3), scales (N,3) log, quats (N,4) w,x,y,z, sh0 (N,1,3), shN (N,15,3),
     opacity_c (N,) logit, opacity_g (N,) logit, normals (N,3) unnormalized, visibility (N,1) logit.
+    Every parameter lives on one device, the means' (`device`; `to` moves them all).
     """
 
     def __init__(self, params: dict[str, Tensor]):
@@ -118,6 +120,11 @@ class GaussianModel:
             if tuple(params[name].shape) != shape:
                 raise ValueError(f"params[{name!r}]: expected shape {shape}, "
                                  f"got {tuple(params[name].shape)}")
+        device = params["means"].device
+        elsewhere = [name for name in PARAM_NAMES if params[name].device != device]
+        if elsewhere:
+            raise ValueError(f"params: {elsewhere} are not on {device} like means; move every "
+                             "parameter to one device")
         self.params: dict[str, torch.nn.Parameter] = {
             name: torch.nn.Parameter(params[name].detach().clone().float().contiguous())
             for name in PARAM_NAMES}
@@ -132,25 +139,40 @@ class GaussianModel:
         if points.dim() != 2 or points.shape[1] != 3 or points.shape[0] == 0:
             raise ValueError(f"points: expected shape (N, 3) with N > 0, got {tuple(points.shape)}")
         pts = points.detach().float()
-        n = pts.shape[0]
+        n, dev = pts.shape[0], pts.device
         if colors is None:
-            colors = torch.full((n, 3), 0.5)
+            colors = torch.full((n, 3), 0.5, device=dev)
         if tuple(colors.shape) != (n, 3):
             raise ValueError(f"colors: expected shape ({n}, 3), got {tuple(colors.shape)}")
         dist = torch.sqrt(_nn_sq_dist(pts).clamp_min(1e-7))
-        quats = torch.zeros(n, 4)
+        quats = torch.zeros(n, 4, device=dev)
         quats[:, 0] = 1.0
         return cls({
             "means": pts,
             "scales": torch.log(dist)[:, None].repeat(1, 3),
             "quats": quats,
-            "sh0": ((colors.float() - 0.5) / SH_C0)[:, None, :],
-            "shN": torch.zeros(n, 15, 3),
-            "opacity_c": torch.full((n,), _logit(opacity)),
-            "opacity_g": torch.full((n,), _logit(opacity)),
-            "normals": torch.tensor([[0.0, 0.0, 1.0]]).repeat(n, 1),
-            "visibility": torch.full((n, 1), _logit(visibility)),
+            "sh0": ((colors.to(dev).float() - 0.5) / SH_C0)[:, None, :],
+            "shN": torch.zeros(n, 15, 3, device=dev),
+            "opacity_c": torch.full((n,), _logit(opacity), device=dev),
+            "opacity_g": torch.full((n,), _logit(opacity), device=dev),
+            "normals": torch.tensor([[0.0, 0.0, 1.0]], device=dev).repeat(n, 1),
+            "visibility": torch.full((n, 1), _logit(visibility), device=dev),
         })
+
+    @property
+    def device(self) -> torch.device:
+        """The device every parameter lives on."""
+        return self.params["means"].device
+
+    def to(self, device: torch.device | str) -> GaussianModel:
+        """This model on `device`: itself when it is there already, else a copy (an optimizer
+        made for this one does not follow; make another)."""
+        target = torch.device(device)
+        if target.type == "cuda" and target.index is None:
+            target = torch.device("cuda", torch.cuda.current_device())
+        if self.device == target:
+            return self
+        return GaussianModel({k: v.detach().to(device) for k, v in self.params.items()})
 
     # -- activations -----------------------------------------------------------------------
     def __len__(self) -> int:
@@ -261,7 +283,7 @@ class GaussianModel:
         with torch.no_grad():
             R = quat_to_rotmat(self.params["quats"])
             axis = self.params["scales"].argmin(dim=1)
-            return R[torch.arange(len(self)), :, axis]
+            return R[torch.arange(len(self), device=R.device), :, axis]
 
     def init_geometry(self, camera_centers: Tensor,
                       optimizer: torch.optim.Optimizer | None = None,
@@ -289,6 +311,7 @@ class GaussianModel:
         write_gaussian_ply(path, {k: v.detach().cpu() for k, v in self.params.items()})
 
     @classmethod
-    def load_ply(cls, path) -> GaussianModel:
-        """Read a file written by :meth:`save_ply`, or a plain 3DGS PLY (geometry defaults)."""
-        return cls(read_gaussian_ply(path))
+    def load_ply(cls, path, device: torch.device | str = "cpu") -> GaussianModel:
+        """Read a file written by :meth:`save_ply`, or a plain 3DGS PLY (geometry defaults),
+        onto `device`."""
+        return cls({k: v.to(device) for k, v in read_gaussian_ply(path).items()})

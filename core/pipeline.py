@@ -302,9 +302,30 @@ def _config_record(capture_dir: Path, preset: str, chosen: list[str], cfg: RunCo
 
 
 def _same_config(old: dict, new: dict) -> bool:
+    """Whether two config.json records describe the same run. The device is left out: a run
+    resumes on another machine (a checkpoint holds CPU tensors), and records written before
+    the field existed have none."""
     keys = [f.name for f in fields(RunConfig)]
-    return json.loads(json.dumps({k: old.get(k) for k in keys})) == json.loads(
-        json.dumps({k: new[k] for k in keys}))
+
+    def comparable(record: dict) -> dict:
+        data = json.loads(json.dumps({k: record.get(k) for k in keys}))
+        if isinstance(data.get("train"), dict):
+            data["train"].pop("device", None)
+        return data
+
+    return comparable(old) == comparable(new)
+
+
+def _resolve_run_device(cfg: RunConfig, device: str | None) -> RunConfig:
+    """`cfg` with `device` (when given) and then the device it stands for written into
+    train.device (`auto` becomes `cuda:0` or `cpu`), so that config.json says where the run
+    trained; ValueError (before anything is written) when CUDA is asked for and not usable."""
+    from core.device import check_device_spec, resolve_device
+
+    where = "device" if device is not None else "train.device"
+    spec = check_device_spec(device, where) if device is not None else cfg.train.device
+    resolved = resolve_device(spec, where)
+    return replace(cfg, train=replace(cfg.train, device=str(resolved)))
 
 
 def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[str], *,
@@ -312,12 +333,13 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
                 config_file: str | os.PathLike[str] | None = None, resume: bool = False,
                 gop: int | None = None, overrides: dict | None = None,
                 progress: bool = True, on_progress: Callable[[Progress], None] | None = None,
-                should_stop: Callable[[], bool] | None = None) -> dict:
+                should_stop: Callable[[], bool] | None = None, device: str | None = None) -> dict:
     """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
     `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
     run: finished frames are skipped, an unfinished one restarts from its checkpoint. `gop`
     overrides the configuration's group-of-pictures length (the first frame of each group is a key frame);
-    `overrides` (same shape as a --config file) apply after the file.
+    `overrides` (same shape as a --config file) apply after the file. `device` (auto, cpu, cuda,
+    cuda:N) overrides train.device; RUN/config.json records the device it resolved to.
 
     `progress` shows a bar on a terminal; `on_progress` receives `Progress` events (every step,
     checkpoint and frame); `should_stop` is asked after every step and, when it returns True,
@@ -330,6 +352,7 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
         cfg = apply_overrides(cfg, overrides, where="overrides")
     if gop is not None:
         cfg = replace(cfg, gop=gop)
+    cfg = _resolve_run_device(cfg, device)
     from core.priors import load_estimator
 
     # Every input is checked before anything is written, so bad input leaves no half run behind.
@@ -367,12 +390,15 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
             reference_loss=None if before is None else before.get("deform_loss"),
             earlier=None if before is None else before.get("previous")),
             "gop": role.gop, "position": role.position}
+        if metrics["frames"][frame]["rekeyed"]:  # a key frame now (sequence.json: a new group)
+            metrics["frames"][frame]["position"] = 0
         write_json(metrics_path, metrics)
         write_json(run / "sequence.json",
                    sequence_record(chosen, cfg.gop, cfg.sequence, metrics["frames"]))
         hooks.emit("frame_done", None, path=str(run / "frames" / frame))
         # The frame is finished (PLY and metrics on disk): its training state is no longer needed.
         (run / "checkpoints" / f"{frame}.pt").unlink(missing_ok=True)
+        (run / "checkpoints" / f"{frame}.rekey.json").unlink(missing_ok=True)
     from core.plots import plot_run
 
     plot_run(run)
@@ -401,6 +427,11 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         callbacks.append(TerminalBar(label) if display == "bar" else LogLines(label))
     callbacks.append(hooks)  # last: a stop sees the step's history and checkpoint
     start = time.perf_counter()
+    ckpt = ckpt_dir / f"{frame}.pt"
+    rekey_path = ckpt_dir / f"{frame}.rekey.json"
+    rekeyed = json.loads(rekey_path.read_text()) if rekey_path.is_file() else None
+    if rekeyed is not None:  # a re-keyed frame resumed: its checkpoint is the key frame's
+        previous = None
     if previous is None:
         trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks,
                                        downscale=cfg.downscale)
@@ -411,12 +442,23 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
                                        earlier_ply=None if earlier is None
                                        else run / "frames" / earlier / "gaussians.ply")
     priors = fill_priors(trainer.views, estimator)
-    ckpt = ckpt_dir / f"{frame}.pt"
     resumed_at = 0
     if ckpt.is_file():
         history.records = list(trainer.load_checkpoint(ckpt) or [])
         resumed_at = trainer.step
     trainer.train()
+    if previous is not None and trainer.lost_track is not None:
+        # Tracking lost (`SequenceConfig.rekey_loss_ratio`): the frame becomes a key frame.
+        rekeyed = {"from": previous, "loss_ratio": round(trainer.lost_track, 4),
+                   "tracked_renders": trainer.renders_done, "deform_loss": trainer.deform_loss}
+        write_json(rekey_path, rekeyed)
+        ckpt.unlink(missing_ok=True)
+        history.records = []
+        previous = None
+        trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks,
+                                       downscale=cfg.downscale)
+        priors = fill_priors(trainer.views, estimator)
+        trainer.train()
     out = run / "frames" / frame
     out.mkdir(parents=True, exist_ok=True)
     ids = None if previous is None else trainer.ids
@@ -426,7 +468,8 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     last = history.records[-1] if history.records else {}
     return {
         "iterations": frame_iterations(trainer),
-        "renders": getattr(trainer, "renders", None) or frame_iterations(trainer),
+        "renders": (getattr(trainer, "renders", None) or frame_iterations(trainer))
+        + (rekeyed["tracked_renders"] if rekeyed else 0),
         "seconds": round(time.perf_counter() - start, 3),
         "resumed_at": resumed_at,
         "gaussians": len(trainer.model),
@@ -435,6 +478,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         "train_psnr": round(trainer.evaluate(), 4),
         "normal_prior": priors,
         "stages": "static (key frame)" if previous is None else "deform + refine",
+        "rekeyed": rekeyed,
         "previous": previous,
         "next_track_id": len(trainer.model) if previous is None else trainer.group_next_id,
         "new_tracks": None if previous is None else trainer.state.born,
@@ -483,29 +527,31 @@ def render_heldout(capture, frame: str, trainer: Trainer, out: Path,
     from core.stages import plan
 
     p = plan(trainer.config.schedule.iterations - 1, trainer.config.schedule)
-    bg = torch.tensor(trainer.config.background, dtype=torch.float32)
+    device = trainer.model.device
+    bg = torch.tensor(trainer.config.background, dtype=torch.float32, device=device)
     ids = []
     served = CaptureDataset(capture, frames=[frame], downscale=downscale).served_camera
     for index, cam in enumerate(capture.cameras):
         if index % 8:
             continue
-        r = render(trainer.model, RenderCamera.from_camera(served(cam)), sh_degree=p.sh_degree,
-                   beta=p.beta, geometry=True, tie_opacity=False, background=bg,
-                   eps2d=trainer.config.eps2d, antialiased=trainer.config.antialiased)
-        rgb = r.rgb.clamp(0, 1).numpy()
+        r = render(trainer.model, RenderCamera.from_camera(served(cam), device=device),
+                   sh_degree=p.sh_degree, beta=p.beta, geometry=True, tie_opacity=False,
+                   background=bg, eps2d=trainer.config.eps2d,
+                   antialiased=trainer.config.antialiased)
+        rgb = r.rgb.clamp(0, 1).cpu().numpy()
         image = capture.image_path(frame, cam.id)
         if image is not None and image.suffix.lower() == ".exr":
             from core.synth.shading import linear_to_srgb  # the capture is linear: encode it
 
             rgb = linear_to_srgb(rgb)
-        covered = (r.alpha_g > COVERAGE).numpy()
+        covered = (r.alpha_g > COVERAGE).cpu().numpy()
         # Training leaves the normal map unnormalized (DESIGN.md 5); the picture shows directions.
-        n = torch.nn.functional.normalize(r.normal, dim=-1).numpy()
-        ao = safe_divide(r.visibility, r.alpha_g).clamp(0, 1).numpy()
+        n = torch.nn.functional.normalize(r.normal, dim=-1).cpu().numpy()
+        ao = safe_divide(r.visibility, r.alpha_g).clamp(0, 1).cpu().numpy()
         to8 = lambda a: (np.clip(a, 0, 1) * 255 + 0.5).astype(np.uint8)  # noqa: E731
         write_png(out / f"{cam.id}_rgb.png", to8(rgb))
         write_png(out / f"{cam.id}_normal.png", to8(np.where(covered, (n + 1) / 2, 0.0)))
         write_png(out / f"{cam.id}_ao.png", to8(np.where(covered, ao, 0.0)))
-        np.save(out / f"{cam.id}_depth.npy", r.depth[..., 0].numpy().astype(np.float32))
+        np.save(out / f"{cam.id}_depth.npy", r.depth[..., 0].cpu().numpy().astype(np.float32))
         ids.append(cam.id)
     return ids

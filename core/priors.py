@@ -112,20 +112,21 @@ def load_estimator(path: str | os.PathLike[str] | None,
 
 def fill_priors(views: Sequence, estimator: NormalEstimator | None) -> str:
     """Give every `core.train.View` without a prior one from `estimator` (rotated to world
-    space when it estimates camera-space normals). Returns where the priors came from:
-    'capture', 'estimator', 'mixed' or 'off'."""
+    space when it estimates camera-space normals), on the device of the view's image (the
+    estimator itself runs on the CPU). Returns where the priors came from: 'capture',
+    'estimator', 'mixed' or 'off'."""
     have = sum(v.normal is not None for v in views)
     if estimator is None or have == len(views):
         return "capture" if have == len(views) and views else ("mixed" if have else "off")
     for v in views:
         if v.normal is not None:
             continue
-        n = estimator(v.image.numpy())
+        n = estimator(v.image.cpu().numpy())
         if n.shape[:2] != tuple(v.image.shape[:2]):
             raise ValueError(f"normal_estimator: returned {n.shape[:2]} for a "
                              f"{tuple(v.image.shape[:2])} image")
         if estimator.space == "camera":
             # n_w = R^T n_c, as the dataset does for camera-space priors.
             n = n @ np.asarray(v.camera.world_to_camera, np.float32)[:3, :3]
-        v.normal = torch.from_numpy(np.ascontiguousarray(n, np.float32))
+        v.normal = torch.from_numpy(np.ascontiguousarray(n, np.float32)).to(v.image.device)
     return "estimator" if not have else "mixed"

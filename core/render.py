@@ -72,11 +72,19 @@ class RenderCamera:
     """Image height in pixels."""
 
     @classmethod
-    def from_camera(cls, camera) -> RenderCamera:
-        """From a `core.data.Camera` (numpy float64)."""
-        return cls(torch.from_numpy(np.asarray(camera.world_to_camera, np.float32)).contiguous(),
-                   torch.from_numpy(np.asarray(camera.K, np.float32)).contiguous(),
+    def from_camera(cls, camera, device: torch.device | str = "cpu") -> RenderCamera:
+        """From a `core.data.Camera` (numpy float64), with its tensors on `device`."""
+        return cls(torch.from_numpy(np.asarray(camera.world_to_camera, np.float32)).contiguous()
+                   .to(device),
+                   torch.from_numpy(np.asarray(camera.K, np.float32)).contiguous().to(device),
                    int(camera.width), int(camera.height))
+
+    def to(self, device: torch.device | str) -> RenderCamera:
+        """This camera with its tensors on `device` (itself when they are there already)."""
+        viewmat, K = self.viewmat.to(device), self.K.to(device)
+        if viewmat is self.viewmat and K is self.K:
+            return self
+        return RenderCamera(viewmat, K, self.width, self.height)
 
     @property
     def center(self) -> Tensor:
@@ -129,13 +137,16 @@ def render(
     `geometry=False` runs the appearance branch only (stage 1); `tie_opacity=True` passes the
     appearance opacity for the geometry one too (opacity_g tied to opacity_c, so that beta mixing
     leaves the appearance opacity unchanged). The defaults eps2d 0.1, antialiased follow the
-    Mip-Splatting 2D filter of DESIGN.md section 5.
+    Mip-Splatting 2D filter of DESIGN.md section 5. Renders on the model's device; a camera or
+    background elsewhere is copied there (give a trainer's cameras that device once, so no
+    step pays for the copy).
     """
     if not 0 <= sh_degree <= 3:
         raise ValueError(f"sh_degree: expected 0..3, got {sh_degree}")
-    if background is None:
-        background = torch.zeros(3)
     means = model.means
+    if background is None:
+        background = torch.zeros(3, device=means.device)
+    camera = camera.to(means.device)
     dirs = torch.nn.functional.normalize(means - camera.center[None], dim=-1)
     colors = torch.clamp_min(eval_sh(model.sh, dirs, sh_degree) + 0.5, 0.0)
     opacity_c = model.opacity_c
@@ -145,7 +156,7 @@ def render(
         means, model.quats.contiguous(), model.scales.contiguous(), opacity_c.contiguous(),
         opacity_g.contiguous(), colors.contiguous(), features, camera.viewmat, camera.K,
         camera.width, camera.height, beta=float(beta), eps2d=eps2d, antialiased=antialiased,
-        background=background.to(means.dtype), backend=backend)
+        background=background.to(means.device, means.dtype), backend=backend)
     if geometry:
         normal, visibility = out.geometry[..., :3], out.geometry[..., 3:4]
     else:
@@ -166,6 +177,7 @@ def seen_directions(model: GaussianModel, cameras: list[RenderCamera], *, eps2d:
     out = torch.zeros_like(model.means)
     slack = 2.0 * model.scales.max(dim=1).values
     for camera in cameras:
+        camera = camera.to(model.means.device)
         # Tied opacities: the geometry alpha that weights the depth is the appearance one.
         r = render(model, camera, sh_degree=0, geometry=True, tie_opacity=True, eps2d=eps2d,
                    antialiased=antialiased)

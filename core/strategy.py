@@ -105,8 +105,9 @@ class DensifyStrategy:
         self.config = config
         self.extent = float(extent)
 
-    def initialize_state(self, n: int) -> StrategyState:
-        z = torch.zeros(n)
+    def initialize_state(self, n: int, device: torch.device | str = "cpu") -> StrategyState:
+        """Zero statistics for `n` Gaussians, on `device` (the model's)."""
+        z = torch.zeros(n, device=device)
         return StrategyState(z.clone(), z.clone(), z.clone(), z.clone(), z.clone(),
                              rho=self.config.rho)
 
@@ -116,10 +117,10 @@ class DensifyStrategy:
         if out.radii.shape[0] != n:
             raise ValueError(f"out: rendered {out.radii.shape[0]} Gaussians, state has {n}")
         with torch.no_grad():
-            ndc = torch.tensor([width / 2.0, height / 2.0])
+            ndc = torch.tensor([width / 2.0, height / 2.0], device=state.count.device)
             seen = out.radii > 0
-            state.grad_c += torch.where(seen, (out.absgrad_c.detach().cpu() * ndc).norm(dim=1), 0)
-            state.grad_g += torch.where(seen, (out.absgrad_g.detach().cpu() * ndc).norm(dim=1), 0)
+            state.grad_c += torch.where(seen, (out.absgrad_c.detach() * ndc).norm(dim=1), 0)
+            state.grad_g += torch.where(seen, (out.absgrad_g.detach() * ndc).norm(dim=1), 0)
             state.count += seen.float()
             state.max_radii = torch.maximum(state.max_radii, out.radii.float())
             state.contribution = torch.maximum(state.contribution, out.contribution.detach())
@@ -155,8 +156,8 @@ class DensifyStrategy:
                 model.extend({k: torch.cat([new_c[k], new_s[k]]) for k in new_c}, optimizer)
                 # New rows inherit their parent's statistics (the contribution matters).
                 parents = torch.cat([clone.nonzero()[:, 0], split.nonzero()[:, 0].repeat(2)])
-                state.select(torch.cat([torch.arange(n), parents]))
-                keep = torch.ones(len(model), dtype=torch.bool)
+                state.select(torch.cat([torch.arange(n, device=parents.device), parents]))
+                keep = torch.ones(len(model), dtype=torch.bool, device=model.device)
                 keep[:n] = ~split
                 model.keep(keep, optimizer)
                 state.select(keep)
@@ -177,7 +178,7 @@ class DensifyStrategy:
         """(N,) Gaussians larger than prune_scale x extent, once a reset has happened (before it
         the initial points may still be large)."""
         if self.config.prune_scale is None or state.resets == 0:
-            return torch.zeros(len(model), dtype=torch.bool)
+            return torch.zeros(len(model), dtype=torch.bool, device=model.device)
         return model.scales.max(dim=1).values > self.config.prune_scale * self.extent
 
     @staticmethod
@@ -205,7 +206,9 @@ class DensifyStrategy:
         scales = torch.exp(rows["scales"])
         R = quat_to_rotmat(rows["quats"])
         out = {k: v.repeat((2,) + (1,) * (v.dim() - 1)) for k, v in rows.items()}
-        noise = torch.randn(2 * scales.shape[0], 3, generator=generator) * scales.repeat(2, 1)
+        # Drawn on the (CPU) generator whatever the device: the same samples everywhere.
+        noise = torch.randn(2 * scales.shape[0], 3, generator=generator).to(scales.device) \
+            * scales.repeat(2, 1)
         out["means"] = out["means"] + torch.einsum("nij,nj->ni", R.repeat(2, 1, 1), noise)
         out["scales"] = torch.log(scales / self.config.split_factor).repeat(2, 1)
         for name, passed in (("opacity_c", pass_c[mask]), ("opacity_g", pass_g[mask])):

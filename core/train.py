@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from core.data.capture import Camera
+from core.device import check_device_spec, resolve_device, to_device
 from core.losses import (
     LossWeights,
     depth_normal_consistency,
@@ -82,10 +83,16 @@ class TrainConfig:
     bake_ao: bool = True
     """Bake ambient occlusion at the stage-3 step with the native ray tracer (per-Gaussian
     visibility and per-view targets); off: the visibility loss stays off."""
+    device: str = "auto"
+    """Where training runs: `auto` (CUDA when torch sees a GPU and the native extension has its
+    CUDA kernels, else the CPU; $DGS_DEVICE when set), `cpu`, `cuda` or `cuda:N`
+    (`core.device.resolve_device`).
+    RUN/config.json records the device the run resolved to; a run resumes on any device."""
 
     def __post_init__(self) -> None:
         if self.init_points < 1:
             raise ValueError(f"init_points: expected >= 1, got {self.init_points}")
+        check_device_spec(self.device)
 
     def to_dict(self) -> dict:
         """The fully resolved configuration as JSON-compatible data (for RUN/config.json)."""
@@ -123,6 +130,15 @@ class View:
     def from_sample(cls, sample) -> View:
         """From a `core.data.Sample`."""
         return cls(sample.camera, sample.image, sample.mask, sample.normal)
+
+    def to(self, device: torch.device | str) -> View:
+        """This view with its tensors on `device` (itself when they are there already): a
+        trainer moves each view once, not every step."""
+        moved = [None if t is None else t.to(device) for t in (self.image, self.mask,
+                                                                 self.normal)]
+        if all(a is b for a, b in zip(moved, (self.image, self.mask, self.normal))):
+            return self
+        return View(self.camera, *moved)
 
 
 class AOBaker(Protocol):
@@ -216,15 +232,19 @@ def psnr(pred: Tensor, target: Tensor) -> float:
 
 
 class Trainer:
-    """Reconstructs one frame from its training views."""
+    """Reconstructs one frame from its training views, on `config.device`: the model, the
+    optimizer state, the views' images, masks and priors, the cameras and the AO targets all
+    live there. The random generator stays on the CPU (its draws are moved), so a run draws the
+    same numbers on any device and its state resumes anywhere."""
 
     def __init__(self, views: Sequence[View], config: TrainConfig = TrainConfig(), *,
                  model: GaussianModel | None = None, callbacks: Sequence[Callback] = (),
                  ao_baker: AOBaker | None = None):
         if not views:
             raise ValueError("views: expected at least one training view")
-        self.views = list(views)
         self.config = config
+        self.device = resolve_device(config.device, "config.device")
+        self.views = [v.to(self.device) for v in views]
         self.callbacks = list(callbacks)
         if ao_baker is None and config.bake_ao:
             from core.ao import GaussianAOBaker
@@ -233,12 +253,14 @@ class Trainer:
         self.ao_baker = ao_baker if config.bake_ao else None
         self.extent = scene_extent([v.camera for v in self.views])
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.model = model if model is not None else self._initial_model()
+        self.model = (model.to(self.device) if model is not None else self._initial_model())
         self.optimizer = self.model.make_optimizer(config.rates, self.extent)
         self.strategy = DensifyStrategy(config.densify, self.extent)
-        self.state = self.strategy.initialize_state(len(self.model))
-        self.cameras = [RenderCamera.from_camera(v.camera) for v in self.views]
-        self.background = torch.tensor(config.background, dtype=torch.float32)
+        self.state = self.strategy.initialize_state(len(self.model), device=self.device)
+        self.cameras = [RenderCamera.from_camera(v.camera, device=self.device)
+                        for v in self.views]
+        self.background = torch.tensor(config.background, dtype=torch.float32,
+                                       device=self.device)
         self.ao_targets: list[Tensor] | None = None
         self.notes: list[str] = []
         self.step = 0
@@ -264,10 +286,10 @@ class Trainer:
     def _initial_model(self) -> GaussianModel:
         pts, cols = sample_points(
             [v.camera for v in self.views], self.config.init_points,
-            images=[v.image.numpy() for v in self.views],
-            masks=[None if v.mask is None else v.mask.numpy() for v in self.views],
+            images=[v.image.cpu().numpy() for v in self.views],
+            masks=[None if v.mask is None else v.mask.cpu().numpy() for v in self.views],
             seed=self.config.seed)
-        return GaussianModel.from_points(pts, cols)
+        return GaussianModel.from_points(pts.to(self.device), cols.to(self.device))
 
     def target(self, index: int, background: Tensor | None = None) -> Tensor:
         """The training image composited on `background` (default the configured one) by its
@@ -286,7 +308,8 @@ class Trainer:
 
     def _step_background(self, index: int) -> Tensor:
         if self.config.random_background and self.views[index].mask is not None:
-            return torch.rand(3, generator=self.generator)
+            # Drawn on the CPU generator whatever the device: the same colours everywhere.
+            return torch.rand(3, generator=self.generator).to(self.device)
         return self.background
 
     def _next_view(self) -> int:
@@ -322,7 +345,8 @@ class Trainer:
                 self.notes.append(f"step {p.step}: AO baking skipped (bake_ao is off); "
                                   "visibility loss off")
             else:
-                self.ao_targets = self.ao_baker(self.model, self.cameras, self.optimizer, p.beta)
+                targets = self.ao_baker(self.model, self.cameras, self.optimizer, p.beta)
+                self.ao_targets = to_device(list(targets), self.device)  # a baker's own device
         lr = means_lr(self.config.rates, self.extent, p.step)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
@@ -380,28 +404,31 @@ class Trainer:
         and strategy state, the step, the random generator (view order, split samples) and the
         views still pending in this epoch, the baked AO targets (so a resumed stage 3 keeps its
         visibility loss); and `extra` (plain data). Resuming from it repeats the uninterrupted
-        run exactly (bit for bit on CPU with the same thread count)."""
+        run exactly (bit for bit on CPU with the same thread count). Every tensor is written
+        on the CPU, so the file resumes on any device."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
-        blob = {"step": self.step, "params": {k: v.detach() for k, v in self.model.params.items()},
-                "optimizer": self.optimizer.state_dict(), "strategy": asdict(self.state),
-                "generator": self.generator.get_state(), "order": list(self._order),
-                "ao_targets": self.ao_targets, "notes": list(self.notes), "extra": extra}
+        blob = to_device({
+            "step": self.step, "params": {k: v.detach() for k, v in self.model.params.items()},
+            "optimizer": self.optimizer.state_dict(), "strategy": asdict(self.state),
+            "generator": self.generator.get_state(), "order": list(self._order),
+            "ao_targets": self.ao_targets, "notes": list(self.notes), "extra": extra}, "cpu")
         tmp = path.with_name(path.name + ".tmp")
         torch.save(blob, tmp)
         os.replace(tmp, path)
 
     def load_checkpoint(self, path: str | os.PathLike[str]) -> object:
-        """Resume from `save_checkpoint`'s file (same views and config); returns its `extra`."""
-        blob = torch.load(path, weights_only=True)
-        self.model = GaussianModel(blob["params"])
+        """Resume from `save_checkpoint`'s file (same views and config, any device); returns
+        its `extra`."""
+        blob = torch.load(path, map_location="cpu", weights_only=True)
+        self.model = GaussianModel(blob["params"]).to(self.device)
         self.optimizer = self.model.make_optimizer(self.config.rates, self.extent)
-        self.optimizer.load_state_dict(blob["optimizer"])
-        self.state = StrategyState(**blob["strategy"])
+        self.optimizer.load_state_dict(blob["optimizer"])  # moves the moments to the params
+        self.state = StrategyState(**to_device(blob["strategy"], self.device))
         self.step = int(blob["step"])
         if "generator" in blob:  # absent from checkpoints written before resume was exact
             self.generator.set_state(blob["generator"])
             self._order = [int(i) for i in blob["order"]]
-        self.ao_targets = blob.get("ao_targets")
+        self.ao_targets = to_device(blob.get("ao_targets"), self.device)
         self.notes = list(blob.get("notes") or [])
         return blob.get("extra")

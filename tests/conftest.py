@@ -1,10 +1,18 @@
-"""Session fixtures shared by tests/worker and tests/service: the real PostgreSQL and Redis."""
+"""Session fixtures shared by tests/worker and tests/service: the real PostgreSQL and Redis;
+and the device training's `auto` picks in every test (the CPU)."""
 
 from __future__ import annotations
+
+import os
 
 import pytest
 
 import real_services as services
+
+# Training's device `auto` means the CPU in the tests, also in the processes they start (workers,
+# CLI runs): STYLE 12, and the exact-resume checks hold on the CPU only (CUDA's atomic gradient
+# sums are not bit-reproducible). GPU tests name `cuda`; DGS_DEVICE=cuda runs the rest there too.
+os.environ.setdefault("DGS_DEVICE", "cpu")
 
 
 @pytest.fixture(scope="session")

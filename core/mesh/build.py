@@ -96,7 +96,8 @@ def scene_box(model, cameras, mode: str = "gaussians") -> tuple[np.ndarray, np.n
         return c - r, c + r
     with torch.no_grad():
         opaque = torch.maximum(model.opacity_c, model.opacity_g) > 0.5
-        pts = (model.means[opaque] if int(opaque.sum()) >= 4 else model.means).double().numpy()
+        pts = (model.means[opaque] if int(opaque.sum()) >= 4
+               else model.means).double().cpu().numpy()
     if len(pts) == 0:
         raise ValueError("model: has no Gaussians to take a scene box from")
     lo, hi = np.percentile(pts, 0.5, axis=0), np.percentile(pts, 99.5, axis=0)
@@ -135,8 +136,8 @@ def vertex_colors(mesh, model, cameras, settings, *, voxel: float, alpha_thresho
     acc, wsum = np.zeros((len(verts), 3)), np.zeros(len(verts))
     for cam in cameras:
         r = _render(model, cam, settings, settings.beta)
-        rgb = safe_divide(r.rgb, r.alpha_c).clamp(0, 1).numpy()
-        depth, cover = r.depth[..., 0].numpy(), r.alpha_g[..., 0].numpy()
+        rgb = safe_divide(r.rgb, r.alpha_c).clamp(0, 1).cpu().numpy()
+        depth, cover = r.depth[..., 0].cpu().numpy(), r.alpha_g[..., 0].cpu().numpy()
         uv, z = cam.project(verts)
         u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
         ok = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
@@ -155,9 +156,9 @@ def vertex_colors(mesh, model, cameras, settings, *, voxel: float, alpha_thresho
         from core.model import SH_C0
 
         keep = model.opacity_c > 0.5
-        means = (model.means[keep] if int(keep.sum()) else model.means).double().numpy()
+        means = (model.means[keep] if int(keep.sum()) else model.means).double().cpu().numpy()
         base = ((model.params["sh0"][:, 0] * SH_C0 + 0.5).clamp(0, 1)[keep] if int(keep.sum())
-                else (model.params["sh0"][:, 0] * SH_C0 + 0.5).clamp(0, 1)).numpy()
+                else (model.params["sh0"][:, 0] * SH_C0 + 0.5).clamp(0, 1)).cpu().numpy()
         colors[unseen] = base[cKDTree(means).query(verts[unseen])[1]]
     if linear_capture:
         from core.synth.shading import linear_to_srgb

@@ -116,7 +116,8 @@ def pixel_points(camera: RenderCamera, depth: Tensor) -> Tensor:
 def gbuffer(model, camera: RenderCamera, settings: RunRender, *, linear_capture: bool) -> GBuffer:
     """Render the G-buffer of `model` from `camera` with the run's final settings; colours are
     decoded from sRGB unless `linear_capture` (an EXR capture)."""
-    kw = dict(beta=settings.beta, geometry=True, background=torch.zeros(3),
+    kw = dict(beta=settings.beta, geometry=True,
+              background=torch.zeros(3, device=model.means.device),
               eps2d=settings.eps2d, antialiased=settings.antialiased)
     r0 = render(model, camera, sh_degree=0, **kw)
     rf = r0 if settings.sh_degree == 0 else render(model, camera, sh_degree=settings.sh_degree,

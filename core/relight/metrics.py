@@ -67,13 +67,15 @@ def _target(gt_png: Path, capture, frame: str, cam: str, sample, background) -> 
 
 
 def relit_heldout(run: Path, capture_dir: Path, frame: str, cameras: list[str],
-                  downscale: float, *, sheet_maps=SHEET_MAPS, capture_light="auto") -> dict:
+                  downscale: float, *, sheet_maps=SHEET_MAPS, capture_light="auto",
+                  device="cpu") -> dict:
     """Relight the held-out `cameras` of one frame. Returns {"scores": [per view {camera, psnr,
     psnr_full, ssim, psnr_no_ao, ...}] (empty without ground truth), "pictures": {camera:
     {map: sRGB (H, W, 3)}} for `sheet_maps` (exposure matched to the capture's, `compose`) and, with ground truth, "relit (gt light)" and
     "gt relit"}, and writes RUN/renders/<frame>/<camera>_relit.png (under the ground-truth
     second light) when the capture has one. `capture_light` is what the albedo is divided by:
-    "auto" for the ground truth's stage light (uniform without one), else as RelightParams."""
+    "auto" for the ground truth's stage light (uniform without one), else as RelightParams.
+    The model is rendered on `device` (a torch device)."""
     from core.data import CaptureDataset
     from core.data.images import write_png
     from core.evaluate import rgb_scores
@@ -88,7 +90,7 @@ def relit_heldout(run: Path, capture_dir: Path, frame: str, cameras: list[str],
                            capture_light=(str(truth["capture_light"]) if truth else None)
                            if capture_light == "auto" else capture_light)
     plan = prepare(run, params, capture_dir)
-    model = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
+    model = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply", device=device)
     maps = {name: load_envmap(name, plan.capture.up).sh9 for name in sheet_maps}
     ds = CaptureDataset(plan.capture, frames=[frame], cameras=cameras, downscale=downscale)
     background = np.asarray(plan.settings.background, np.float32)

@@ -172,7 +172,7 @@ def _subject_center(model) -> np.ndarray:
     with torch.no_grad():
         keep = model.opacity_g > 0.5
         means = model.means[keep] if int(keep.sum()) >= 10 else model.means
-        return means.median(dim=0).values.double().numpy()
+        return means.median(dim=0).values.double().cpu().numpy()
 
 
 def frame_cameras(plan: Plan, params: RelightParams, model) -> list:
@@ -190,12 +190,13 @@ def frame_cameras(plan: Plan, params: RelightParams, model) -> list:
 
 
 def view_gbuffer(model, camera, plan: Plan):
-    """The G-buffer of `model` seen by `camera` (core.data.Camera) with the run's settings."""
+    """The G-buffer of `model` seen by `camera` (core.data.Camera) with the run's settings, on
+    the model's device."""
     from core.relight.gbuffer import gbuffer
     from core.render import RenderCamera
 
-    return gbuffer(model, RenderCamera.from_camera(camera), plan.settings,
-                   linear_capture=plan.linear)
+    return gbuffer(model, RenderCamera.from_camera(camera, device=model.means.device),
+                   plan.settings, linear_capture=plan.linear)
 
 
 def compose(g, plan: Plan, env_sh9, lights=(), *, ao: bool = True,
@@ -212,15 +213,16 @@ def compose(g, plan: Plan, env_sh9, lights=(), *, ao: bool = True,
     linear = s.linear
     if match_exposure:
         w = (s.alpha > 0.5).float()
-        lum = torch.tensor([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance weights
+        # Rec. 709 luminance weights
+        lum = torch.tensor([0.2126, 0.7152, 0.0722], device=linear.device)
         have = float((w * ((g.base + g.residual).clamp_min(0) @ lum)[..., None]).sum())
         got = float((w * (linear @ lum)[..., None]).sum())
         linear = linear * (have / got if got > 1e-8 and have > 0 else 1.0)
-    bg = torch.tensor(plan.settings.background, dtype=torch.float32)
+    bg = torch.tensor(plan.settings.background, dtype=torch.float32, device=linear.device)
     bg_srgb = linear_to_srgb(bg) if plan.linear else bg
     srgb = linear_to_srgb(linear) * s.alpha + bg_srgb * (1 - s.alpha)
     rgba = torch.cat([linear * s.alpha, s.alpha], dim=-1)
-    return srgb.numpy(), rgba.numpy()
+    return srgb.cpu().numpy(), rgba.cpu().numpy()
 
 
 def relight_view(model, camera, plan: Plan, params: RelightParams, *, ao: bool | None = None):

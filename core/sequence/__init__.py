@@ -7,7 +7,7 @@ from core.sequence.config import SequenceConfig
 from core.sequence.correspondence import track_errors
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
 from core.sequence.frame import FrameTracker
-from core.sequence.gop import FrameRole, Gop, roles, segment
+from core.sequence.gop import FrameRole, Gop, roles, roles_of, segment, with_rekeys
 from core.sequence.graph import (
     DeformationGraph,
     arap_loss,
@@ -58,8 +58,10 @@ __all__ = [
     "quat_norm_loss",
     "relabel",
     "roles",
+    "roles_of",
     "save_frame",
     "segment",
+    "with_rekeys",
     "sequence_record",
     "temporal_loss",
     "track_errors",

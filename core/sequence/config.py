@@ -76,6 +76,12 @@ class SequenceConfig:
     +0.1 dB."""
     retry_loss_ratio: float = 1.2
     """The end-loss ratio to the previous frame's that starts a retry."""
+    rekey_loss_ratio: float = 0.0
+    """A tracked frame whose kept deform round ends at this ratio of the previous frame's end
+    loss or more is made a key frame instead (the static stages from scratch, before any refine
+    step): it starts a new group of pictures, and the frames after it deform from it. The
+    deform stage it ran is still paid for (`renders` counts it). 0: never. The signal is the
+    retry's (a group's second frame has no reference and is never re-keyed)."""
     temporal: bool = True
     """Refine stage: temporal L1 to the deformed values (off for the ablation)."""
     temporal_opacity_g: float = 0.01
@@ -114,6 +120,9 @@ class SequenceConfig:
         if self.retry_loss_ratio < 1:
             raise ValueError(f"sequence.retry_loss_ratio: expected >= 1 (a round no worse than "
                              f"the previous frame's never retries), got {self.retry_loss_ratio}")
+        if 0 < self.rekey_loss_ratio < 1:
+            raise ValueError(f"sequence.rekey_loss_ratio: expected 0 (never) or >= 1, got "
+                             f"{self.rekey_loss_ratio}")
         if self.start_views < 1:
             raise ValueError(f"sequence.start_views: expected >= 1, got {self.start_views}")
         if self.num_nodes < 5:

@@ -66,15 +66,15 @@ def track_errors(run_dir, capture_dir) -> dict | None:
             return None
         vertices, faces = mesh
         model, ids = load_frame(ply)
-        means = model.means.detach().double().numpy()
-        ids = ids.numpy()
+        means = model.means.detach().double().cpu().numpy()
+        ids = ids.cpu().numpy()
         basis = _frames_of(vertices, faces)
         if diagonal is None:
             diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         if r["role"] == "key":
             from scipy.spatial import cKDTree
 
-            opacity = model.opacity_c.detach().double().numpy()
+            opacity = model.opacity_c.detach().double().cpu().numpy()
             opaque = opacity >= 0.05
             _, nearest = cKDTree(vertices).query(means[opaque])
             local = np.einsum("vji,vj->vi", basis[nearest], means[opaque] - vertices[nearest])

@@ -59,11 +59,12 @@ class DeformedGaussians:
 
 
 @functools.lru_cache(maxsize=16)
-def _kernel(sigma: float) -> Tensor:
+def _kernel(sigma: float, device: torch.device = torch.device("cpu")) -> Tensor:
+    # Computed on the CPU and cached per device: no host-to-device copy per call.
     radius = max(1, int(3 * sigma + 0.5))
     x = torch.arange(-radius, radius + 1, dtype=torch.float64)
     g = torch.exp(-x * x / (2 * sigma * sigma))
-    return (g / g.sum()).float()
+    return (g / g.sum()).float().to(device)
 
 
 def blur(image: Tensor, sigma: float) -> Tensor:
@@ -71,7 +72,7 @@ def blur(image: Tensor, sigma: float) -> Tensor:
     returned unchanged for sigma < 0.3."""
     if sigma < 0.3:
         return image
-    k = _kernel(float(sigma)).to(image)
+    k = _kernel(float(sigma), image.device).to(image)
     c, r = image.shape[2], k.shape[0] // 2
     x = image.permute(2, 0, 1)[None]
     x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(c, 1, 1, -1),

@@ -21,6 +21,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
+from core.device import resolve_device, to_device
 from core.losses import (
     coverage_l1,
     depth_normal_consistency,
@@ -56,7 +57,8 @@ class FrameTracker:
     """Deform + refine one frame from `previous` (the last frame's model, its track ids (N,) and
     the group's next unused id); `earlier` (positions (N, 3) and known (N,) of `previous`'s
     Gaussians one frame before, `core.sequence.motion.align_tracks`) starts the deformation from
-    the continued motion."""
+    the continued motion. Runs on `config.device` like `core.train.Trainer` (the inputs are moved
+    there; the random generator stays on the CPU)."""
 
     def __init__(self, views: Sequence[View], previous: GaussianModel, ids: Tensor, next_id: int,
                  config: TrainConfig, sequence: SequenceConfig = SequenceConfig(), *,
@@ -67,9 +69,14 @@ class FrameTracker:
             raise ValueError("views: expected at least one training view")
         if tuple(ids.shape) != (len(previous),):
             raise ValueError(f"ids: expected ({len(previous)},) track ids, got {tuple(ids.shape)}")
-        self.views, self.config, self.seq = list(views), config, sequence
+        self.device = resolve_device(config.device, "config.device")
+        self.views = [v.to(self.device) for v in views]
+        self.config, self.seq = config, sequence
         self.callbacks = list(callbacks)
-        self.previous, self.prev_ids, self.next_id = previous, ids.long(), int(next_id)
+        previous, ids = previous.to(self.device), ids.long().to(self.device)
+        if earlier is not None:
+            earlier = (earlier[0].to(self.device), earlier[1].to(self.device))
+        self.previous, self.prev_ids, self.next_id = previous, ids, int(next_id)
         self.round_steps, self.refine_steps = sequence.steps(config.schedule.iterations)
         self.plan = plan(config.schedule.iterations - 1, config.schedule)
         if ao_baker is None and sequence.bake_ao and config.bake_ao:
@@ -77,9 +84,11 @@ class FrameTracker:
 
             ao_baker = GaussianAOBaker()
         self.ao_baker = ao_baker if (sequence.bake_ao and config.bake_ao) else None
-        self.cameras = [RenderCamera.from_camera(v.camera) for v in self.views]
+        self.cameras = [RenderCamera.from_camera(v.camera, device=self.device)
+                        for v in self.views]
         self.extent = scene_extent([v.camera for v in self.views])
-        self.background = torch.tensor(config.background, dtype=torch.float32)
+        self.background = torch.tensor(config.background, dtype=torch.float32,
+                                       device=self.device)
         self.generator = torch.Generator().manual_seed(config.seed)
         self.graph = build_graph(previous.means.detach(), sequence.nodes(len(previous)),
                                  node_neighbors=sequence.node_neighbors)
@@ -119,7 +128,7 @@ class FrameTracker:
 
     def _background(self, index: int) -> Tensor:
         if self.config.random_background and self.views[index].mask is not None:
-            return torch.rand(3, generator=self.generator)
+            return torch.rand(3, generator=self.generator).to(self.device)  # CPU draws
         return self.background
 
     def _render(self, model, index: int, background: Tensor):
@@ -219,14 +228,15 @@ class FrameTracker:
         if cfg.densify.max_gaussians is not None:
             cap = min(cap, max(cfg.densify.max_gaussians, len(self.model)))
         self.strategy = DensifyStrategy(replace(cfg.densify, max_gaussians=cap), self.extent)
-        z = torch.zeros(len(self.model))
+        z = torch.zeros(len(self.model), device=self.device)
         # resets=1: the key frame's resets are behind it, so too-big Gaussians are pruned.
         self.state = TrackedState(z.clone(), z.clone(), z.clone(), z.clone(), z.clone(),
                                   rho=cfg.densify.rho, resets=1, ids=self.prev_ids.clone(),
                                   anchor=anchors_of(self.model), next_id=self.next_id)
         if self.ao_baker is not None:
-            self.ao_targets = self.ao_baker(self.model, self.cameras, self.optimizer,
-                                            self.plan.beta)
+            self.ao_targets = to_device(list(self.ao_baker(self.model, self.cameras,
+                                                           self.optimizer, self.plan.beta)),
+                                        self.device)
 
     def _refine_step(self, index: int, bg: Tensor) -> tuple[dict, object]:
         s, view = self.seq, self.views[index]
@@ -270,7 +280,7 @@ class FrameTracker:
 
     def train_step(self) -> StepInfo:
         start = time.perf_counter()
-        if self.step == self.deform_steps and self.state is None:
+        if self.step == self.deform_steps and self.state is None and self.rounds.kept is None:
             self._end_round()
         if self.step == self.deform_steps and self.state is None:
             self._start_refine()
@@ -296,12 +306,38 @@ class FrameTracker:
         for cb in self.callbacks:
             cb.on_train_start(self)
         while self.step < self.iterations:
+            if self.step == self.deform_steps and self.state is None and self.rounds.kept is None:
+                self._end_round()  # before the refine stage: a lost track stops here
+                continue
+            if self.lost_track is not None:
+                break
             info = self.train_step()
             for cb in self.callbacks:
                 cb.on_step_end(self, info)
         for cb in self.callbacks:
             cb.on_train_end(self)
         return self.model
+
+    @property
+    def lost_track(self) -> float | None:
+        """Once the deform stage is over: the kept round's end-loss ratio to the previous frame's
+        when it reaches `rekey_loss_ratio` (the frame is to be made a key frame instead; `train`
+        stops before the refine stage), else None."""
+        limit, ref, end = self.seq.rekey_loss_ratio, self.rounds.reference_loss, self.deform_loss
+        if limit <= 0 or not ref or end is None or end < limit * ref:
+            return None
+        return end / ref
+
+    @property
+    def renders_done(self) -> int:
+        """`renders` of the steps run so far (a frame stopped by `lost_track` paid these)."""
+        deform = min(self.step, self.deform_steps)
+        return (deform * self.seq.deform_views + max(0, self.step - self.deform_steps)
+                + self._scoring_renders())
+
+    def _scoring_renders(self) -> int:
+        scoring = len(self.rounds.scores) * min(self.seq.start_views, len(self.views))
+        return (scoring + 1) // 2
 
     @property
     def retries(self) -> int:
@@ -338,8 +374,8 @@ class FrameTracker:
         """Images rendered and back-propagated in all: the frame's cost in key-frame steps. The
         start's scoring renders (forward only: the rasterizer's forward is about 40% of a
         training render's time) count half each, rounded up."""
-        scoring = len(self.rounds.scores) * min(self.seq.start_views, len(self.views))
-        return self.deform_steps * self.seq.deform_views + self.refine_steps + (scoring + 1) // 2
+        return (self.deform_steps * self.seq.deform_views + self.refine_steps
+                + self._scoring_renders())
 
     @property
     def phase(self) -> str:
@@ -365,8 +401,8 @@ class FrameTracker:
 
     # -- checkpoints -------------------------------------------------------------------------
     def save_checkpoint(self, path: str | os.PathLike[str], extra: object = None) -> None:
-        """Everything the remaining steps depend on, written atomically (the graph is rebuilt
-        from the previous frame, deterministically)."""
+        """Everything the remaining steps depend on, written atomically with every tensor on the
+        CPU (the graph is rebuilt from the previous frame, deterministically)."""
         path = Path(path)
         path.parent.mkdir(parents=True, exist_ok=True)
         blob = {"step": self.step, "rounds": self.rounds.state_dict(),
@@ -378,17 +414,18 @@ class FrameTracker:
             blob.update(params={k: v.detach() for k, v in self.model.params.items()},
                         state=st, ao_targets=self.ao_targets)
         tmp = path.with_name(path.name + ".tmp")
-        torch.save(blob, tmp)
+        torch.save(to_device(blob, "cpu"), tmp)
         os.replace(tmp, path)
 
     def load_checkpoint(self, path: str | os.PathLike[str]) -> object:
-        blob = torch.load(path, weights_only=True)
+        """Resume from `save_checkpoint`'s file (written on any device); returns its `extra`."""
+        blob = torch.load(path, map_location="cpu", weights_only=True)
         with torch.no_grad():
             self.node_q.copy_(blob["node_q"])
             self.node_t.copy_(blob["node_t"])
         self.step = int(blob["step"])
         if "rounds" in blob:
-            self.rounds.load_state_dict(blob["rounds"])
+            self.rounds.load_state_dict(to_device(blob["rounds"], self.device))
         else:  # a checkpoint from before the rounds were kept: its retry count only
             self.rounds.retries = int(blob.get("retries", 0))
         if "params" in blob:
@@ -405,7 +442,7 @@ class FrameTracker:
             self._start_refine()
         finally:
             self.ao_baker = baker
-        self.model = GaussianModel(blob["params"])
+        self.model = GaussianModel(blob["params"]).to(self.device)
         self.optimizer = self.model.make_optimizer(self.config.rates, self.extent)
-        self.state = TrackedState(**blob["state"])
-        self.ao_targets = blob.get("ao_targets")
+        self.state = TrackedState(**to_device(blob["state"], self.device))
+        self.ao_targets = to_device(blob.get("ao_targets"), self.device)

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-__all__ = ["Gop", "FrameRole", "roles", "segment"]
+__all__ = ["Gop", "FrameRole", "roles", "roles_of", "segment", "with_rekeys"]
 
 
 @dataclass(frozen=True)
@@ -52,8 +52,22 @@ def segment(frames: Sequence[str], gop: int) -> list[Gop]:
 
 def roles(frames: Sequence[str], gop: int) -> list[FrameRole]:
     """Every frame's role, in order (`gop` 1: every frame a key frame)."""
-    out = []
+    return roles_of(segment(frames, gop))
+
+
+def with_rekeys(frames: Sequence[str], gop: int, rekeyed: set[str] | frozenset[str]) -> list[Gop]:
+    """`segment`, where each frame of `rekeyed` (made a key frame after its tracking was lost,
+    `SequenceConfig.rekey_loss_ratio`) also starts a group; groups are numbered in order."""
+    groups: list[list[str]] = []
     for g in segment(frames, gop):
         for p, frame in enumerate(g.frames):
-            out.append(FrameRole(frame, g.index, p, g.frames[p - 1] if p else None))
-    return out
+            if p == 0 or frame in rekeyed:
+                groups.append([])
+            groups[-1].append(frame)
+    return [Gop(i, tuple(fs)) for i, fs in enumerate(groups)]
+
+
+def roles_of(groups: Sequence[Gop]) -> list[FrameRole]:
+    """Every frame's role in `groups`, in order."""
+    return [FrameRole(frame, g.index, p, g.frames[p - 1] if p else None)
+            for g in groups for p, frame in enumerate(g.frames)]

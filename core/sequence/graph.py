@@ -35,7 +35,7 @@ def farthest_point_sampling(points: Tensor, count: int, start: int = 0) -> Tenso
     if not 1 <= count <= n:
         raise ValueError(f"count: expected 1..{n} (the number of points), got {count}")
     pts = points.detach()
-    chosen = torch.empty(count, dtype=torch.long)
+    chosen = torch.empty(count, dtype=torch.long, device=pts.device)
     chosen[0] = start
     dist = (pts - pts[start]).square().sum(dim=1)
     for i in range(1, count):
@@ -98,9 +98,10 @@ class DeformationGraph:
     def identity(self) -> tuple[Tensor, Tensor]:
         """Node parameters of the rest state: quaternions (M, 4) = (1, 0, 0, 0), translations
         (M, 3) = 0."""
-        q = torch.zeros(len(self), 4)
+        dev = self.nodes.device
+        q = torch.zeros(len(self), 4, device=dev)
         q[:, 0] = 1.0
-        return q, torch.zeros(len(self), 3)
+        return q, torch.zeros(len(self), 3, device=dev)
 
     def _check(self, rotations: Tensor, translations: Tensor) -> None:
         m = len(self)
@@ -154,7 +155,7 @@ def build_graph(points: Tensor, num_nodes: int = 1024, k: int = 4,
     dist, idx = _knn(pts, nodes, k + 1)
     nn = min(node_neighbors, m - 1)
     _, nidx = _knn(nodes, nodes, nn + 1)
-    src = torch.arange(m)[:, None].expand(m, nn)
+    src = torch.arange(m, device=pts.device)[:, None].expand(m, nn)
     edges = torch.stack([src.reshape(-1), nidx[:, 1:].reshape(-1)], dim=1)
     return DeformationGraph(nodes=nodes, anchors=idx[:, :k].contiguous(),
                             weights=blend_weights(dist), edges=edges)

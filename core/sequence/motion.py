@@ -23,14 +23,17 @@ def align_tracks(ids: Tensor, earlier_ids: Tensor, earlier_means: Tensor) -> tup
     """(earlier positions (N, 3), known (N,) bool) of the Gaussians with track ids `ids` (N,),
     looked up among an earlier frame's (`earlier_ids` (M,), `earlier_means` (M, 3)); Gaussians
     born since then are not known (position 0)."""
+    dev = earlier_means.device
+    ids, earlier_ids = ids.to(dev), earlier_ids.to(dev)
     if earlier_ids.numel() == 0 or ids.numel() == 0:
-        return torch.zeros(len(ids), 3), torch.zeros(len(ids), dtype=torch.bool)
+        return (torch.zeros(len(ids), 3, device=dev),
+                torch.zeros(len(ids), dtype=torch.bool, device=dev))
     size = int(max(int(ids.max()), int(earlier_ids.max()))) + 1
-    where = torch.full((size,), -1, dtype=torch.long)
-    where[earlier_ids.long()] = torch.arange(len(earlier_ids))
+    where = torch.full((size,), -1, dtype=torch.long, device=dev)
+    where[earlier_ids.long()] = torch.arange(len(earlier_ids), device=dev)
     index = where[ids.long()]
     known = index >= 0
-    positions = torch.zeros(len(ids), 3, dtype=earlier_means.dtype)
+    positions = torch.zeros(len(ids), 3, dtype=earlier_means.dtype, device=dev)
     positions[known] = earlier_means[index[known]]
     return positions, known
 
@@ -59,10 +62,10 @@ def predict_node_motion(graph: DeformationGraph, current: Tensor, earlier: Tenso
     `current` (both (N, 3), the graph's Gaussians at frames t-2 and t-1; `known` (N,) marks those
     present in both), scaled by `damping`. A node that carries fewer than `min_points` known
     Gaussians (or a non-positive damping) gets the identity."""
-    m = len(graph)
-    q = torch.zeros(m, 4)
+    m, dev = len(graph), graph.nodes.device
+    q = torch.zeros(m, 4, device=dev)
     q[:, 0] = 1.0
-    t = torch.zeros(m, 3)
+    t = torch.zeros(m, 3, device=dev)
     if damping <= 0 or not bool(known.any()):
         return q, t
     # Sums over each node's (Gaussian, weight) pairs, scattered from the K anchors of each
@@ -72,17 +75,17 @@ def predict_node_motion(graph: DeformationGraph, current: Tensor, earlier: Tenso
     k = graph.anchors.shape[1]
     p = earlier.double().repeat_interleave(k, dim=0)  # (N K, 3)
     c = current.double().repeat_interleave(k, dim=0)
-    total = torch.zeros(m, dtype=torch.float64).index_add_(0, nodes, w)
-    count = torch.zeros(m, dtype=torch.float64).index_add_(0, nodes, (w > 0).double())
+    total = torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, nodes, w)
+    count = torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, nodes, (w > 0).double())
     ok = (count >= min_points) & (total > 1e-8)
     total = total.clamp_min(1e-12)
-    zeros = torch.zeros(m, 3, dtype=torch.float64)
+    zeros = torch.zeros(m, 3, dtype=torch.float64, device=dev)
     mu_p = zeros.index_add(0, nodes, w[:, None] * p) / total[:, None]
     mu_c = zeros.index_add(0, nodes, w[:, None] * c) / total[:, None]
     # Weighted cross-covariance of each node: sum_i w_ij (c_i - mu_c_j)(p_i - mu_p_j)^T.
     outer = (w[:, None, None] * c[:, :, None] * p[:, None, :]).reshape(-1, 9)
-    cov = torch.zeros(m, 9, dtype=torch.float64).index_add_(0, nodes, outer).reshape(m, 3, 3) \
-        - total[:, None, None] * mu_c[:, :, None] * mu_p[:, None, :]
+    sums = torch.zeros(m, 9, dtype=torch.float64, device=dev).index_add_(0, nodes, outer)
+    cov = sums.reshape(m, 3, 3) - total[:, None, None] * mu_c[:, :, None] * mu_p[:, None, :]
     U, _, Vh = torch.linalg.svd(cov)
     d = torch.sign(torch.linalg.det(U @ Vh))
     D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))

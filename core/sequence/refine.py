@@ -101,14 +101,15 @@ class TrackedState(StrategyState):
 def relabel(state: TrackedState, model: GaussianModel) -> int:
     """After densification: rows repeating an earlier row's id get fresh ids and anchors equal to
     their current values (no deformed value exists for them). Returns how many."""
-    ids = state.ids.numpy()
+    ids = state.ids.cpu().numpy()
     _, first = np.unique(ids, return_index=True)
     repeat = np.ones(len(ids), dtype=bool)
     repeat[first] = False
     count = int(repeat.sum())
     if count:
-        rows = torch.from_numpy(repeat)
-        state.ids[rows] = torch.arange(state.next_id, state.next_id + count)
+        rows = torch.from_numpy(repeat).to(state.ids.device)
+        state.ids[rows] = torch.arange(state.next_id, state.next_id + count,
+                                       device=state.ids.device)
         state.next_id += count
         state.born += count
         fresh = anchors_of(model)

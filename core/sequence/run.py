@@ -17,7 +17,7 @@ import torch
 from core.model import GaussianModel
 from core.sequence.config import SequenceConfig
 from core.sequence.frame import FrameTracker
-from core.sequence.gop import roles, segment
+from core.sequence.gop import roles_of, with_rekeys
 from core.sequence.motion import align_tracks
 
 __all__ = ["load_frame", "save_frame", "sequence_record", "tracker_from_capture"]
@@ -31,7 +31,7 @@ def save_frame(path: str | os.PathLike[str], model: GaussianModel,
     path = Path(path)
     if ids is None:
         ids = np.arange(len(model))
-    ids = ids.numpy() if isinstance(ids, torch.Tensor) else np.asarray(ids)
+    ids = ids.cpu().numpy() if isinstance(ids, torch.Tensor) else np.asarray(ids)
     tmp = path.with_name(path.name + ".tmp")
     write_gaussian_ply(tmp, {k: v.detach().cpu() for k, v in model.params.items()}, ids)
     os.replace(tmp, path)
@@ -79,8 +79,10 @@ def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
                     frames: dict[str, dict]) -> dict:
     """The content of RUN/sequence.json from the run's per-frame metrics."""
     gop_eff = gop if sequence.enabled else 1
+    # A frame re-keyed after losing track starts a group of its own.
+    groups = with_rekeys(chosen, gop_eff, {f for f, m in frames.items() if m.get("rekeyed")})
     rows = []
-    for r in roles(chosen, gop_eff):
+    for r in roles_of(groups):
         m = frames.get(r.frame)
         rows.append({"frame": r.frame, "gop": r.gop, "position": r.position,
                      "role": "key" if r.key else "deformed", "previous": r.previous,
@@ -94,7 +96,10 @@ def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
                      "deform_rounds": None if m is None or not m.get("deform_rounds")
                      else len(m["deform_rounds"]),
                      "start_damping": None if m is None or not m.get("start")
-                     else m["start"]["damping"]})
+                     else m["start"]["damping"],
+                     # Tracking lost and the frame made a key frame: the end-loss ratio.
+                     "rekeyed": None if m is None or not m.get("rekeyed")
+                     else m["rekeyed"]["loss_ratio"]})
     done = [r for r in rows if r["done"]]
 
     def mean(role: str, key: str) -> float | None:
@@ -105,8 +110,7 @@ def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
         "version": 1, "gop": gop_eff, "method": "deform + refine" if sequence.enabled
         else "independent (every frame a key frame)",
         "frames": rows,
-        "gops": [{"index": g.index, "key": g.key, "frames": list(g.frames)}
-                 for g in segment(chosen, gop_eff)],
+        "gops": [{"index": g.index, "key": g.key, "frames": list(g.frames)} for g in groups],
         "timings": {"seconds_total": round(sum(r["seconds"] or 0 for r in done), 3),
                     "seconds_per_key_frame": mean("key", "seconds"),
                     "seconds_per_deformed_frame": mean("deformed", "seconds")},

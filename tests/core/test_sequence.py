@@ -27,8 +27,10 @@ from core.sequence import (
     quat_norm_loss,
     relabel,
     roles,
+    roles_of,
     segment,
     temporal_loss,
+    with_rekeys,
 )
 from core.strategy import DensifyConfig, DensifyStrategy
 
@@ -200,6 +202,12 @@ def test_gop_segmentation():
     assert [x.key for x in r] == [True, False, False, True, False, False, True]
     assert r[2].previous == frames[1] and r[3].previous is None and r[5].gop == 1
     assert all(x.key for x in roles(frames, 1))
+    rekeyed = with_rekeys(frames, 3, {frames[1], frames[3], frames[5]})
+    assert [g.frames for g in rekeyed] == [(frames[0],), tuple(frames[1:3]), (frames[3], frames[4]),
+                                           (frames[5],), (frames[6],)]
+    assert [g.index for g in rekeyed] == [0, 1, 2, 3, 4]
+    assert [x.previous for x in roles_of(rekeyed)] == [None, None, frames[1], None, frames[3],
+                                                       None, None]
     with pytest.raises(ValueError, match="gop"):
         segment(frames, 0)
     with pytest.raises(ValueError, match="distinct"):
@@ -429,3 +437,70 @@ def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(cap
     assert torch.equal(switch.node_q.detach(), q) and torch.equal(switch.node_t.detach(), t)
     with pytest.raises(ValueError, match="retry_loss_ratio"):
         SequenceConfig(retry_loss_ratio=0.5)
+
+
+def test_a_frame_that_loses_track_becomes_a_key_frame_and_resumes_exactly(capture3, tmp_path,
+                                                                          one_thread,
+                                                                          monkeypatch):
+    """`rekey_loss_ratio`: a tracked frame whose deform stage ends at that ratio of the previous
+    frame's loss or more stops before its refine stage and is made a key frame (a new group,
+    fresh track ids); what it rendered counts, and a run stopped in its key stages resumes to
+    the same result."""
+    from core.pipeline import Stopped
+    from core.sequence.frame import FrameTracker
+    from core.sequence.run import tracker_from_capture
+
+    # The tracker alone: a reference it cannot reach stops it after the deform stage.
+    from core.data import load_capture
+    from core.pipeline import apply_overrides, reconstruct, resolve_config
+    from core.sequence import SequenceConfig
+
+    key = tmp_path / "key"
+    reconstruct(capture3, key, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
+    cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
+    seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
+                         rekey_loss_ratio=1.5)
+    ply = key / "frames" / "000000" / "gaussians.ply"
+    lost = tracker_from_capture(load_capture(capture3), "000001", ply, 10 ** 6, cfg.train, seq,
+                                reference_loss=1e-9)
+    lost.train()
+    assert lost.step == lost.deform_steps == 10 and lost.state is None  # no refine step
+    assert lost.lost_track > 1.5 and lost.renders_done == 10 * 2
+    kept = tracker_from_capture(load_capture(capture3), "000001", ply, 10 ** 6, cfg.train, seq,
+                                reference_loss=1e9)
+    kept.train()
+    assert kept.lost_track is None and kept.step == 20
+    with pytest.raises(ValueError, match="rekey_loss_ratio"):
+        SequenceConfig(rekey_loss_ratio=0.5)
+
+    # In a run: the third frame (the first with a reference) loses track.
+    real = FrameTracker.lost_track
+    monkeypatch.setattr(FrameTracker, "lost_track", property(
+        lambda self: 3.0 if self.rounds.kept is not None and self.rounds.reference_loss
+        else real.fget(self)))
+    straight = tmp_path / "straight"
+    metrics = _reconstruct(capture3, straight)["frames"]
+    third = metrics["000002"]
+    assert third["rekeyed"]["loss_ratio"] == 3.0 and third["rekeyed"]["from"] == "000001"
+    assert third["previous"] is None and third["position"] == 0
+    assert third["renders"] == 40 + third["rekeyed"]["tracked_renders"]
+    assert third["rekeyed"]["tracked_renders"] >= 10 * 2
+    seq_json = json.loads((straight / "sequence.json").read_text())
+    assert [f["role"] for f in seq_json["frames"]] == ["key", "deformed", "key"]
+    assert [f["rekeyed"] for f in seq_json["frames"]] == [None, None, 3.0]
+    assert [g["frames"] for g in seq_json["gops"]] == [["000000", "000001"], ["000002"]]
+    ids = read_track_ids(straight / "frames" / "000002" / "gaussians.ply")
+    assert ids.tolist() == list(range(len(ids)))  # a key frame's ids
+    assert not list((straight / "checkpoints").glob("000002*"))
+
+    # Stopped inside the re-keyed frame's key stages, then resumed: the same frame.
+    resumed = tmp_path / "resumed"
+    seen: list = [None]
+    with pytest.raises(Stopped):
+        _reconstruct(capture3, resumed, should_stop=lambda: seen[0] == ("000002", "key", 6),
+                     on_progress=lambda e: seen.__setitem__(0, (e.frame, e.phase, e.step)))
+    assert (resumed / "checkpoints" / "000002.rekey.json").is_file()
+    again = _reconstruct(capture3, resumed, resume=True)["frames"]["000002"]
+    assert again["resumed_at"] == 6 and again["rekeyed"] == third["rekeyed"]
+    assert ((straight / "frames" / "000002" / "gaussians.ply").read_bytes()
+            == (resumed / "frames" / "000002" / "gaussians.ply").read_bytes())
