@@ -2,9 +2,8 @@
 
 At 1920x1080, for N in {100k, 1M, 3M} Gaussians (C=3 appearance channels, G=5 geometry
 channels), on a scene shaped like a trained model (`surface_scene`: flat Gaussians about three
-layers deep on a bumpy closed surface filling most of the frame, plus 5% floaters; the same
-generator and numbers as benchmarks/bench_scenes.py, copied here so that the script needs only
-torch), it measures forward+backward of
+layers deep on a bumpy closed surface filling most of the frame, plus 5% floaters:
+benchmarks/bench_scenes.py, as benchmarks/rasterizer.py uses), it measures forward+backward of
 
   (a) ours, both branches fused (geometry given, beta=0.5);
   (b) ours, appearance only (geometry=None, beta=0, opacity_g=opacity_c);
@@ -63,7 +62,6 @@ import argparse
 import gc
 import glob
 import json
-import math
 import os
 import platform
 import statistics
@@ -73,11 +71,13 @@ import tempfile
 import time
 import traceback
 import zipfile
-from dataclasses import dataclass, fields
+from dataclasses import fields
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from bench_scenes import Scene, surface_scene, volume_scene  # noqa: E402  (those of rasterizer.py)
 
 EPS2D = 0.3
 NEAR = 0.01
@@ -101,127 +101,20 @@ CELL_NAMES = {
 # ----------------------------------------------------------------------------------- scenes
 
 
-@dataclass
-class Scene:
-    means: "torch.Tensor"
-    quats: "torch.Tensor"
-    scales: "torch.Tensor"
-    opacity_c: "torch.Tensor"
-    opacity_g: "torch.Tensor"
-    colors: "torch.Tensor"
-    geometry: "torch.Tensor"
-    viewmat: "torch.Tensor"
-    K: "torch.Tensor"
-    width: int
-    height: int
-
-    def to(self, device=None, dtype=None, grad: bool = False) -> "Scene":
-        """A copy on `device` in `dtype`; `grad`: every float tensor becomes a leaf needing
-        grad (the per-Gaussian ones only, unless grad == "all")."""
-        import torch
-
-        kw = {}
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, torch.Tensor):
-                v = v.detach().to(device=device, dtype=dtype).contiguous().clone()
-                if grad and (grad == "all" or f.name not in ("viewmat", "K")):
-                    v.requires_grad_(True)
-            kw[f.name] = v
-        return Scene(**kw)
-
-
-def look_at(eye, target, up=(0.0, -1.0, 0.0)):
-    """(4, 4) world-to-camera, OpenCV axes (core.synth.generate.look_at, value for value)."""
-    import numpy as np
+def on_device(scene: Scene, device=None, dtype=None, grad: bool | str = False) -> Scene:
+    """A copy of `scene` on `device` in `dtype`; `grad`: its per-Gaussian tensors become leaves
+    needing grad (every float tensor with grad == "all")."""
     import torch
 
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    fwd = target - eye
-    fwd /= np.linalg.norm(fwd)
-    right = np.cross(fwd, up)
-    right /= np.linalg.norm(right)
-    down = np.cross(fwd, right)
-    w2c = np.eye(4)
-    w2c[:3, :3] = np.stack([right, down, fwd])
-    w2c[:3, 3] = -w2c[:3, :3] @ eye
-    return torch.tensor(w2c, dtype=torch.float32)
-
-
-def random_scene(n, width, height, *, C=3, G=5, seed=0, scale=(0.02, 0.15),
-                 opacity=(0.05, 1.0), spread=1.0, fov_deg=50.0) -> Scene:
-    """tests/native/scenes.py random_scene (without `behind`/`offscreen`)."""
-    import torch
-
-    g = torch.Generator().manual_seed(seed)
-    means = (torch.rand(n, 3, generator=g) * 2 - 1) * spread
-    quats = torch.randn(n, 4, generator=g)
-    lo, hi = math.log(scale[0]), math.log(scale[1])
-    scales = torch.exp(lo + (hi - lo) * torch.rand(n, 3, generator=g))
-    opacity_c = opacity[0] + (opacity[1] - opacity[0]) * torch.rand(n, generator=g)
-    opacity_g = opacity[0] + (opacity[1] - opacity[0]) * torch.rand(n, generator=g)
-    colors = torch.rand(n, C, generator=g)
-    geometry = torch.randn(n, G, generator=g)
-    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
-    K = torch.tensor([[f, 0.0, width / 2 + 0.3], [0.0, f * 1.02, height / 2 - 0.2], [0, 0, 1]])
-    viewmat = look_at((0.0, 0.0, -3.0), (0.0, 0.0, 0.0))
-    return Scene(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
-                 width, height)
-
-
-def _quat_from_z(normal, twist):
-    import torch
-
-    z = torch.tensor([0.0, 0.0, 1.0]).expand_as(normal)
-    axis = torch.linalg.cross(z, normal)
-    s = axis.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-    angle = torch.atan2(s[:, 0], (z * normal).sum(-1))
-    q_align = torch.cat([torch.cos(angle / 2)[:, None], axis / s * torch.sin(angle / 2)[:, None]],
-                        -1)
-    q_twist = torch.stack([torch.cos(twist / 2), 0 * twist, 0 * twist, torch.sin(twist / 2)], -1)
-    w1, x1, y1, z1 = q_align.unbind(-1)
-    w2, x2, y2, z2 = q_twist.unbind(-1)
-    return torch.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2,
-                        w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2,
-                        w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], -1)
-
-
-def surface_scene(n, width, height, *, C=3, G=5, seed=0, layers=3.0, fov_deg=45.0) -> Scene:
-    """benchmarks/bench_scenes.py surface_scene, value for value (on the CPU)."""
-    import torch
-
-    g = torch.Generator().manual_seed(seed)
-    n_float = n // 20
-    n_surf = n - n_float
-    d = torch.randn(n_surf, 3, generator=g)
-    d = d / d.norm(dim=-1, keepdim=True)
-    r = 1.0 + 0.15 * torch.sin(3 * d[:, 0]) * torch.cos(2 * d[:, 1]) + 0.1 * torch.sin(5 * d[:, 2])
-    pts = d * r[:, None] * torch.tensor([0.7, 1.0, 0.7])
-    area = 4 * math.pi * 0.8 ** 2
-    disc = math.sqrt(layers * area / (math.pi * n_surf))  # disc radius for `layers` coverage
-    s_tan = disc * torch.exp(0.3 * torch.randn(n_surf, 2, generator=g))
-    s_norm = disc * 0.05 * torch.ones(n_surf, 1)
-    scales = torch.cat([s_tan, s_norm], -1)
-    quats = _quat_from_z(d, torch.rand(n_surf, generator=g) * 2 * math.pi)
-    fl = random_scene(n_float, width, height, C=C, G=G, seed=seed + 1, spread=1.2,
-                      scale=(disc * 0.5, disc * 2))
-    means = torch.cat([pts, fl.means])
-    quats = torch.cat([quats, fl.quats])
-    scales = torch.cat([scales, fl.scales])
-    opacity_c = torch.cat([0.3 + 0.7 * torch.rand(n_surf, generator=g), fl.opacity_c * 0.3])
-    opacity_g = torch.cat([0.3 + 0.7 * torch.rand(n_surf, generator=g), fl.opacity_g * 0.3])
-    colors = torch.rand(n, C, generator=g)
-    geometry = torch.randn(n, G, generator=g)
-    f = 0.5 * width / math.tan(math.radians(fov_deg) / 2)
-    K = torch.tensor([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
-    viewmat = look_at((0.0, -0.5, -3.2), (0.0, 0.0, 0.0))
-    return Scene(means.contiguous(), quats.contiguous(), scales.contiguous(), opacity_c,
-                 opacity_g, colors, geometry, viewmat, K, width, height)
-
-
-def volume_scene(n, width, height, *, C=3, G=5, seed=0) -> Scene:
-    return random_scene(n, width, height, C=C, G=G, seed=seed, scale=(0.004, 0.03))
+    kw = {}
+    for f in fields(scene):
+        v = getattr(scene, f.name)
+        if isinstance(v, torch.Tensor):
+            v = v.detach().to(device=device, dtype=dtype).contiguous().clone()
+            if grad and (grad == "all" or f.name not in ("viewmat", "K")):
+                v.requires_grad_(True)
+        kw[f.name] = v
+    return Scene(**kw)
 
 
 # ----------------------------------------------------------------------------------- builds
@@ -307,7 +200,7 @@ def load_ours(proc: subprocess.Popen | None) -> tuple[bool, str, float]:
         return False, ("our extension was built without CUDA (native._backend.has_cuda() is "
                        "False: check nvcc / CUDA_HOME, and DGS_CUDA)"), secs
     try:
-        s = surface_scene(2000, 64, 48).to(DEVICE)
+        s = on_device(surface_scene(2000, 64, 48), DEVICE)
         out = native.rasterize(s.means, s.quats, s.scales, s.opacity_c, s.opacity_g, s.colors,
                                s.geometry, s.viewmat, s.K, s.width, s.height, beta=BETA_FUSED,
                                eps2d=EPS2D, antialiased=False, validate=True)
@@ -340,7 +233,7 @@ def load_gsplat(disabled: bool) -> tuple[object | None, str, float]:
         if _C is None:
             return None, note + ": its CUDA backend is unavailable (no CUDA toolkit found)", \
                 time.perf_counter() - t0
-        s = surface_scene(2000, 64, 48).to(DEVICE)
+        s = on_device(surface_scene(2000, 64, 48), DEVICE)
         colors, alphas, _ = gsplat.rasterization(
             s.means, s.quats, s.scales, s.opacity_c, s.colors, s.viewmat[None], s.K[None],
             s.width, s.height, **gsplat_kwargs(None, "RGB"))
@@ -702,7 +595,7 @@ def run_check(args, gs) -> list[str]:
                 try:
                     outs, grads = {}, {}
                     for side, dev in (("cpu", "cpu"), ("cuda", DEVICE)):
-                        s = base.to(dev, dtype, grad="all")
+                        s = on_device(base, dev, dtype, grad="all")
                         out = native.rasterize(
                             s.means, s.quats, s.scales, s.opacity_c, s.opacity_g, s.colors,
                             s.geometry if fused else None, s.viewmat, s.K, W, H,
@@ -770,7 +663,7 @@ def _gsplat_cross_check(args, gs) -> str:
 
     W, H = args.check_res
     try:
-        s = surface_scene(args.check_n, W, H, seed=args.seed + 7).to(DEVICE)
+        s = on_device(surface_scene(args.check_n, W, H, seed=args.seed + 7), DEVICE)
         with torch.no_grad():
             ours = native.rasterize(s.means, s.quats, s.scales, s.opacity_c, s.opacity_c,
                                     s.colors, None, s.viewmat, s.K, W, H, beta=0.0, eps2d=EPS2D,
@@ -923,7 +816,8 @@ def main() -> int:
         row = report["results"].setdefault(label, {"n": n, "cells": {}, "stats": {}})
         t0 = time.perf_counter()
         try:
-            s = surface_scene(n, W, H, C=C_APPEAR, G=G_GEOM, seed=args.seed).to(DEVICE, grad=True)
+            s = on_device(surface_scene(n, W, H, C=C_APPEAR, G=G_GEOM, seed=args.seed), DEVICE,
+                          grad=True)
             ws = _weights(W, H, DEVICE, args.seed + 1)
         except torch.cuda.OutOfMemoryError:
             for c in cells:

@@ -37,6 +37,31 @@ void check_raster_inputs_cuda(const at::Tensor& means2d, const at::Tensor& conic
               " entries, expected ", n_tiles + 1);
 }
 
+// The forward's inputs, which both passes' parameter structs hold under the same names.
+template <typename T, typename Params>
+void set_inputs(Params& p, const at::Tensor& means2d, const at::Tensor& conics,
+                const at::Tensor& opacities, const at::Tensor& depths, const at::Tensor& colors,
+                const at::Tensor& geometry, const at::Tensor& rects,
+                const at::Tensor& tile_offsets, const at::Tensor& flat_ids, int64_t width,
+                int64_t height, int64_t tile_size, bool geometry_branch) {
+  p.means2d = ptr_or_null<T>(means2d);
+  p.conics = ptr_or_null<T>(conics);
+  p.opacities = ptr_or_null<T>(opacities);
+  p.depths = ptr_or_null<T>(depths);
+  p.colors = ptr_or_null<T>(colors);
+  p.geometry = ptr_or_null<T>(geometry);
+  p.rects = ptr_or_null<int32_t>(rects);
+  p.tile_offsets = tile_offsets.data_ptr<int64_t>();
+  p.flat_ids = ptr_or_null<int32_t>(flat_ids);
+  p.n = means2d.size(0);
+  p.C = int(colors.size(1));
+  p.G = int(geometry.size(1));
+  p.width = int(width);
+  p.height = int(height);
+  p.tile_size = int(tile_size);
+  p.geometry_branch = geometry_branch;
+}
+
 }  // namespace
 
 std::tuple<at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor, at::Tensor>
@@ -60,19 +85,8 @@ rasterize_fwd_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_fwd_cuda", [&] {
     using T = scalar_t;
     cuda::RasterizeFwdParams<T> p{};
-    p.means2d = ptr_or_null<T>(means2d);
-    p.conics = ptr_or_null<T>(conics);
-    p.opacities = ptr_or_null<T>(opacities);
-    p.depths = ptr_or_null<T>(depths);
-    p.colors = ptr_or_null<T>(colors);
-    p.geometry = ptr_or_null<T>(geometry);
-    p.rects = ptr_or_null<int32_t>(rects);
-    p.tile_offsets = tile_offsets.data_ptr<int64_t>();
-    p.flat_ids = ptr_or_null<int32_t>(flat_ids);
-    p.n = n;
-    p.C = int(C); p.G = int(G);
-    p.width = int(width); p.height = int(height); p.tile_size = int(tile_size);
-    p.geometry_branch = geometry_branch;
+    set_inputs<T>(p, means2d, conics, opacities, depths, colors, geometry, rects, tile_offsets,
+                  flat_ids, width, height, tile_size, geometry_branch);
     p.out_color = ptr_or_null<T>(out_color);
     p.out_geometry = ptr_or_null<T>(out_geo);
     p.out_depth = ptr_or_null<T>(out_depth);
@@ -124,19 +138,8 @@ rasterize_bwd_cuda(const at::Tensor& means2d, const at::Tensor& conics,
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_bwd_cuda", [&] {
     using T = scalar_t;
     cuda::RasterizeBwdParams<T> p{};
-    p.means2d = ptr_or_null<T>(means2d);
-    p.conics = ptr_or_null<T>(conics);
-    p.opacities = ptr_or_null<T>(opacities);
-    p.depths = ptr_or_null<T>(depths);
-    p.colors = ptr_or_null<T>(colors);
-    p.geometry = ptr_or_null<T>(geometry);
-    p.rects = ptr_or_null<int32_t>(rects);
-    p.tile_offsets = tile_offsets.data_ptr<int64_t>();
-    p.flat_ids = ptr_or_null<int32_t>(flat_ids);
-    p.n = n;
-    p.C = int(C); p.G = int(G);
-    p.width = int(width); p.height = int(height); p.tile_size = int(tile_size);
-    p.geometry_branch = geometry_branch;
+    set_inputs<T>(p, means2d, conics, opacities, depths, colors, geometry, rects, tile_offsets,
+                  flat_ids, width, height, tile_size, geometry_branch);
     p.out_color = ptr_or_null<T>(out_color);
     p.out_geometry = ptr_or_null<T>(out_geometry);
     p.out_depth = ptr_or_null<T>(out_depth);
