@@ -29,12 +29,26 @@ def _png(path: Path, size: tuple[int, int]) -> np.ndarray:
     return _resize(np.asarray(Image.open(path).convert("RGB")), size)
 
 
+def _captured(capture_dir: Path, frame: str, cam: str) -> Path:
+    """The captured image of (frame, cam), whichever 8-bit format the capture holds (.png or
+    .jpg; an .exr shows as black: the sheet does not tone-map)."""
+    for ext in (".png", ".jpg", ".jpeg"):
+        path = capture_dir / "images" / frame / f"{cam}{ext}"
+        if path.is_file():
+            return path
+    return capture_dir / "images" / frame / f"{cam}.png"
+
+
+TILE_MAX = 512
+"""Longest side of a tile in pixels: a real capture's 1080x1920 views stay a readable sheet."""
+
+
 def _capture_tile(capture_dir: Path, frame: str, cam: str, size: tuple[int, int]) -> np.ndarray:
     """The captured view as the camera saw it: straight colour times its coverage mask (on the
     black of the synthetic studio)."""
     from PIL import Image
 
-    image = _png(capture_dir / "images" / frame / f"{cam}.png", size).astype(np.float32)
+    image = _png(_captured(capture_dir, frame, cam), size).astype(np.float32)
     mask = capture_dir / "masks" / frame / f"{cam}.png"
     if mask.is_file():
         cover = np.asarray(Image.open(mask).convert("L").resize(size, Image.NEAREST)) / 255.0
@@ -56,7 +70,8 @@ def contact_sheet(capture_dir: Path, run_dir: Path, views: list[tuple[str, str]]
                   scale: int = 2) -> Path:
     """Write the sheet of `views` ((frame, camera) pairs) to `out`; `relit[(frame, camera)]`
     maps a column name to an sRGB picture (H, W, 3) in 0..1 (the same names in every row).
-    Tiles are the captured image's size times `scale` (nearest neighbour)."""
+    Tiles are the rendered view's size (else the captured image's) times `scale` (nearest
+    neighbour), at most TILE_MAX pixels on the longer side; captured images may be .png or .jpg."""
     from PIL import Image, ImageDraw
 
     from core.relight.output import to_uint8
@@ -65,9 +80,12 @@ def contact_sheet(capture_dir: Path, run_dir: Path, views: list[tuple[str, str]]
         raise ValueError("views: expected at least one (frame, camera) to show")
     rows, names = [], None
     for frame, cam in views:
-        first = Image.open(capture_dir / "images" / frame / f"{cam}.png")
-        size = (first.width * scale, first.height * scale)
         r = run_dir / "renders" / frame
+        # Tiles at the render's size (the run's resolution) times `scale`, at most TILE_MAX.
+        base = r / f"{cam}_rgb.png"
+        first = Image.open(base if base.is_file() else _captured(capture_dir, frame, cam))
+        factor = min(float(scale), TILE_MAX / max(first.width, first.height, 1))
+        size = (max(1, round(first.width * factor)), max(1, round(first.height * factor)))
         pictures = relit.get((frame, cam), {})
         gt_normal = _gt_normal(capture_dir, frame, cam, size)
         tiles = {"capture": _capture_tile(capture_dir, frame, cam, size),

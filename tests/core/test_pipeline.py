@@ -376,6 +376,19 @@ def test_contact_sheet(run: Path, capture: Path, tmp_path: Path):
     with pytest.raises(ValueError, match="views"):
         contact_sheet(capture, run, [], {}, tmp_path / "none.png")
 
+    # A real capture: JPEG images at 1080x1920 and a run at a quarter of that (the fox).
+    jpg = tmp_path / "jpg"
+    (jpg / "images" / "000000").mkdir(parents=True)
+    Image.new("RGB", (1080, 1920), (200, 120, 40)).save(jpg / "images" / "000000" / "cam00.jpg")
+    big = tmp_path / "big-run"
+    (big / "renders" / "000000").mkdir(parents=True)
+    Image.new("RGB", (270, 480), (10, 200, 10)).save(big / "renders" / "000000" / "cam00_rgb.png")
+    out = contact_sheet(jpg, big, [("000000", "cam00")], {}, tmp_path / "big.png", scale=2)
+    sheet = np.asarray(Image.open(out).convert("RGB"))
+    assert sheet.shape == (LABEL_HEIGHT + 512, 4 * 288, 3)  # tiles of at most 512 px
+    pixel = sheet[LABEL_HEIGHT + 256, 144].astype(int)  # the JPEG (lossy), not black
+    assert (abs(pixel - (200, 120, 40)) <= 4).all(), pixel
+
 
 def test_relight_over_frames_writes_a_video_per_camera(run: Path, tmp_path: Path):
     from core.relight import relight_run
