@@ -432,9 +432,13 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     rekeyed = json.loads(rekey_path.read_text()) if rekey_path.is_file() else None
     if rekeyed is not None:  # a re-keyed frame resumed: its checkpoint is the key frame's
         previous = None
+
+    def key_trainer() -> Trainer:
+        return Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks,
+                                    downscale=cfg.downscale)
+
     if previous is None:
-        trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks,
-                                       downscale=cfg.downscale)
+        trainer = key_trainer()
     else:
         trainer = tracker_from_capture(capture, frame, run / "frames" / previous / "gaussians.ply",
                                        next_id, cfg.train, cfg.sequence, downscale=cfg.downscale,
@@ -455,8 +459,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         ckpt.unlink(missing_ok=True)
         history.records = []
         previous = None
-        trainer = Trainer.from_capture(capture, frame, cfg.train, callbacks=callbacks,
-                                       downscale=cfg.downscale)
+        trainer = key_trainer()
         priors = fill_priors(trainer.views, estimator)
         trainer.train()
     out = run / "frames" / frame
