@@ -377,18 +377,24 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     from core.sequence.gop import roles
     from core.sequence.run import sequence_record
 
-    for i, role in enumerate(roles(chosen, cfg.gop if cfg.sequence.enabled else 1)):
+    planned = roles(chosen, cfg.gop if cfg.sequence.enabled else 1)
+    nominal = cfg.sequence.steps(cfg.train.schedule.iterations)[1]
+    for i, role in enumerate(planned):
         frame = role.frame
         if frame in metrics["frames"] and (run / "frames" / frame / "gaussians.ply").is_file():
             continue
         label = f"frame {frame} ({i + 1}/{len(chosen)})"
         hooks = _Hooks(frame, i, len(chosen), on_progress, should_stop)
         before = None if role.key else metrics["frames"][role.previous]
+        ahead = min(cfg.sequence.refine_borrow, sum(not r.key for r in planned[i + 1:]))
+        credit = refine_credit(metrics["frames"], ahead, nominal,
+                               cfg.sequence.refine_floor(nominal))
         metrics["frames"][frame] = {**_reconstruct_frame(
             capture, frame, run, cfg, estimator, (label, display), hooks,
             previous=role.previous, next_id=None if before is None else before["next_track_id"],
             reference_loss=None if before is None else before.get("deform_loss"),
-            earlier=None if before is None else before.get("previous")),
+            earlier=None if before is None else before.get("previous"),
+            refine_credit=credit),
             "gop": role.gop, "position": role.position}
         if metrics["frames"][frame]["rekeyed"]:  # a key frame now (sequence.json: a new group)
             metrics["frames"][frame]["position"] = 0
@@ -408,10 +414,11 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
 def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator,
                        shown: tuple[str, str | None], hooks: _Hooks, previous: str | None = None,
                        next_id: int | None = None, reference_loss: float | None = None,
-                       earlier: str | None = None) -> dict:
+                       earlier: str | None = None, refine_credit: int = 0) -> dict:
     """A key frame (`previous` None) with the static stages, or a frame deformed from
     `previous` (whose own predecessor in the group, `earlier`, gives the motion to continue)
-    and refined; `next_id` is its group's next unused track id."""
+    and refined; `next_id` is its group's next unused track id, `refine_credit` the refine
+    steps the run's tracked frames so far left unused."""
     from core.priors import fill_priors
     from core.sequence.run import save_frame, tracker_from_capture
 
@@ -443,6 +450,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         trainer = tracker_from_capture(capture, frame, run / "frames" / previous / "gaussians.ply",
                                        next_id, cfg.train, cfg.sequence, downscale=cfg.downscale,
                                        callbacks=callbacks, reference_loss=reference_loss,
+                                       refine_credit=refine_credit,
                                        earlier_ply=None if earlier is None
                                        else run / "frames" / earlier / "gaussians.ply")
     priors = fill_priors(trainer.views, estimator)
@@ -489,11 +497,24 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
             "damping": trainer.start_damping,
             "scores": {str(a): v for a, v in trainer.rounds.scores.items()}},
         "deform_loss": getattr(trainer, "deform_loss", None),
+        "refine_steps": None if previous is None else trainer.refine_steps,
+        "refine_nominal": None if previous is None else trainer.nominal_refine,
         "deform_rounds": None if previous is None else [r[0] for r in trainer.rounds.ended],
         "notes": trainer.notes,
         "mesh": mesh,
         "history": _thin(history.records),
     }
+
+
+def refine_credit(frames: dict[str, dict], remaining: int, nominal: int, floor: int) -> int:
+    """Refine steps the next tracked frame may run beyond `nominal` (`SequenceConfig.
+    refine_adapt`): what the finished tracked frames of `frames` (metrics.json's) left unused
+    (nominal minus run, negative where they borrowed), plus what the `remaining` tracked frames
+    after it can still pay back at `floor` steps each. Every frame keeping within it leaves the
+    run's tracked frames at no more than `nominal` refine steps on average."""
+    saved = sum(m["refine_nominal"] - m["refine_steps"] for m in frames.values()
+                if m.get("refine_steps") is not None and m.get("refine_nominal") is not None)
+    return saved + remaining * (nominal - floor)
 
 
 def _mesh_frame(run: Path, capture, frame: str, settings: RunMesh) -> dict | None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 __all__ = ["SequenceConfig"]
@@ -15,11 +16,16 @@ class SequenceConfig:
     enabled: bool = True
     """Deform + refine the frames after each GoP's first; off: every frame is a key frame
     (independent per-frame reconstruction)."""
-    deform_fraction: float = 0.19
-    """Deform-stage steps per frame, as a fraction of a key frame's iterations (0.19 with 2
-    views a step and 4 start views: a tracked frame renders half a key frame's images)."""
-    refine_fraction: float = 0.1
-    """Refine-stage steps per frame, as a fraction of a key frame's iterations."""
+    deform_fraction: float = 0.2
+    """Deform-stage steps per frame, as a fraction of a key frame's iterations (0.2 with 1
+    view a step, 0.28 of refinement and 4 start views: a tracked frame renders half a key
+    frame's images)."""
+    refine_fraction: float = 0.28
+    """Refine-stage steps per frame, as a fraction of a key frame's iterations (the nominal:
+    `refine_adapt` moves it). Measured on the synthetic sequence, four training seeds at half a
+    key frame's renders: deform 0.19 x 2 views + refine 0.1 gave 21.15 dB, deform 0.2 x 1
+    view + refine 0.28 (with `coarse_sigma` 4) 21.85 dB; the refinement is what brings a
+    tracked frame back to key-frame sharpness (docs/benchmarks.md)."""
     num_nodes: int = 1024
     """Deformation-graph nodes (farthest-point samples of the previous frame's Gaussians), at
     most; see `gaussians_per_node`."""
@@ -39,6 +45,11 @@ class SequenceConfig:
     start_views: int = 4
     """Training views (evenly spaced) that score the candidate starts; each costs a render
     without gradient per candidate."""
+    start_sigma: float = 4.0
+    """Blur (pixels) of render and target when the candidate starts are scored (the deform
+    stage's first-step blur, `coarse_sigma`, by default). Sharper scores pick the predicted
+    motion more often (2 px: rest in 49% of frames against 61%) but tracked worse over four
+    seeds (largest drops 3.4-8.5 dB against 2.4-3.5)."""
     lr_rotation: float = 2e-2
     """Adam rate of the node quaternions (decays exponentially to a tenth over the stage)."""
     lr_translation: float = 1e-2
@@ -49,16 +60,20 @@ class SequenceConfig:
     too stiff for swinging limbs (14.1 dB), 0.05 20.7, 0.02 20.9, 0.01 20.5, 0 20.2."""
     quat_norm: float = 1.0
     """Weight of the node-quaternion unit-norm term."""
-    coarse_sigma: float = 2.0
+    coarse_sigma: float = 4.0
     """Deform stage: render and target are blurred by a Gaussian of this many pixels at the
     first step, shrinking linearly to none by the stage's middle (a wider basin for fast
-    motion); 0 turns it off."""
-    deform_views: int = 2
+    motion); 0 turns it off. On the synthetic sequence (48x48, frames 1-3, four seeds) 2 px
+    left a group's third frame 1.0-3.3 dB below its second in three seeds, 4 px at most
+    0.5 dB; 6 px no better than 4."""
+    deform_views: int = 1
     """Deform stage: training views whose losses are averaged in each step (a gradient that
     agrees with several cameras instead of one at a time); each counts as a render of the
-    frame's budget (`FrameTracker.renders`). 2 keeps a tracked frame at half a key frame's
-    renders (60 x 2 + 30 against 300); 4 gained 0.5 dB more on the synthetic sequence at 0.9
-    of a key frame's renders; 1 lost 1.0 dB against 4 (at ARAP 0.05)."""
+    frame's budget (`FrameTracker.renders`). At a fixed budget 1 view a step with the renders
+    moved to the refine stage wins: 60 x 1 + 84 against 300 (21.85 dB) beat 42 x 2 + 60
+    (about 0.3 dB lower on frames 1-3) and 57 x 2 + 30 (21.15 dB). Without that trade, 4
+    gained 0.5 dB over 2 at 0.9 of a key frame's renders, and 1 lost 1.0 dB against 4 (at
+    ARAP 0.05, 30 refine steps)."""
     deform_mask: float = 1.0
     """Deform stage: weight of L1 between the (blurred) appearance coverage and the capture's
     (blurred) mask, a silhouette term whose basin does not depend on the figure's colours
@@ -82,6 +97,35 @@ class SequenceConfig:
     step): it starts a new group of pictures, and the frames after it deform from it. The
     deform stage it ran is still paid for (`renders` counts it). 0: never. The signal is the
     retry's (a group's second frame has no reference and is never re-keyed)."""
+    refine_adapt: float = 3.0
+    """Refine stage: its steps are the nominal (`refine_fraction`) times r ** refine_adapt,
+    clipped to [`refine_min`, `refine_max`], where r is the kept deform round's end loss over
+    the previous frame's (the retry's signal: a frame that tracked worse than its predecessor
+    gets more refinement, one that tracked better fewer); a group's second frame has no
+    reference and asks `refine_second`. Steps beyond the nominal are paid out of what earlier
+    tracked frames of the run left unused, or borrowed against at most `refine_borrow` later
+    ones, no more than they can pay back at `refine_min` (`core.pipeline.refine_credit`), so
+    the run's tracked frames never refine more than the nominal on average: rate control at a
+    constant budget, as a video encoder spends bits where the picture needs them (a frame
+    re-keyed later pays nothing back). 0: fixed, the nominal everywhere. Measured on the
+    synthetic sequence (four seeds, 88 in-group transitions): transitions dropping more than
+    2 dB 17 with fixed steps, 10 spending savings only, 9 with the defaults (the drop into a
+    group's second frame 1.7-2.3 dB -> 1.4-1.7); held-out PSNR 21.85 -> 22.05 dB."""
+    refine_min: float = 0.85
+    """Fewest refine steps, as a multiple of the nominal (`refine_adapt`; rounded up). 0.7
+    saves more for the hard frames but did no better (8 transitions over 2 dB, largest drops
+    2.2-4.2 dB against 2.4-3.5)."""
+    refine_max: float = 2.0
+    """Most refine steps, as a multiple of the nominal (`refine_adapt`)."""
+    refine_borrow: int = 4
+    """Most tracked frames ahead a run may borrow refine steps against (`refine_adapt`): its
+    debt stays within what that many frames pay back at `refine_min`. Unbounded borrowing
+    let the first hard frames leave the rest of the run at the floor (10 transitions over 2 dB
+    against 9). 0: spend only what was saved."""
+    refine_second: float = 2.0
+    """Refine steps a group's second frame asks, as a multiple of the nominal (`refine_adapt`;
+    within the credit and [`refine_min`, `refine_max`]): it follows a key frame trained from
+    scratch, and with the nominal its drop from it was 1.7-2.3 dB in every seed."""
     temporal: bool = True
     """Refine stage: temporal L1 to the deformed values (off for the ablation)."""
     temporal_opacity_g: float = 0.01
@@ -123,6 +167,9 @@ class SequenceConfig:
         if 0 < self.rekey_loss_ratio < 1:
             raise ValueError(f"sequence.rekey_loss_ratio: expected 0 (never) or >= 1, got "
                              f"{self.rekey_loss_ratio}")
+        if not 0 < self.refine_min <= 1 <= self.refine_max:
+            raise ValueError(f"sequence.refine_min, refine_max: expected 0 < min <= 1 <= max, got "
+                             f"{self.refine_min}, {self.refine_max}")
         if self.start_views < 1:
             raise ValueError(f"sequence.start_views: expected >= 1, got {self.start_views}")
         if self.num_nodes < 5:
@@ -132,6 +179,10 @@ class SequenceConfig:
     def nodes(self, gaussians: int) -> int:
         """Graph nodes for a model of `gaussians` Gaussians."""
         return max(5, min(self.num_nodes, gaussians // max(self.gaussians_per_node, 1)))
+
+    def refine_floor(self, nominal: int) -> int:
+        """Fewest refine steps of an adapted frame (`refine_min` x `nominal`, rounded up)."""
+        return max(1, math.ceil(self.refine_min * nominal - 1e-9))
 
     def steps(self, key_iterations: int) -> tuple[int, int]:
         """(deform, refine) steps for a key frame of `key_iterations`; at least 1 each."""

@@ -64,7 +64,7 @@ class FrameTracker:
                  config: TrainConfig, sequence: SequenceConfig = SequenceConfig(), *,
                  callbacks: Sequence[Callback] = (), ao_baker=None,
                  reference_loss: float | None = None,
-                 earlier: tuple[Tensor, Tensor] | None = None):
+                 earlier: tuple[Tensor, Tensor] | None = None, refine_credit: int = 0):
         if not views:
             raise ValueError("views: expected at least one training view")
         if tuple(ids.shape) != (len(previous),):
@@ -77,7 +77,13 @@ class FrameTracker:
         if earlier is not None:
             earlier = (earlier[0].to(self.device), earlier[1].to(self.device))
         self.previous, self.prev_ids, self.next_id = previous, ids, int(next_id)
-        self.round_steps, self.refine_steps = sequence.steps(config.schedule.iterations)
+        self.round_steps, self.nominal_refine = sequence.steps(config.schedule.iterations)
+        self.refine_steps = self.nominal_refine
+        """Refine-stage steps: the nominal until the refine stage starts, then
+        `_refine_budget()` (`SequenceConfig.refine_adapt`)."""
+        self.refine_credit = int(refine_credit)
+        """Refine steps this frame may run beyond the nominal (negative: a debt it must start
+        paying back), `core.pipeline.refine_credit`."""
         self.plan = plan(config.schedule.iterations - 1, config.schedule)
         if ao_baker is None and sequence.bake_ao and config.bake_ao:
             from core.ao import GaussianAOBaker
@@ -176,7 +182,7 @@ class FrameTracker:
         """Mean over `views` of the image loss (photometric + silhouette) a round's first step
         would see, at its blur."""
         posed = DeformedGaussians(self.previous, self.graph, q, t)
-        sigma, total = self.seq.coarse_sigma, 0.0
+        sigma, total = self.seq.start_sigma, 0.0
         for i in views:
             r = self._render(posed, i, self.background)
             silhouette = self._silhouette(r, i, sigma)
@@ -214,9 +220,23 @@ class FrameTracker:
                                    quat_norm=s.quat_norm))
         return terms, first
 
+    def _refine_budget(self) -> int:
+        """Refine steps for how the deform stage ended (`SequenceConfig.refine_adapt`): the
+        nominal times the loss ratio to the power `refine_adapt` (`refine_second` without a
+        reference), clipped to [`refine_min`, `refine_max`], at most the nominal plus
+        `refine_credit` and at least `refine_floor`."""
+        s, nominal = self.seq, self.nominal_refine
+        ref, end = self.rounds.reference_loss, self.rounds.deform_loss
+        if s.refine_adapt <= 0 or end is None:
+            return nominal
+        scale = (end / ref) ** s.refine_adapt if ref else s.refine_second
+        want = round(nominal * min(max(scale, s.refine_min), s.refine_max))
+        return max(s.refine_floor(nominal), min(want, nominal + self.refine_credit))
+
     def _start_refine(self) -> None:
         """The deformed Gaussians become the model; anchors, ids, optimizer, strategy start."""
         s, cfg = self.seq, self.config
+        self.refine_steps = self._refine_budget()
         with torch.no_grad():
             self.model = DeformedGaussians(self.previous, self.graph, self.node_q,
                                            self.node_t).to_model()

@@ -50,10 +50,12 @@ def load_frame(path: str | os.PathLike[str]) -> tuple[GaussianModel, torch.Tenso
 def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, train,
                          sequence: SequenceConfig, *, downscale: float = 1.0,
                          callbacks=(), ao_baker=None, reference_loss: float | None = None,
-                         earlier_ply: Path | None = None) -> FrameTracker:
+                         earlier_ply: Path | None = None, refine_credit: int = 0) -> FrameTracker:
     """A `FrameTracker` on the training cameras of `frame`, starting from the previous frame's
     PLY (`reference_loss`: that frame's `deform_loss`, for deform retries; `earlier_ply`:
-    the frame before that in the same group, whose motion the deformation continues)."""
+    the frame before that in the same group, whose motion the deformation continues;
+    `refine_credit`: refine steps the run's earlier tracked frames left unused, which
+    `SequenceConfig.refine_adapt` may spend)."""
     from core.data.dataset import CaptureDataset
     from core.train import View, training_cameras
 
@@ -72,7 +74,8 @@ def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, 
         before, before_ids = load_frame(earlier_ply)
         earlier = align_tracks(track, before_ids, before.means.detach())
     return FrameTracker(views, model, track, next_id, train, sequence, callbacks=callbacks,
-                        ao_baker=ao_baker, reference_loss=reference_loss, earlier=earlier)
+                        ao_baker=ao_baker, reference_loss=reference_loss, earlier=earlier,
+                        refine_credit=refine_credit)
 
 
 def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
@@ -90,6 +93,8 @@ def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
                      "gaussians": None if m is None else m.get("gaussians"),
                      "seconds": None if m is None else m.get("seconds"),
                      "iterations": None if m is None else m.get("iterations"),
+                     # Refine steps run (`refine_adapt` moves them off the nominal).
+                     "refine_steps": None if m is None else m.get("refine_steps"),
                      "new_tracks": None if m is None else m.get("new_tracks"),
                      # How the deform stage went: rounds run (2+: a retry) and the damping of
                      # the previous motion its kept round started from (0: at rest).

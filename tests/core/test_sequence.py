@@ -220,7 +220,7 @@ TINY_RUN = {"train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3
                                    "reset_interval": 15, "sh_interval": 5},
                       "init_points": 300},
             "sequence": {"num_nodes": 64, "deform_fraction": 0.25, "refine_fraction": 0.25,
-                         "deform_retries": 0},
+                         "deform_retries": 0, "deform_views": 2},
             "checkpoint_every": 4, "gop": 3}
 
 
@@ -249,7 +249,7 @@ def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp
     events = []
     straight_metrics = _reconstruct(capture3, straight, on_progress=events.append)
     # Cost in rendered images: D steps of 2 views (the default) and R steps of one.
-    assert straight_metrics["frames"]["000001"]["renders"] == 10 * 2 + 10
+    assert straight_metrics["frames"]["000001"]["renders"] == 10 * 2 + 11
     assert straight_metrics["frames"]["000000"]["renders"] == 40
     # The third frame chooses its start among rest and the first two frames' motion continued
     # at the candidate dampings (the second frame has no motion to go on).
@@ -266,8 +266,17 @@ def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp
     assert seq["timings"]["seconds_per_deformed_frame"] > 0 and seq["gaussians"]["mean"] > 0
     assert {e.phase for e in events if e.frame_index > 0} == {"deform", "refine"}
     assert [e.frame for e in events if e.kind == "frame_done"] == ["000000", "000001", "000002"]
-    # D = R = 10 steps for a 40-step key frame.
-    assert {e.iterations for e in events if e.frame_index > 0} == {20}
+    # D = R = 10 steps for a 40-step key frame, and the refine stages sized by refine_adapt:
+    # the second frame asks 2x (refine_second) but may borrow only what the third can pay back
+    # at its floor (ceil(0.85 x 10) = 9): 11 steps; the third then runs 9, whatever its ratio.
+    # Together they refine the nominal 2 x 10.
+    second = [e.iterations for e in events if e.frame_index == 1]
+    assert set(second) == {20, 21} and second[-1] == 21  # 20 until its refine stage starts
+    assert [e.iterations for e in events if e.frame_index == 2][-1] == 19
+    assert [(straight_metrics["frames"][f]["refine_steps"],
+             straight_metrics["frames"][f]["refine_nominal"])
+            for f in ("000001", "000002")] == [(11, 10), (9, 10)]
+    assert [f["refine_steps"] for f in seq["frames"]] == [None, 11, 9]
     ids = [read_track_ids(straight / "frames" / f / "gaussians.ply") for f in
            ("000000", "000001", "000002")]
     assert ids[0].tolist() == list(range(len(ids[0])))  # key frame: 0..N-1
@@ -369,7 +378,7 @@ def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(cap
     reconstruct(capture3, run, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
     cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
     seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
-                         deform_retries=1, retry_loss_ratio=1.2)
+                         deform_retries=1, retry_loss_ratio=1.2, deform_views=2, refine_adapt=0)
     capture = load_capture(capture3)
     ply = run / "frames" / "000000" / "gaussians.ply"
 
@@ -459,7 +468,7 @@ def test_a_frame_that_loses_track_becomes_a_key_frame_and_resumes_exactly(captur
     reconstruct(capture3, key, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
     cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
     seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
-                         rekey_loss_ratio=1.5)
+                         rekey_loss_ratio=1.5, deform_views=2, refine_adapt=0)
     ply = key / "frames" / "000000" / "gaussians.ply"
     lost = tracker_from_capture(load_capture(capture3), "000001", ply, 10 ** 6, cfg.train, seq,
                                 reference_loss=1e-9)
@@ -504,3 +513,72 @@ def test_a_frame_that_loses_track_becomes_a_key_frame_and_resumes_exactly(captur
     assert again["resumed_at"] == 6 and again["rekeyed"] == third["rekeyed"]
     assert ((straight / "frames" / "000002" / "gaussians.ply").read_bytes()
             == (resumed / "frames" / "000002" / "gaussians.ply").read_bytes())
+
+
+def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, tmp_path,
+                                                                      one_thread):
+    """refine_adapt: a frame whose deform stage ended above the previous frame's loss refines
+    longer (at most refine_max x the nominal and never beyond its credit), one that ended below
+    refines shorter (refine_min x at least), a frame without a reference asks refine_second x,
+    a frame in debt pays back down to its floor; a checkpoint in the refine stage resumes to the
+    same steps and model; the pipeline's credit is what the finished tracked frames left unused
+    plus what the remaining ones can pay back."""
+    from core.data import load_capture
+    from core.pipeline import apply_overrides, reconstruct, refine_credit, resolve_config
+    from core.sequence import SequenceConfig
+    from core.sequence.run import tracker_from_capture
+
+    run = tmp_path / "key"
+    reconstruct(capture3, run, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
+    cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
+    capture = load_capture(capture3)
+    ply = run / "frames" / "000000" / "gaussians.ply"
+
+    def tracker(reference, credit=0, **kw):
+        kw = {"refine_adapt": 3.0, **kw}
+        seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
+                             refine_min=0.5, refine_max=2.0, **kw)
+        return tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, seq,
+                                    reference_loss=reference, refine_credit=credit)
+
+    cases = {"no reference": (None, 100, 20), "no reference, no credit": (None, 0, 10),
+             "far behind, no credit": (1e-9, 0, 10), "far behind, credit 3": (1e-9, 3, 13),
+             "far behind, credit 100": (1e-9, 100, 20), "far ahead": (1e9, 100, 5),
+             "far behind, 3 in debt": (1e-9, -3, 7), "far behind, deep in debt": (1e-9, -100, 5)}
+    for name, (reference, credit, steps) in cases.items():
+        t = tracker(reference, credit)
+        t.train()
+        assert (t.nominal_refine, t.refine_steps, t.step) == (10, steps, 10 + steps), name
+        assert t.renders == 10 + steps and t.iterations == 10 + steps, name
+    # The exponent applies to the ratio: r = 1.1 with refine_adapt 3 asks 1.33 x, 13 steps.
+    t = tracker(None, 100)
+    t.train()
+    t = tracker(t.deform_loss / 1.1, 100)  # the same deform stage (deterministic) ends at 1.1 x
+    t.train()
+    assert t.refine_steps == 13
+    fixed = tracker(1e-9, 100, refine_adapt=0.0)
+    fixed.train()
+    assert fixed.refine_steps == 10
+    # Resume inside the adapted refine stage.
+    straight = tracker(1e-9, 4)
+    while straight.step < straight.iterations:
+        straight.train_step()
+        if straight.step == 12:
+            straight.save_checkpoint(tmp_path / "mid.pt")
+    resumed = tracker(1e-9, 4)
+    resumed.load_checkpoint(tmp_path / "mid.pt")
+    assert (resumed.step, resumed.refine_steps, resumed.iterations) == (12, 14, 24)
+    resumed.train()
+    for k, v in straight.model.params.items():
+        assert torch.equal(v, resumed.model.params[k]), k
+    frames = {"000000": {"refine_steps": None, "refine_nominal": None},
+              "000001": {"refine_steps": 8, "refine_nominal": 10},
+              "000002": {"refine_steps": 11, "refine_nominal": 10},
+              "000003": {"rekeyed": {"loss_ratio": 1.7}, "refine_steps": None}}
+    assert refine_credit(frames, 0, 10, 9) == 1  # saved 2, borrowed 1
+    assert refine_credit(frames, 3, 10, 9) == 1 + 3  # and 3 frames can pay back 1 each
+    assert refine_credit({"1": {"refine_steps": 14, "refine_nominal": 10}}, 3, 10, 9) == -1
+    assert SequenceConfig(refine_min=0.85).refine_floor(10) == 9
+    assert SequenceConfig(refine_min=0.5).refine_floor(10) == 5
+    with pytest.raises(ValueError, match="refine_min"):
+        SequenceConfig(refine_min=1.5)
