@@ -418,7 +418,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     """A key frame (`previous` None) with the static stages, or a frame deformed from
     `previous` (whose own predecessor in the group, `earlier`, gives the motion to continue)
     and refined; `next_id` is its group's next unused track id, `refine_credit` the refine
-    steps the run's tracked frames so far left unused."""
+    steps it may run beyond the nominal (`refine_credit()`)."""
     from core.priors import fill_priors
     from core.sequence.run import save_frame, tracker_from_capture
 

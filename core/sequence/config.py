@@ -44,12 +44,10 @@ class SequenceConfig:
     predicts."""
     start_views: int = 4
     """Training views (evenly spaced) that score the candidate starts; each costs a render
-    without gradient per candidate."""
-    start_sigma: float = 4.0
-    """Blur (pixels) of render and target when the candidate starts are scored (the deform
-    stage's first-step blur, `coarse_sigma`, by default). Sharper scores pick the predicted
-    motion more often (2 px: rest in 49% of frames against 61%) but tracked worse over four
-    seeds (largest drops 3.4-8.5 dB against 2.4-3.5)."""
+    without gradient per candidate. Scores are taken at the first step's blur
+    (`coarse_sigma`): scored at 2 px under a 4 px stage, the predicted motion won more often
+    (rest in 49% of frames against 61%) but tracked worse over four seeds (largest drops
+    3.4-8.5 dB against 2.4-3.5)."""
     lr_rotation: float = 2e-2
     """Adam rate of the node quaternions (decays exponentially to a tenth over the stage)."""
     lr_translation: float = 1e-2

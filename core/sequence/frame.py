@@ -182,7 +182,7 @@ class FrameTracker:
         """Mean over `views` of the image loss (photometric + silhouette) a round's first step
         would see, at its blur."""
         posed = DeformedGaussians(self.previous, self.graph, q, t)
-        sigma, total = self.seq.start_sigma, 0.0
+        sigma, total = self.seq.coarse_sigma, 0.0
         for i in views:
             r = self._render(posed, i, self.background)
             silhouette = self._silhouette(r, i, sigma)

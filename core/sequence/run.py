@@ -54,8 +54,8 @@ def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, 
     """A `FrameTracker` on the training cameras of `frame`, starting from the previous frame's
     PLY (`reference_loss`: that frame's `deform_loss`, for deform retries; `earlier_ply`:
     the frame before that in the same group, whose motion the deformation continues;
-    `refine_credit`: refine steps the run's earlier tracked frames left unused, which
-    `SequenceConfig.refine_adapt` may spend)."""
+    `refine_credit`: refine steps it may run beyond the nominal, `core.pipeline.
+    refine_credit`, which `SequenceConfig.refine_adapt` may spend)."""
     from core.data.dataset import CaptureDataset
     from core.train import View, training_cameras
 
