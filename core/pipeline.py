@@ -394,7 +394,9 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
             previous=role.previous, next_id=None if before is None else before["next_track_id"],
             reference_loss=None if before is None else before.get("deform_loss"),
             earlier=None if before is None else before.get("previous"),
-            refine_credit=credit),
+            refine_credit=credit,
+            refine_reference=None if before is None or before.get("deform_loss") is not None
+            else median_deform_loss(metrics["frames"])),
             "gop": role.gop, "position": role.position}
         if metrics["frames"][frame]["rekeyed"]:  # a key frame now (sequence.json: a new group)
             metrics["frames"][frame]["position"] = 0
@@ -414,7 +416,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
 def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator,
                        shown: tuple[str, str | None], hooks: _Hooks, previous: str | None = None,
                        next_id: int | None = None, reference_loss: float | None = None,
-                       earlier: str | None = None, refine_credit: int = 0) -> dict:
+                       earlier: str | None = None, refine_credit: int = 0,
+                       refine_reference: float | None = None) -> dict:
     """A key frame (`previous` None) with the static stages, or a frame deformed from
     `previous` (whose own predecessor in the group, `earlier`, gives the motion to continue)
     and refined; `next_id` is its group's next unused track id, `refine_credit` the refine
@@ -451,6 +454,7 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
                                        next_id, cfg.train, cfg.sequence, downscale=cfg.downscale,
                                        callbacks=callbacks, reference_loss=reference_loss,
                                        refine_credit=refine_credit,
+                                       refine_reference=refine_reference,
                                        earlier_ply=None if earlier is None
                                        else run / "frames" / earlier / "gaussians.ply")
     priors = fill_priors(trainer.views, estimator)
@@ -504,6 +508,16 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         "mesh": mesh,
         "history": _thin(history.records),
     }
+
+
+def median_deform_loss(frames: dict[str, dict]) -> float | None:
+    """Median end loss of the deform stages of the finished tracked frames of `frames`
+    (metrics.json's; a re-keyed frame refined nothing and does not count), None before the
+    first: what a group's second frame, which follows a key frame, compares its own with
+    (`SequenceConfig.refine_adapt`)."""
+    losses = [m["deform_loss"] for m in frames.values()
+              if m.get("deform_loss") is not None and m.get("refine_steps") is not None]
+    return float(np.median(losses)) if losses else None
 
 
 def refine_credit(frames: dict[str, dict], remaining: int, nominal: int, floor: int) -> int:

@@ -64,7 +64,8 @@ class FrameTracker:
                  config: TrainConfig, sequence: SequenceConfig = SequenceConfig(), *,
                  callbacks: Sequence[Callback] = (), ao_baker=None,
                  reference_loss: float | None = None,
-                 earlier: tuple[Tensor, Tensor] | None = None, refine_credit: int = 0):
+                 earlier: tuple[Tensor, Tensor] | None = None, refine_credit: int = 0,
+                 refine_reference: float | None = None):
         if not views:
             raise ValueError("views: expected at least one training view")
         if tuple(ids.shape) != (len(previous),):
@@ -81,6 +82,10 @@ class FrameTracker:
         self.refine_steps = self.nominal_refine
         """Refine-stage steps: the nominal until the refine stage starts, then
         `_refine_budget()` (`SequenceConfig.refine_adapt`)."""
+        self.refine_reference = refine_reference
+        """End loss the refine budget compares with where there is no `reference_loss` (a
+        group's second frame: the median of the run's earlier tracked frames'; None: ask
+        `refine_second`)."""
         self.refine_credit = int(refine_credit)
         """Refine steps this frame may run beyond the nominal (negative: a debt it must start
         paying back), `core.pipeline.refine_credit`."""
@@ -226,7 +231,7 @@ class FrameTracker:
         reference), clipped to [`refine_min`, `refine_max`], at most the nominal plus
         `refine_credit` and at least `refine_floor`."""
         s, nominal = self.seq, self.nominal_refine
-        ref, end = self.rounds.reference_loss, self.rounds.deform_loss
+        ref, end = self.rounds.reference_loss or self.refine_reference, self.rounds.deform_loss
         if s.refine_adapt <= 0 or end is None:
             return nominal
         scale = (end / ref) ** s.refine_adapt if ref else s.refine_second

@@ -50,12 +50,14 @@ def load_frame(path: str | os.PathLike[str]) -> tuple[GaussianModel, torch.Tenso
 def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, train,
                          sequence: SequenceConfig, *, downscale: float = 1.0,
                          callbacks=(), ao_baker=None, reference_loss: float | None = None,
-                         earlier_ply: Path | None = None, refine_credit: int = 0) -> FrameTracker:
+                         earlier_ply: Path | None = None, refine_credit: int = 0,
+                         refine_reference: float | None = None) -> FrameTracker:
     """A `FrameTracker` on the training cameras of `frame`, starting from the previous frame's
     PLY (`reference_loss`: that frame's `deform_loss`, for deform retries; `earlier_ply`:
     the frame before that in the same group, whose motion the deformation continues;
     `refine_credit`: refine steps it may run beyond the nominal, `core.pipeline.
-    refine_credit`, which `SequenceConfig.refine_adapt` may spend)."""
+    refine_credit`, which `SequenceConfig.refine_adapt` may spend; `refine_reference`: what
+    a group's second frame compares its deform loss with, `core.pipeline.median_deform_loss`)."""
     from core.data.dataset import CaptureDataset
     from core.train import View, training_cameras
 
@@ -75,7 +77,7 @@ def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, 
         earlier = align_tracks(track, before_ids, before.means.detach())
     return FrameTracker(views, model, track, next_id, train, sequence, callbacks=callbacks,
                         ao_baker=ao_baker, reference_loss=reference_loss, earlier=earlier,
-                        refine_credit=refine_credit)
+                        refine_credit=refine_credit, refine_reference=refine_reference)
 
 
 def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,

@@ -519,12 +519,19 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
                                                                       one_thread):
     """refine_adapt: a frame whose deform stage ended above the previous frame's loss refines
     longer (at most refine_max x the nominal and never beyond its credit), one that ended below
-    refines shorter (refine_min x at least), a frame without a reference asks refine_second x,
+    refines shorter (refine_min x at least), a frame without a reference compares with the
+    run's median tracked frame or, before the first, asks refine_second x,
     a frame in debt pays back down to its floor; a checkpoint in the refine stage resumes to the
     same steps and model; the pipeline's credit is what the finished tracked frames left unused
     plus what the remaining ones can pay back."""
     from core.data import load_capture
-    from core.pipeline import apply_overrides, reconstruct, refine_credit, resolve_config
+    from core.pipeline import (
+        apply_overrides,
+        median_deform_loss,
+        reconstruct,
+        refine_credit,
+        resolve_config,
+    )
     from core.sequence import SequenceConfig
     from core.sequence.run import tracker_from_capture
 
@@ -534,12 +541,13 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     capture = load_capture(capture3)
     ply = run / "frames" / "000000" / "gaussians.ply"
 
-    def tracker(reference, credit=0, **kw):
+    def tracker(reference, credit=0, second=None, **kw):
         kw = {"refine_adapt": 3.0, **kw}
         seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
                              refine_min=0.5, refine_max=2.0, **kw)
         return tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, seq,
-                                    reference_loss=reference, refine_credit=credit)
+                                    reference_loss=reference, refine_credit=credit,
+                                    refine_reference=second)
 
     cases = {"no reference": (None, 100, 20), "no reference, no credit": (None, 0, 10),
              "far behind, no credit": (1e-9, 0, 10), "far behind, credit 3": (1e-9, 3, 13),
@@ -556,6 +564,13 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     t = tracker(t.deform_loss / 1.1, 100)  # the same deform stage (deterministic) ends at 1.1 x
     t.train()
     assert t.refine_steps == 13
+    # A group's second frame (no reference_loss) compares with the run's typical tracked
+    # frame when it has one (refine_reference), else asks refine_second (2 x above).
+    end = t.deform_loss
+    for second, steps in ((end / 1.1, 13), (end * 10, 5), (None, 20)):
+        t = tracker(None, 100, second=second)
+        t.train()
+        assert t.refine_steps == steps, second
     fixed = tracker(1e-9, 100, refine_adapt=0.0)
     fixed.train()
     assert fixed.refine_steps == 10
@@ -578,6 +593,14 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     assert refine_credit(frames, 0, 10, 9) == 1  # saved 2, borrowed 1
     assert refine_credit(frames, 3, 10, 9) == 1 + 3  # and 3 frames can pay back 1 each
     assert refine_credit({"1": {"refine_steps": 14, "refine_nominal": 10}}, 3, 10, 9) == -1
+    # The second frame's reference: the median deform loss of the run's refined tracked frames.
+    frames = {"000000": {"deform_loss": None, "refine_steps": None},
+              "000001": {"deform_loss": 0.3, "refine_steps": 8},
+              "000002": {"deform_loss": 0.1, "refine_steps": 9},
+              "000003": {"deform_loss": 0.9, "refine_steps": None, "rekeyed": {}},
+              "000004": {"deform_loss": 0.2, "refine_steps": 12}}
+    assert median_deform_loss(frames) == pytest.approx(0.2)
+    assert median_deform_loss({"000000": frames["000000"]}) is None
     assert SequenceConfig(refine_min=0.85).refine_floor(10) == 9
     assert SequenceConfig(refine_min=0.5).refine_floor(10) == 5
     with pytest.raises(ValueError, match="refine_min"):
