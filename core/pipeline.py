@@ -386,16 +386,18 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
         label = f"frame {frame} ({i + 1}/{len(chosen)})"
         hooks = _Hooks(frame, i, len(chosen), on_progress, should_stop)
         before = None if role.key else metrics["frames"][role.previous]
+        # The previous frame's deform loss; None after a key frame (a group's second frame).
+        reference = None if before is None else before.get("deform_loss")
         ahead = min(cfg.sequence.refine_borrow, sum(not r.key for r in planned[i + 1:]))
         credit = refine_credit(metrics["frames"], ahead, nominal,
                                cfg.sequence.refine_floor(nominal))
         metrics["frames"][frame] = {**_reconstruct_frame(
             capture, frame, run, cfg, estimator, (label, display), hooks,
             previous=role.previous, next_id=None if before is None else before["next_track_id"],
-            reference_loss=None if before is None else before.get("deform_loss"),
+            reference_loss=reference,
             earlier=None if before is None else before.get("previous"),
             refine_credit=credit,
-            refine_reference=None if before is None or before.get("deform_loss") is not None
+            refine_reference=None if before is None or reference is not None
             else median_deform_loss(metrics["frames"])),
             "gop": role.gop, "position": role.position}
         if metrics["frames"][frame]["rekeyed"]:  # a key frame now (sequence.json: a new group)
