@@ -396,6 +396,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
             previous=role.previous, next_id=None if before is None else before["next_track_id"],
             reference_loss=reference,
             earlier=None if before is None else before.get("previous"),
+            earliest=None if not before or not before.get("previous") else
+            metrics["frames"][before["previous"]].get("previous"),
             refine_credit=credit,
             refine_reference=None if before is None or reference is not None
             else median_deform_loss(metrics["frames"])),
@@ -419,9 +421,11 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
                        shown: tuple[str, str | None], hooks: _Hooks, previous: str | None = None,
                        next_id: int | None = None, reference_loss: float | None = None,
                        earlier: str | None = None, refine_credit: int = 0,
-                       refine_reference: float | None = None) -> dict:
+                       refine_reference: float | None = None,
+                       earliest: str | None = None) -> dict:
     """A key frame (`previous` None) with the static stages, or a frame deformed from
-    `previous` (whose own predecessor in the group, `earlier`, gives the motion to continue)
+    `previous` (whose own predecessors in the group, `earlier` and `earliest`, give the motion
+    to continue)
     and refined; `next_id` is its group's next unused track id, `refine_credit` the refine
     steps it may run beyond the nominal (`refine_credit()`)."""
     from core.priors import fill_priors
@@ -458,7 +462,9 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
                                        refine_credit=refine_credit,
                                        refine_reference=refine_reference,
                                        earlier_ply=None if earlier is None
-                                       else run / "frames" / earlier / "gaussians.ply")
+                                       else run / "frames" / earlier / "gaussians.ply",
+                                       earliest_ply=None if earliest is None
+                                       else run / "frames" / earliest / "gaussians.ply")
     priors = fill_priors(trainer.views, estimator)
     resumed_at = 0
     if ckpt.is_file():
@@ -499,9 +505,8 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         "previous": previous,
         "next_track_id": len(trainer.model) if previous is None else trainer.group_next_id,
         "new_tracks": None if previous is None else trainer.state.born,
-        "start": None if previous is None else {  # JSON keys are strings: so are they here
-            "damping": trainer.start_damping,
-            "scores": {str(a): v for a, v in trainer.rounds.scores.items()}},
+        "start": None if previous is None else {"from": trainer.start,
+                                                "scores": dict(trainer.rounds.scores)},
         "deform_loss": getattr(trainer, "deform_loss", None),
         "refine_steps": None if previous is None else trainer.refine_steps,
         "refine_nominal": None if previous is None else trainer.nominal_refine,

@@ -17,7 +17,7 @@ from core.sequence.graph import (
     quat_multiply,
     quat_norm_loss,
 )
-from core.sequence.motion import align_tracks, predict_node_motion
+from core.sequence.motion import align_tracks, predict_node_motion, predict_node_motion_second_order
 from core.sequence.refine import (
     TemporalWeights,
     TrackedState,
@@ -53,6 +53,7 @@ __all__ = [
     "farthest_point_sampling",
     "load_frame",
     "predict_node_motion",
+    "predict_node_motion_second_order",
     "prune_transparent",
     "quat_multiply",
     "quat_norm_loss",

@@ -35,13 +35,25 @@ class SequenceConfig:
     sequence: 128 nodes for 4000 Gaussians reach in 60 steps what 1024 do not in 300)."""
     node_neighbors: int = 8
     """ARAP neighbours of each node."""
-    motion_candidates: tuple[float, ...] = (0.5, 1.0)
+    motion_candidates: tuple[float, ...] = (1.0,)
     """Deform stage: starts to try besides rest, as dampings of the previous frame's motion
     (fitted per node from the two frames before, `core.sequence.motion`): 1 continues it, 0.5
     half of it. The start whose blurred photometric + silhouette loss on `start_views` training
     views is lowest wins (rest included), so a limb that reverses or stops costs no overshoot.
-    Used from a group's third frame on (the second has no motion to continue); () never
-    predicts."""
+    Used from a group's third frame on (the second has no motion to continue); () and no
+    `second_order` never predict. (0.5, 1) until 2026-11-26: with the second-order start
+    beside them, 0.5 won 1 frame of 44 on the synthetic sequence.)"""
+    second_order: tuple[float, ...] = (0.5,)
+    """Deform stage: from a group's fourth frame on (three frames of history), more starts:
+    second-order predictions, each tracked Gaussian's next displacement 2c d_t - d_{t-1}
+    (`core.sequence.motion.predict_node_motion_second_order`) for each c here. The recurrence
+    holds exactly for any sinusoidal swing of w radians a frame with c = cos(w), and c = 1 is
+    a constant acceleration. On the synthetic walk (0.9 rad a frame; the knees bend at another
+    phase) 0.5 predicts the ground-truth vertices best (of c = 1, 0.8, 0.62, 0.5 and 0.3, it is
+    the lowest in every frame from the fourth on), and at the legs' crossing phase it is the
+    start that keeps them from swapping (docs/method.md); c = 1 never won beside it. Slow
+    motion against the frame rate (c near 1) is what `motion_candidates` 1 already continues.
+    () keeps the first-order starts only."""
     start_views: int = 4
     """Training views (evenly spaced) that score the candidate starts; each costs a render
     without gradient per candidate. Scores are taken at the first step's blur
@@ -176,6 +188,9 @@ class SequenceConfig:
         if any(not 0 < a <= 2 for a in self.motion_candidates):
             raise ValueError(f"sequence.motion_candidates: expected dampings in (0, 2], got "
                              f"{self.motion_candidates}")
+        if any(not -1 <= c <= 1 for c in self.second_order):
+            raise ValueError(f"sequence.second_order: expected values of cos(w) in [-1, 1], got "
+                             f"{self.second_order}")
         if self.retry_loss_ratio < 1:
             raise ValueError(f"sequence.retry_loss_ratio: expected >= 1 (a round no worse than "
                              f"the previous frame's never retries), got {self.retry_loss_ratio}")

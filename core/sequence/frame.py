@@ -35,7 +35,7 @@ from core.seeding import scene_extent
 from core.sequence.config import SequenceConfig
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
 from core.sequence.graph import build_graph
-from core.sequence.motion import predict_node_motion
+from core.sequence.motion import predict_node_motion, predict_node_motion_second_order
 from core.sequence.rounds import DeformRounds
 from core.sequence.refine import (
     TemporalWeights,
@@ -57,7 +57,8 @@ class FrameTracker:
     """Deform + refine one frame from `previous` (the last frame's model, its track ids (N,) and
     the group's next unused id); `earlier` (positions (N, 3) and known (N,) of `previous`'s
     Gaussians one frame before, `core.sequence.motion.align_tracks`) starts the deformation from
-    the continued motion. Runs on `config.device` like `core.train.Trainer` (the inputs are moved
+    the continued motion, and `earliest` (the same, two frames before) from its second-order
+    prediction. Runs on `config.device` like `core.train.Trainer` (the inputs are moved
     there; the random generator stays on the CPU)."""
 
     def __init__(self, views: Sequence[View], previous: GaussianModel, ids: Tensor, next_id: int,
@@ -65,7 +66,8 @@ class FrameTracker:
                  callbacks: Sequence[Callback] = (), ao_baker=None,
                  reference_loss: float | None = None,
                  earlier: tuple[Tensor, Tensor] | None = None, refine_credit: int = 0,
-                 refine_reference: float | None = None):
+                 refine_reference: float | None = None,
+                 earliest: tuple[Tensor, Tensor] | None = None):
         if not views:
             raise ValueError("views: expected at least one training view")
         if tuple(ids.shape) != (len(previous),):
@@ -77,6 +79,8 @@ class FrameTracker:
         previous, ids = previous.to(self.device), ids.long().to(self.device)
         if earlier is not None:
             earlier = (earlier[0].to(self.device), earlier[1].to(self.device))
+        if earliest is not None:
+            earliest = (earliest[0].to(self.device), earliest[1].to(self.device))
         self.previous, self.prev_ids, self.next_id = previous, ids, int(next_id)
         self.round_steps, self.nominal_refine = sequence.steps(config.schedule.iterations)
         self.refine_steps = self.nominal_refine
@@ -103,7 +107,7 @@ class FrameTracker:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.graph = build_graph(previous.means.detach(), sequence.nodes(len(previous)),
                                  node_neighbors=sequence.node_neighbors)
-        starts, scores = self._candidate_starts(earlier)
+        starts, scores = self._candidate_starts(earlier, earliest)
         self.rounds = DeformRounds(starts, scores, self.round_steps,
                                    reference_loss=reference_loss,
                                    retries=sequence.deform_retries,
@@ -168,19 +172,27 @@ class FrameTracker:
                                                         cam.viewmat, w)
         return terms
 
-    def _candidate_starts(self, earlier) -> tuple[dict, dict[float, float]]:
-        """Node parameters to start from by damping, rest (0) and with `earlier` the previous
-        motion continued at each of `motion_candidates`, and their scores on `start_views`
-        evenly spaced views (none without candidates)."""
-        starts = {0.0: self.graph.identity()}
-        if earlier is None or not self.seq.motion_candidates:
+    def _candidate_starts(self, earlier, earliest) -> tuple[dict, dict[str, float]]:
+        """Node parameters to start from, by name: "rest"; with `earlier` the previous motion
+        continued at each damping a of `motion_candidates` ("damped a"); with `earliest` too
+        its second-order prediction at each c of `second_order` ("second-order c"). Scored on
+        `start_views` evenly spaced views (nothing is scored when rest is the only start)."""
+        starts = {"rest": self.graph.identity()}
+        s, current = self.seq, self.previous.means.detach()
+        if earlier is not None:
+            for a in s.motion_candidates:
+                starts[f"damped {a:g}"] = predict_node_motion(self.graph, current, *earlier,
+                                                              damping=float(a))
+        if earlier is not None and earliest is not None:
+            known = earlier[1] & earliest[1]
+            for c in s.second_order:
+                starts[f"second-order {c:g}"] = predict_node_motion_second_order(
+                    self.graph, current, earlier[0], earliest[0], known, c=float(c))
+        if len(starts) == 1:
             return starts, {}
-        for a in self.seq.motion_candidates:
-            starts[float(a)] = predict_node_motion(self.graph, self.previous.means.detach(),
-                                                   *earlier, damping=float(a))
-        count = min(self.seq.start_views, len(self.views))
+        count = min(s.start_views, len(self.views))
         views = sorted({round(k * len(self.views) / count) for k in range(count)})
-        return starts, {a: self._start_score(q, t, views) for a, (q, t) in starts.items()}
+        return starts, {name: self._start_score(q, t, views) for name, (q, t) in starts.items()}
 
     @torch.no_grad()
     def _start_score(self, q: Tensor, t: Tensor, views: list[int]) -> float:
@@ -375,9 +387,10 @@ class FrameTracker:
         return self.rounds.deform_loss
 
     @property
-    def start_damping(self) -> float:
-        """Damping of the previous motion the kept deform round started from (0: rest)."""
-        return self.rounds.start_damping
+    def start(self) -> str:
+        """Name of the start the kept deform round began from ("rest", "damped a",
+        "second-order c": `_candidate_starts`)."""
+        return self.rounds.start
 
     @property
     def deform_steps(self) -> int:

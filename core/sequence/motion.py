@@ -7,6 +7,11 @@ applied again, scaled by a damping factor a: the rotation angle times a, the nod
 a times its fitted displacement. A constant-velocity guess (a = 1) overshoots where a limb
 reverses; a = cos(w) is the best linear two-frame predictor of a swing of w radians per frame
 (its error is sin(w) of the zero-motion guess's, against 2 sin(w/2) for a = 1).
+
+With three frames of history a second-order prediction is possible: each Gaussian's next
+displacement 2c d_t - d_{t-1}, exact for a sinusoid of w radians a frame with c = cos(w)
+(c = 1: constant acceleration), then per node the rigid motion that carries its Gaussians
+there. Unlike a damping it turns a limb around at the end of its swing.
 """
 
 from __future__ import annotations
@@ -16,7 +21,7 @@ from torch import Tensor
 
 from core.sequence.graph import DeformationGraph
 
-__all__ = ["align_tracks", "predict_node_motion"]
+__all__ = ["align_tracks", "predict_node_motion", "predict_node_motion_second_order"]
 
 
 def align_tracks(ids: Tensor, earlier_ids: Tensor, earlier_means: Tensor) -> tuple[Tensor, Tensor]:
@@ -56,25 +61,21 @@ def _axis_angle_to_quat(v: Tensor) -> Tensor:
     return torch.cat([torch.cos(angle / 2), axis * torch.sin(angle / 2)], dim=-1)
 
 
-def predict_node_motion(graph: DeformationGraph, current: Tensor, earlier: Tensor, known: Tensor,
-                        damping: float, min_points: int = 4) -> tuple[Tensor, Tensor]:
-    """Node (quaternions (M, 4), translations (M, 3)) that continue the motion `earlier` ->
-    `current` (both (N, 3), the graph's Gaussians at frames t-2 and t-1; `known` (N,) marks those
-    present in both), scaled by `damping`. A node that carries fewer than `min_points` known
-    Gaussians (or a non-positive damping) gets the identity."""
+def _fit_node_rigid(graph: DeformationGraph, src: Tensor, dst: Tensor, known: Tensor,
+                    min_points: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Per node, the rigid motion (no scale) that best carries `src` onto `dst` (both (N, 3), the
+    graph's Gaussians; `known` (N,) marks those to use), weighted by the blend weights (weighted
+    Kabsch/Umeyama): (R (M, 3, 3), mu_src (M, 3), mu_dst (M, 3), ok (M,)) in float64, with
+    dst ~ R (src - mu_src) + mu_dst; ok is False for a node carrying fewer than `min_points`
+    known Gaussians."""
     m, dev = len(graph), graph.nodes.device
-    q = torch.zeros(m, 4, device=dev)
-    q[:, 0] = 1.0
-    t = torch.zeros(m, 3, device=dev)
-    if damping <= 0 or not bool(known.any()):
-        return q, t
     # Sums over each node's (Gaussian, weight) pairs, scattered from the K anchors of each
     # Gaussian (never an (N, M) matrix: real frames have 1e5-1e6 Gaussians and 1024 nodes).
     w = (graph.weights * known[:, None].to(graph.weights)).double().reshape(-1)  # (N K,)
     nodes = graph.anchors.reshape(-1)
     k = graph.anchors.shape[1]
-    p = earlier.double().repeat_interleave(k, dim=0)  # (N K, 3)
-    c = current.double().repeat_interleave(k, dim=0)
+    p = src.double().repeat_interleave(k, dim=0)  # (N K, 3)
+    c = dst.double().repeat_interleave(k, dim=0)
     total = torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, nodes, w)
     count = torch.zeros(m, dtype=torch.float64, device=dev).index_add_(0, nodes, (w > 0).double())
     ok = (count >= min_points) & (total > 1e-8)
@@ -89,7 +90,19 @@ def predict_node_motion(graph: DeformationGraph, current: Tensor, earlier: Tenso
     U, _, Vh = torch.linalg.svd(cov)
     d = torch.sign(torch.linalg.det(U @ Vh))
     D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
-    R = U @ D @ Vh  # (M, 3, 3): c ~ R (p - mu_p) + mu_c
+    return U @ D @ Vh, mu_p, mu_c, ok
+
+
+def predict_node_motion(graph: DeformationGraph, current: Tensor, earlier: Tensor, known: Tensor,
+                        damping: float, min_points: int = 4) -> tuple[Tensor, Tensor]:
+    """Node (quaternions (M, 4), translations (M, 3)) that continue the motion `earlier` ->
+    `current` (both (N, 3), the graph's Gaussians at frames t-2 and t-1; `known` (N,) marks those
+    present in both), scaled by `damping`. A node that carries fewer than `min_points` known
+    Gaussians (or a non-positive damping) gets the identity."""
+    q, t = graph.identity()
+    if damping <= 0 or not bool(known.any()):
+        return q, t
+    R, mu_p, mu_c, ok = _fit_node_rigid(graph, earlier, current, known, min_points)
     g = graph.nodes.double()
     moved = torch.einsum("mab,mb->ma", R, g - mu_p) + mu_c
     # The motion t-2 -> t-1 applied to the node centre once more, scaled by the damping; the
@@ -97,4 +110,29 @@ def predict_node_motion(graph: DeformationGraph, current: Tensor, earlier: Tenso
     step_q = _axis_angle_to_quat(damping * _rotmat_to_axis_angle(R)).float()
     step_t = (damping * (moved - g)).float()
     q[ok], t[ok] = step_q[ok], step_t[ok]
+    return q, t
+
+
+def predict_node_motion_second_order(graph: DeformationGraph, current: Tensor, earlier: Tensor,
+                                     earliest: Tensor, known: Tensor, c: float,
+                                     min_points: int = 4) -> tuple[Tensor, Tensor]:
+    """Node (quaternions (M, 4), translations (M, 3)) from a second-order prediction of the
+    graph's Gaussians at frames t-3, t-2, t-1 (`earliest`, `earlier`, `current`, (N, 3);
+    `known` (N,) marks those present in all three): each Gaussian's next displacement is
+    2c d_{t-1} - d_{t-2} (d: its displacement over a frame), the recurrence that any sinusoid
+    of w radians a frame with cos(w) = c satisfies exactly (c = 1: constant acceleration), and
+    each node gets the rigid motion that best carries its Gaussians there. A node carrying
+    fewer than `min_points` known Gaussians gets the identity."""
+    if not -1.0 <= c <= 1.0:
+        raise ValueError(f"c: expected cos(w) in [-1, 1], got {c}")
+    q, t = graph.identity()
+    if not bool(known.any()):
+        return q, t
+    x1, x2, x3 = current.double(), earlier.double(), earliest.double()
+    target = x1 + 2 * c * (x1 - x2) - (x2 - x3)
+    R, mu_p, mu_c, ok = _fit_node_rigid(graph, x1, target, known, min_points)
+    g = graph.nodes.double()
+    moved = torch.einsum("mab,mb->ma", R, g - mu_p) + mu_c
+    step_q = _axis_angle_to_quat(_rotmat_to_axis_angle(R)).float()
+    q[ok], t[ok] = step_q[ok], (moved - g).float()[ok]
     return q, t

@@ -2,13 +2,13 @@
 kept. Explicit state (a checkpoint holds `state_dict()`), no rendering: `FrameTracker` feeds it
 each step's image loss and asks it at the end of every round.
 
-Starts are node parameters by damping of the previous motion (0: rest; `core.sequence.motion`),
-ordered by a score (lower is better) measured before training; round r starts from the r-th
-while there are starts left, else from where the previous round ended. A round's end loss is the
-mean image loss of its last sixth of steps (the blur is gone by then). A round that ends at
-`retry_loss_ratio` times the previous frame's end loss or more is followed by another while
-`deform_retries` allow; then the round that ended lowest is kept and its end loss becomes the
-frame's `deform_loss`, the next frame's reference.
+Starts are node parameters by name ("rest", or a prediction from the previous frames' motion,
+`core.sequence.motion`), ordered by a score (lower is better) measured before training; round
+r starts from the r-th while there are starts left, else from where the previous round ended.
+A round's end loss is the mean image loss of its last sixth of steps (the blur is gone by
+then). A round that ends at `retry_loss_ratio` times the previous frame's end loss or more is
+followed by another while `deform_retries` allow; then the round that ended lowest is kept and
+its end loss becomes the frame's `deform_loss`, the next frame's reference.
 """
 
 from __future__ import annotations
@@ -35,14 +35,14 @@ class RoundEnd:
 class DeformRounds:
     """Bookkeeping of one frame's deform rounds (module docstring)."""
 
-    def __init__(self, starts: dict[float, tuple[Tensor, Tensor]], scores: dict[float, float],
+    def __init__(self, starts: dict[str, tuple[Tensor, Tensor]], scores: dict[str, float],
                  round_steps: int, *, reference_loss: float | None, retries: int,
                  ratio: float):
         if set(scores) - set(starts):
-            raise ValueError("scores: every scored damping needs a start")
+            raise ValueError("scores: every scored start needs node parameters")
         self.starts, self.scores = starts, scores
-        self.order = sorted(scores, key=scores.get) if scores else sorted(starts)
-        """Dampings by score, best first (by damping when nothing was scored)."""
+        self.order = sorted(scores, key=scores.get) if scores else list(starts)
+        """Start names by score, best first (in `starts`' order when nothing was scored)."""
         self.round_steps, self.reference_loss = round_steps, reference_loss
         self.max_retries, self.ratio = retries, ratio
         self.retries = 0
@@ -70,12 +70,12 @@ class DeformRounds:
         behind = self.reference_loss is not None and loss >= self.ratio * self.reference_loss
         if behind and self.retries < self.max_retries:
             self.retries += 1
-            damping = self.order[self.retries] if self.retries < len(self.order) else None
+            name = self.order[self.retries] if self.retries < len(self.order) else None
             note = (f"deform round {self.retries + 1} from "
-                    + ("where round 1 ended" if damping is None else f"start damping {damping:g}")
+                    + ("where round 1 ended" if name is None else f"start {name}")
                     + f": round {self.retries} ended at {loss / self.reference_loss:.2f}x the "
                       "previous frame's loss")
-            return RoundEnd(True, None if damping is None else self.starts[damping], note=note)
+            return RoundEnd(True, None if name is None else self.starts[name], note=note)
         self.kept = min(range(len(self.ended)), key=lambda r: self.ended[r][0])
         _, q_best, t_best = self.ended[self.kept]
         return RoundEnd(False, q=q_best, t=t_best)
@@ -86,9 +86,9 @@ class DeformRounds:
         return None if self.kept is None else self.ended[self.kept][0]
 
     @property
-    def start_damping(self) -> float:
-        """Damping of the start the kept (or current) round began from; a round that went on
-        from where another ended counts that one's start."""
+    def start(self) -> str:
+        """Name of the start the kept (or current) round began from; a round that went on from
+        where another ended counts that one's start."""
         index = self.retries if self.kept is None else self.kept
         return self.order[min(index, len(self.order) - 1)]
 

@@ -51,10 +51,12 @@ def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, 
                          sequence: SequenceConfig, *, downscale: float = 1.0,
                          callbacks=(), ao_baker=None, reference_loss: float | None = None,
                          earlier_ply: Path | None = None, refine_credit: int = 0,
-                         refine_reference: float | None = None) -> FrameTracker:
+                         refine_reference: float | None = None,
+                         earliest_ply: Path | None = None) -> FrameTracker:
     """A `FrameTracker` on the training cameras of `frame`, starting from the previous frame's
     PLY (`reference_loss`: that frame's `deform_loss`, for deform retries; `earlier_ply`:
     the frame before that in the same group, whose motion the deformation continues;
+    `earliest_ply`: the one before that, for second-order predictions;
     `refine_credit`: refine steps it may run beyond the nominal, `core.pipeline.
     refine_credit`, which `SequenceConfig.refine_adapt` may spend; `refine_reference`: what
     a group's second frame compares its deform loss with, `core.pipeline.median_deform_loss`)."""
@@ -68,16 +70,32 @@ def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, 
     ds = CaptureDataset(capture, frames=[frame], cameras=ids, downscale=downscale)
     views = [View.from_sample(ds[i]) for i in range(len(ds))]
     model, track = load_frame(previous_ply)
-    earlier = None
-    if earlier_ply is not None and sequence.motion_candidates:
-        if not Path(earlier_ply).is_file():
-            raise ValueError(f"earlier frame: {earlier_ply} not found; the two frames before "
-                             f"{frame!r} in its group must be finished first")
-        before, before_ids = load_frame(earlier_ply)
-        earlier = align_tracks(track, before_ids, before.means.detach())
+    earlier = earliest = None
+    if earlier_ply is not None and (sequence.motion_candidates or sequence.second_order):
+        earlier = _aligned(earlier_ply, track, frame, "two")
+        if earliest_ply is not None and sequence.second_order:
+            earliest = _aligned(earliest_ply, track, frame, "three")
     return FrameTracker(views, model, track, next_id, train, sequence, callbacks=callbacks,
                         ao_baker=ao_baker, reference_loss=reference_loss, earlier=earlier,
-                        refine_credit=refine_credit, refine_reference=refine_reference)
+                        refine_credit=refine_credit, refine_reference=refine_reference,
+                        earliest=earliest)
+
+
+def _aligned(ply: Path, track: torch.Tensor, frame: str, how_many: str):
+    """`align_tracks` of the frame PLY `ply` to the track ids `track`."""
+    if not Path(ply).is_file():
+        raise ValueError(f"earlier frame: {ply} not found; the {how_many} frames before "
+                         f"{frame!r} in its group must be finished first")
+    before, before_ids = load_frame(ply)
+    return align_tracks(track, before_ids, before.means.detach())
+
+
+def _start_name(metrics: dict) -> str:
+    """The kept start of a frame's metrics ("damping" in runs from before 2026-11-26)."""
+    start = metrics["start"]
+    if "from" in start:
+        return start["from"]
+    return "rest" if not start["damping"] else f"damped {start['damping']:g}"
 
 
 def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
@@ -98,12 +116,11 @@ def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
                      # Refine steps run (`refine_adapt` moves them off the nominal).
                      "refine_steps": None if m is None else m.get("refine_steps"),
                      "new_tracks": None if m is None else m.get("new_tracks"),
-                     # How the deform stage went: rounds run (2+: a retry) and the damping of
-                     # the previous motion its kept round started from (0: at rest).
+                     # How the deform stage went: rounds run (2+: a retry) and the start its
+                     # kept round began from ("rest", "damped a", "second-order c").
                      "deform_rounds": None if m is None or not m.get("deform_rounds")
                      else len(m["deform_rounds"]),
-                     "start_damping": None if m is None or not m.get("start")
-                     else m["start"]["damping"],
+                     "start": None if m is None or not m.get("start") else _start_name(m),
                      # Tracking lost and the frame made a key frame: the end-loss ratio.
                      "rekeyed": None if m is None or not m.get("rekeyed")
                      else m["rekeyed"]["loss_ratio"]})

@@ -1,5 +1,6 @@
 """Motion prediction for the deform stage (core.sequence.motion): per-node rigid fits of the
-motion between the two frames before, continued and damped."""
+motion between the two frames before, continued and damped, and the second-order prediction
+from three."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import pytest
 import torch
 
 from core.sequence.graph import build_graph, quat_multiply
-from core.sequence.motion import align_tracks, predict_node_motion
+from core.sequence.motion import align_tracks, predict_node_motion, predict_node_motion_second_order
 from native.reference import quat_to_rotmat
 
 
@@ -107,3 +108,63 @@ def test_large_and_small_rotations_are_recovered(angle: float) -> None:
                                damping=1.0)
     got = quat_to_rotmat(q).double()
     assert torch.allclose(got, R.expand_as(got), atol=1e-4)
+
+
+def test_second_order_continues_a_constant_acceleration_exactly() -> None:
+    # x(t) = x0 + v t + a t^2 / 2 for every Gaussian: with c = 1 the next position is exact,
+    # where continuing the last displacement (damping 1) falls short by a.
+    x0 = _cloud(seed=4).double()
+    v, a = torch.tensor([0.05, -0.02, 0.01]), torch.tensor([0.0, 0.03, -0.01])
+    at = lambda t: (x0 + v * t + 0.5 * a * t * t).float()  # noqa: E731
+    graph = build_graph(at(2), num_nodes=16)
+    known = torch.ones(len(x0), dtype=torch.bool)
+    q, t = predict_node_motion_second_order(graph, at(2), at(1), at(0), known, c=1.0)
+    assert torch.allclose(graph.deform_points(at(2), q, t), at(3), atol=2e-5)
+    assert torch.allclose(q, torch.tensor([1.0, 0, 0, 0]).expand_as(q), atol=1e-5)
+    q1, t1 = predict_node_motion(graph, at(2), at(1), known, damping=1.0)
+    off = (graph.deform_points(at(2), q1, t1) - at(3)).norm(dim=1)
+    assert torch.allclose(off, a.norm().expand_as(off), atol=1e-4)
+
+
+def test_second_order_follows_a_sinusoid_with_c_its_cosine() -> None:
+    # Every Gaussian oscillates along a direction, w = 0.9 rad a frame: at the turning phases a
+    # damping of the last displacement cannot follow; c = cos(w) does, exactly.
+    x0 = _cloud(seed=5).double()
+    w, amp = 0.9, torch.tensor([0.0, 0.3, 0.1], dtype=torch.float64)
+    at = lambda t: (x0 + amp * math.sin(w * t + 0.4)).float()  # noqa: E731
+    graph = build_graph(at(2), num_nodes=16)
+    known = torch.ones(len(x0), dtype=torch.bool)
+    q, t = predict_node_motion_second_order(graph, at(2), at(1), at(0), known, c=math.cos(w))
+    assert torch.allclose(graph.deform_points(at(2), q, t), at(3), atol=2e-5)
+    best_damped = min(float((graph.deform_points(at(2), *predict_node_motion(
+        graph, at(2), at(1), known, damping=d)) - at(3)).norm(dim=1).max())
+        for d in (0.25, 0.5, 1.0, 1.5))
+    assert best_damped > 0.05  # 5 cm off at best, against float precision
+
+
+def test_second_order_swing_about_a_pivot_and_its_checks() -> None:
+    # A rigid swing about a pivot with a sinusoidal angle: the nodes get the next rotation, and
+    # positions up to the curvature the point-wise recurrence does not see, well within what the
+    # best damping of the last motion leaves.
+    pivot = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    x0 = _cloud(seed=6).double() * torch.tensor([0.2, 0.2, 0.8], dtype=torch.float64)
+    w, amp = 0.9, 0.4
+    angle = lambda t: amp * math.sin(w * t)  # noqa: E731
+    at = lambda t: ((x0 - pivot) @ _rotation([1, 0, 0], angle(t)).T + pivot).float()  # noqa: E731
+    graph = build_graph(at(2), num_nodes=12)
+    known = torch.ones(len(x0), dtype=torch.bool)
+    q, t = predict_node_motion_second_order(graph, at(2), at(1), at(0), known, c=math.cos(w))
+    step = _rotation([1, 0, 0], angle(3) - angle(2))
+    got = quat_to_rotmat(q).double()
+    assert torch.allclose(got, step.expand_as(got), atol=0.03)
+    err = float((graph.deform_points(at(2), q, t) - at(3)).norm(dim=1).max())
+    assert err < 0.25 * float((at(3) - at(2)).norm(dim=1).max())
+    damped = min(float((graph.deform_points(at(2), *predict_node_motion(
+        graph, at(2), at(1), known, damping=d)) - at(3)).norm(dim=1).max()) for d in (0.5, 1.0))
+    assert err < 0.5 * damped
+    # Nodes with too few Gaussians known in all three frames stay at rest; c is a cosine.
+    none = torch.zeros(len(x0), dtype=torch.bool)
+    q0, t0 = predict_node_motion_second_order(graph, at(2), at(1), at(0), none, c=0.5)
+    assert torch.equal(q0, graph.identity()[0]) and torch.equal(t0, torch.zeros_like(t0))
+    with pytest.raises(ValueError, match="cos"):
+        predict_node_motion_second_order(graph, at(2), at(1), at(0), known, c=1.5)

@@ -140,6 +140,10 @@ def test_overrides_validate_keys_and_types(tmp_path: Path):
         apply_overrides(cfg, {"sequence": {"motion_candidates": [0.5, "fast"]}})
     with pytest.raises(ValueError, match="motion_candidates"):
         apply_overrides(cfg, {"sequence": {"motion_candidates": 0.5}})
+    assert apply_overrides(cfg, {"sequence": {"second_order": [1, 0.5]}}).sequence \
+        .second_order == (1.0, 0.5)
+    with pytest.raises(ValueError, match="second_order"):  # c is a cosine
+        apply_overrides(cfg, {"sequence": {"second_order": [1.5]}})
 
 
 def test_overrides_of_optional_fields():

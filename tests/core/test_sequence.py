@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -254,14 +255,14 @@ def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp
     # The third frame chooses its start among rest and the first two frames' motion continued
     # at the candidate dampings (the second frame has no motion to go on).
     starts = [straight_metrics["frames"][f]["start"] for f in ("000001", "000002")]
-    assert starts[0] == {"damping": 0.0, "scores": {}}
-    assert set(starts[1]["scores"]) == {"0.0", "0.5", "1.0"}
-    assert starts[1]["scores"][str(starts[1]["damping"])] == min(starts[1]["scores"].values())
+    assert starts[0] == {"from": "rest", "scores": {}}
+    assert set(starts[1]["scores"]) == {"rest", "damped 1"}
+    assert starts[1]["scores"][starts[1]["from"]] == min(starts[1]["scores"].values())
     seq = json.loads((straight / "sequence.json").read_text())
     assert [f["role"] for f in seq["frames"]] == ["key", "deformed", "deformed"]
     assert [f["deform_rounds"] for f in seq["frames"]][:2] == [None, 1]  # no reference: 1
-    kept = straight_metrics["frames"]["000002"]["start"]["damping"]
-    assert seq["frames"][2]["start_damping"] == kept
+    kept = straight_metrics["frames"]["000002"]["start"]["from"]
+    assert seq["frames"][2]["start"] == kept
     assert [g["frames"] for g in seq["gops"]] == [["000000", "000001", "000002"]]
     assert seq["timings"]["seconds_per_deformed_frame"] > 0 and seq["gaussians"]["mean"] > 0
     assert {e.phase for e in events if e.frame_index > 0} == {"deform", "refine"}
@@ -382,15 +383,15 @@ def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(cap
     capture = load_capture(capture3)
     ply = run / "frames" / "000000" / "gaussians.ply"
 
-    def tracker(reference, earlier=None):
-        t = tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, seq,
+    def tracker(reference, sequence=seq, earlier=None, earliest=None):
+        t = tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, sequence,
                                  reference_loss=reference)
         if earlier is None:
             return t
         from core.sequence.frame import FrameTracker
 
-        return FrameTracker(t.views, t.previous, t.prev_ids, 10 ** 6, cfg.train, seq,
-                            reference_loss=reference, earlier=earlier)
+        return FrameTracker(t.views, t.previous, t.prev_ids, 10 ** 6, cfg.train, sequence,
+                            reference_loss=reference, earlier=earlier, earliest=earliest)
 
     calm = tracker(None)  # no reference: never retries
     calm.train()
@@ -426,9 +427,22 @@ def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(cap
     # second round starts from the second-best start, with no Adam moments carried over.
     model, ids = load_frame(ply)
     earlier = align_tracks(ids, ids, model.means.detach() - torch.tensor([0.0, 0.0, 0.02]))
-    switch = tracker(1e-9, earlier)
+    # Two frames before known too: the second-order prediction joins the damped starts.
+    earliest = align_tracks(ids, ids, model.means.detach() - torch.tensor([0.0, 0.0, 0.05]))
+    second = tracker(1e-9, seq, earlier, earliest)
+    assert list(second.rounds.starts) == ["rest", "damped 1", "second-order 0.5"]
+    assert set(second.rounds.scores) == set(second.rounds.starts)
+    # The Gaussians rose 3 cm, then 2: 2c 2 - 3 = -1 cm at c = 0.5, the turn of a swing.
+    _, t = second.rounds.starts["second-order 0.5"]
+    # (A node that carries fewer than 4 Gaussians stays at rest.)
+    moved = t.abs().sum(dim=1) > 0
+    assert int(moved.sum()) >= 0.9 * len(t)
+    assert torch.allclose(t[moved], torch.tensor([0.0, 0.0, -0.01]).expand_as(t[moved]),
+                          atol=1e-4)
+    switch = tracker(1e-9, replace(seq, motion_candidates=(0.5, 1.0)), earlier)
+    assert list(switch.rounds.starts) == ["rest", "damped 0.5", "damped 1"]
     order = switch.rounds.order
-    assert len(order) == 3 and switch.start_damping == order[0]
+    assert len(order) == 3 and switch.start == order[0]
     scores = switch.rounds.scores
     assert [scores[a] for a in order] == sorted(scores.values())
     while switch.step < switch.round_steps:
@@ -438,10 +452,10 @@ def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(cap
     q, t = switch.rounds.starts[order[1]]
     assert torch.equal(switch.node_q.detach(), q) and torch.equal(switch.node_t.detach(), t)
     assert not switch.optimizer.state and switch.retries == 1
-    assert f"start damping {order[1]:g}" in switch.notes[0]
+    assert f"start {order[1]}" in switch.notes[0]
     switch.train()
     kept = min(range(2), key=lambda r: switch.rounds.ended[r][0])
-    assert switch.start_damping == order[kept]
+    assert switch.start == order[kept]
     q, t = switch.rounds.ended[kept][1:]
     assert torch.equal(switch.node_q.detach(), q) and torch.equal(switch.node_t.detach(), t)
     with pytest.raises(ValueError, match="retry_loss_ratio"):
