@@ -77,10 +77,7 @@ class FrameTracker:
         self.config, self.seq = config, sequence
         self.callbacks = list(callbacks)
         previous, ids = previous.to(self.device), ids.long().to(self.device)
-        if earlier is not None:
-            earlier = (earlier[0].to(self.device), earlier[1].to(self.device))
-        if earliest is not None:
-            earliest = (earliest[0].to(self.device), earliest[1].to(self.device))
+        earlier, earliest = to_device((earlier, earliest), self.device)
         self.previous, self.prev_ids, self.next_id = previous, ids, int(next_id)
         self.round_steps, self.nominal_refine = sequence.steps(config.schedule.iterations)
         self.refine_steps = self.nominal_refine

@@ -62,12 +62,12 @@ def _axis_angle_to_quat(v: Tensor) -> Tensor:
 
 
 def _fit_node_rigid(graph: DeformationGraph, src: Tensor, dst: Tensor, known: Tensor,
-                    min_points: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                    min_points: int) -> tuple[Tensor, Tensor, Tensor]:
     """Per node, the rigid motion (no scale) that best carries `src` onto `dst` (both (N, 3), the
     graph's Gaussians; `known` (N,) marks those to use), weighted by the blend weights (weighted
-    Kabsch/Umeyama): (R (M, 3, 3), mu_src (M, 3), mu_dst (M, 3), ok (M,)) in float64, with
-    dst ~ R (src - mu_src) + mu_dst; ok is False for a node carrying fewer than `min_points`
-    known Gaussians."""
+    Kabsch/Umeyama, dst ~ R (src - mu_src) + mu_dst): (R (M, 3, 3), the node centre's
+    displacement under it R (g - mu_src) + mu_dst - g (M, 3), ok (M,)) in float64; ok is False
+    for a node carrying fewer than `min_points` known Gaussians."""
     m, dev = len(graph), graph.nodes.device
     # Sums over each node's (Gaussian, weight) pairs, scattered from the K anchors of each
     # Gaussian (never an (N, M) matrix: real frames have 1e5-1e6 Gaussians and 1024 nodes).
@@ -90,7 +90,9 @@ def _fit_node_rigid(graph: DeformationGraph, src: Tensor, dst: Tensor, known: Te
     U, _, Vh = torch.linalg.svd(cov)
     d = torch.sign(torch.linalg.det(U @ Vh))
     D = torch.diag_embed(torch.stack([torch.ones_like(d), torch.ones_like(d), d], dim=-1))
-    return U @ D @ Vh, mu_p, mu_c, ok
+    R = U @ D @ Vh
+    g = graph.nodes.double()
+    return R, torch.einsum("mab,mb->ma", R, g - mu_p) + mu_c - g, ok
 
 
 def predict_node_motion(graph: DeformationGraph, current: Tensor, earlier: Tensor, known: Tensor,
@@ -102,13 +104,11 @@ def predict_node_motion(graph: DeformationGraph, current: Tensor, earlier: Tenso
     q, t = graph.identity()
     if damping <= 0 or not bool(known.any()):
         return q, t
-    R, mu_p, mu_c, ok = _fit_node_rigid(graph, earlier, current, known, min_points)
-    g = graph.nodes.double()
-    moved = torch.einsum("mab,mb->ma", R, g - mu_p) + mu_c
+    R, step, ok = _fit_node_rigid(graph, earlier, current, known, min_points)
     # The motion t-2 -> t-1 applied to the node centre once more, scaled by the damping; the
     # rotation about the node by the damped angle.
     step_q = _axis_angle_to_quat(damping * _rotmat_to_axis_angle(R)).float()
-    step_t = (damping * (moved - g)).float()
+    step_t = (damping * step).float()
     q[ok], t[ok] = step_q[ok], step_t[ok]
     return q, t
 
@@ -130,9 +130,7 @@ def predict_node_motion_second_order(graph: DeformationGraph, current: Tensor, e
         return q, t
     x1, x2, x3 = current.double(), earlier.double(), earliest.double()
     target = x1 + 2 * c * (x1 - x2) - (x2 - x3)
-    R, mu_p, mu_c, ok = _fit_node_rigid(graph, x1, target, known, min_points)
-    g = graph.nodes.double()
-    moved = torch.einsum("mab,mb->ma", R, g - mu_p) + mu_c
+    R, step, ok = _fit_node_rigid(graph, x1, target, known, min_points)
     step_q = _axis_angle_to_quat(_rotmat_to_axis_angle(R)).float()
-    q[ok], t[ok] = step_q[ok], (moved - g).float()[ok]
+    q[ok], t[ok] = step_q[ok], step.float()[ok]
     return q, t

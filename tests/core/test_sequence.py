@@ -215,6 +215,23 @@ def test_gop_segmentation():
         segment(["a", "a"], 2)
 
 
+def test_sequence_record_names_the_start_also_of_runs_that_recorded_a_damping():
+    """metrics.json before 2026-11-26 held the start's damping (0: rest); a resumed run's
+    sequence.json names it like the new ones."""
+    from core.sequence import SequenceConfig
+    from core.sequence.run import sequence_record
+
+    frames = ["a", "b", "c", "d"]
+    done = {"gaussians": 100, "seconds": 1.0}
+    metrics = {"a": {**done, "start": None},
+               "b": {**done, "start": {"damping": 0.0, "scores": {}}},
+               "c": {**done, "start": {"damping": 0.5, "scores": {"0.0": 0.2, "0.5": 0.1}}},
+               "d": {**done, "start": {"from": "second-order 0.5", "scores": {}}}}
+    record = sequence_record(frames, 4, SequenceConfig(), metrics)
+    assert [r["start"] for r in record["frames"]] == [None, "rest", "damped 0.5",
+                                                     "second-order 0.5"]
+
+
 # -- end to end ----------------------------------------------------------------------------------
 TINY_RUN = {"train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3_start": 28,
                                    "densify_from": 2, "densify_until": 24, "densify_interval": 5,
