@@ -506,10 +506,13 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         "next_track_id": len(trainer.model) if previous is None else trainer.group_next_id,
         "new_tracks": None if previous is None else trainer.state.born,
         "start": None if previous is None else {"from": trainer.start,
-                                                "scores": dict(trainer.rounds.scores)},
+                                                "scores": dict(trainer.race.scores),
+                                                "views": dict(trainer.race.views)},
         "deform_loss": getattr(trainer, "deform_loss", None),
         "refine_steps": None if previous is None else trainer.refine_steps,
         "refine_nominal": None if previous is None else trainer.nominal_refine,
+        # Renders the start race took beyond `start_views`, paid from the refine steps.
+        "scoring_extra": None if previous is None else trainer.scoring_extra,
         "deform_rounds": None if previous is None else [r[0] for r in trainer.rounds.ended],
         "notes": trainer.notes,
         "mesh": mesh,
@@ -530,10 +533,12 @@ def median_deform_loss(frames: dict[str, dict]) -> float | None:
 def refine_credit(frames: dict[str, dict], remaining: int, nominal: int, floor: int) -> int:
     """Refine steps the next tracked frame may run beyond `nominal` (`SequenceConfig.
     refine_adapt`): what the finished tracked frames of `frames` (metrics.json's) left unused
-    (nominal minus run, negative where they borrowed), plus what the `remaining` tracked frames
-    after it can still pay back at `floor` steps each. Every frame keeping within it leaves the
-    run's tracked frames at no more than `nominal` refine steps on average."""
-    saved = sum(m["refine_nominal"] - m["refine_steps"] for m in frames.values()
+    (nominal minus run, less the renders their start races took beyond `start_views`; negative
+    where they borrowed), plus what the `remaining` tracked frames after it can still pay back
+    at `floor` steps each. Every frame keeping within it leaves the run's tracked frames at no
+    more than `nominal` refine steps (and the nominal scoring) on average."""
+    saved = sum(m["refine_nominal"] - m["refine_steps"] - (m.get("scoring_extra") or 0)
+                for m in frames.values()
                 if m.get("refine_steps") is not None and m.get("refine_nominal") is not None)
     return saved + remaining * (nominal - floor)
 

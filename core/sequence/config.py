@@ -38,8 +38,9 @@ class SequenceConfig:
     motion_candidates: tuple[float, ...] = (1.0,)
     """Deform stage: starts to try besides rest, as dampings of the previous frame's motion
     (fitted per node from the two frames before, `core.sequence.motion`): 1 continues it, 0.5
-    half of it. The start whose blurred photometric + silhouette loss on `start_views` training
-    views is lowest wins (rest included), so a limb that reverses or stops costs no overshoot.
+    half of it. The start whose blurred photometric + silhouette loss over the training views
+    is lowest wins (rest included; `start_views`, `start_race`), so a limb that reverses or
+    stops costs no overshoot.
     Used from a group's third frame on (the second has no motion to continue); () and no
     `second_order` never predict. (0.5, 1) until 2026-11-26: with the second-order start
     beside them, 0.5 won 1 frame of 44 on the synthetic sequence.)"""
@@ -55,11 +56,22 @@ class SequenceConfig:
     motion against the frame rate (c near 1) is what `motion_candidates` 1 already continues.
     () keeps the first-order starts only."""
     start_views: int = 4
-    """Training views (evenly spaced) that score the candidate starts; each costs a render
-    without gradient per candidate. Scores are taken at the first step's blur
-    (`coarse_sigma`): scored at 2 px under a 4 px stage, the predicted motion won more often
-    (rest in 49% of frames against 61%) but tracked worse over four seeds (largest drops
-    3.4-8.5 dB against 2.4-3.5)."""
+    """Training views that score every candidate start first (in farthest-point order of the
+    camera centres, `core.sequence.starts.view_order`); each costs a render without gradient
+    per candidate. Scores are taken at the first step's blur (`coarse_sigma`): scored at 2 px
+    under a 4 px stage, the predicted motion won more often (rest in 49% of frames against
+    61%) but tracked worse over four seeds (largest drops 3.4-8.5 dB against 2.4-3.5)."""
+    start_race: float = 2.0
+    """After `start_views`, views are added two at a time to the starts not yet separated from
+    the leader, until each rival trails it by this many standard errors of the per-view
+    difference (a paired t statistic) or every training view is scored
+    (`core.sequence.starts.race_starts`); 0 scores `start_views` views only. The renders a
+    race takes beyond `start_views` come out of the refine stage (`FrameTracker.
+    scoring_extra`), so the budget is unchanged. Replaying 40 tracked frames of two training
+    seeds from every start (docs/method.md): four views chose a start that refined 0.5-0.75 dB
+    below the best at frame 22 of both; all fourteen chose right there, and the race at 2
+    chose as all fourteen did everywhere, scoring 19.4 views a frame instead of 11.6 (1.5:
+    the same choices at 16.4; 1: four views' mistakes)."""
     lr_rotation: float = 2e-2
     """Adam rate of the node quaternions (decays exponentially to a tenth over the stage)."""
     lr_translation: float = 1e-2

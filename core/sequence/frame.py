@@ -35,8 +35,8 @@ from core.seeding import scene_extent
 from core.sequence.config import SequenceConfig
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
 from core.sequence.graph import build_graph
-from core.sequence.motion import predict_node_motion, predict_node_motion_second_order
 from core.sequence.rounds import DeformRounds
+from core.sequence.starts import StartRace, candidate_starts, race_starts, view_order
 from core.sequence.refine import (
     TemporalWeights,
     TrackedState,
@@ -104,8 +104,10 @@ class FrameTracker:
         self.generator = torch.Generator().manual_seed(config.seed)
         self.graph = build_graph(previous.means.detach(), sequence.nodes(len(previous)),
                                  node_neighbors=sequence.node_neighbors)
-        starts, scores = self._candidate_starts(earlier, earliest)
-        self.rounds = DeformRounds(starts, scores, self.round_steps,
+        starts, self.race = self._race_starts(earlier, earliest)
+        """The race that ordered the starts: scores, views and renders per start."""
+        self.rounds = DeformRounds(starts, self.race.scores, self.round_steps,
+                                   order=self.race.order,
                                    reference_loss=reference_loss,
                                    retries=sequence.deform_retries,
                                    ratio=sequence.retry_loss_ratio)
@@ -169,40 +171,33 @@ class FrameTracker:
                                                         cam.viewmat, w)
         return terms
 
-    def _candidate_starts(self, earlier, earliest) -> tuple[dict, dict[str, float]]:
-        """Node parameters to start from, by name: "rest"; with `earlier` the previous motion
-        continued at each damping a of `motion_candidates` ("damped a"); with `earliest` too
-        its second-order prediction at each c of `second_order` ("second-order c"). Scored on
-        `start_views` evenly spaced views (nothing is scored when rest is the only start)."""
-        starts = {"rest": self.graph.identity()}
-        s, current = self.seq, self.previous.means.detach()
-        if earlier is not None:
-            for a in s.motion_candidates:
-                starts[f"damped {a:g}"] = predict_node_motion(self.graph, current, *earlier,
-                                                              damping=float(a))
-        if earlier is not None and earliest is not None:
-            known = earlier[1] & earliest[1]
-            for c in s.second_order:
-                starts[f"second-order {c:g}"] = predict_node_motion_second_order(
-                    self.graph, current, earlier[0], earliest[0], known, c=float(c))
-        if len(starts) == 1:
-            return starts, {}
-        count = min(s.start_views, len(self.views))
-        views = sorted({round(k * len(self.views) / count) for k in range(count)})
-        return starts, {name: self._start_score(q, t, views) for name, (q, t) in starts.items()}
+    def _race_starts(self, earlier, earliest) -> tuple[dict, StartRace]:
+        """The candidate starts (`core.sequence.starts.candidate_starts`) and the race that
+        ordered them (`SequenceConfig.start_views`, `start_race`)."""
+        s = self.seq
+        starts = candidate_starts(self.graph, self.previous.means.detach(), earlier, earliest,
+                                  s.motion_candidates, s.second_order)
+        posed: dict[str, DeformedGaussians] = {}
+
+        def loss(name: str, index: int) -> float:
+            if name not in posed:
+                posed[name] = DeformedGaussians(self.previous, self.graph, *starts[name])
+            return self._start_loss(posed[name], index)
+
+        centres = torch.stack([torch.linalg.inv(c.viewmat)[:3, 3] for c in self.cameras])
+        race = race_starts(list(starts), loss, view_order(centres.cpu()), s.start_views,
+                           s.start_race)
+        return starts, race
 
     @torch.no_grad()
-    def _start_score(self, q: Tensor, t: Tensor, views: list[int]) -> float:
-        """Mean over `views` of the image loss (photometric + silhouette) a round's first step
-        would see, at its blur."""
-        posed = DeformedGaussians(self.previous, self.graph, q, t)
-        sigma, total = self.seq.coarse_sigma, 0.0
-        for i in views:
-            r = self._render(posed, i, self.background)
-            silhouette = self._silhouette(r, i, sigma)
-            total += float(self._photometric(r, i, self.background, sigma)) + (
-                0.0 if silhouette is None else float(silhouette))
-        return total / len(views)
+    def _start_loss(self, posed: DeformedGaussians, index: int) -> float:
+        """The image loss (photometric + silhouette) a round's first step would see on view
+        `index` from the posed start, at its blur."""
+        sigma = self.seq.coarse_sigma
+        r = self._render(posed, index, self.background)
+        silhouette = self._silhouette(r, index, sigma)
+        return float(self._photometric(r, index, self.background, sigma)) + (
+            0.0 if silhouette is None else float(silhouette))
 
     # -- stages ------------------------------------------------------------------------------
     def _deform_step(self, index: int, bg: Tensor) -> tuple[dict, object]:
@@ -238,14 +233,15 @@ class FrameTracker:
         """Refine steps for how the deform stage ended (`SequenceConfig.refine_adapt`): the
         nominal times the loss ratio to the power `refine_adapt` (`refine_second` without a
         reference), clipped to [`refine_min`, `refine_max`], at most the nominal plus
-        `refine_credit` and at least `refine_floor`."""
+        `refine_credit` less the start race's `scoring_extra`, and at least `refine_floor`."""
         s, nominal = self.seq, self.nominal_refine
         ref, end = self.rounds.reference_loss or self.refine_reference, self.rounds.deform_loss
         if s.refine_adapt <= 0 or end is None:
             return nominal
         scale = (end / ref) ** s.refine_adapt if ref else s.refine_second
         want = round(nominal * min(max(scale, s.refine_min), s.refine_max))
-        return max(s.refine_floor(nominal), min(want, nominal + self.refine_credit))
+        room = nominal + self.refine_credit - self.scoring_extra
+        return max(s.refine_floor(nominal), min(want, room))
 
     def _start_refine(self) -> None:
         """The deformed Gaussians become the model; anchors, ids, optimizer, strategy start."""
@@ -370,8 +366,16 @@ class FrameTracker:
                 + self._scoring_renders())
 
     def _scoring_renders(self) -> int:
-        scoring = len(self.rounds.scores) * min(self.seq.start_views, len(self.views))
-        return (scoring + 1) // 2
+        return (self.race.renders + 1) // 2
+
+    @property
+    def scoring_extra(self) -> int:
+        """Scoring renders (as `renders` counts them) the start race took beyond scoring every
+        start on `start_views` views; the refine stage pays them back
+        (`_refine_budget`), so a close race costs the run no more renders."""
+        starts = len(self.race.views)
+        base = starts * min(self.seq.start_views, len(self.views)) if starts > 1 else 0
+        return max(0, self._scoring_renders() - (base + 1) // 2)
 
     @property
     def retries(self) -> int:

@@ -3,7 +3,8 @@ kept. Explicit state (a checkpoint holds `state_dict()`), no rendering: `FrameTr
 each step's image loss and asks it at the end of every round.
 
 Starts are node parameters by name ("rest", or a prediction from the previous frames' motion,
-`core.sequence.motion`), ordered by a score (lower is better) measured before training; round
+`core.sequence.motion`), ordered before training (by a score, lower is better, or by the race
+of `core.sequence.starts`); round
 r starts from the r-th while there are starts left, else from where the previous round ended.
 A round's end loss is the mean image loss of its last sixth of steps (the blur is gone by
 then). A round that ends at `retry_loss_ratio` times the previous frame's end loss or more is
@@ -37,12 +38,16 @@ class DeformRounds:
 
     def __init__(self, starts: dict[str, tuple[Tensor, Tensor]], scores: dict[str, float],
                  round_steps: int, *, reference_loss: float | None, retries: int,
-                 ratio: float):
+                 ratio: float, order: list[str] | None = None):
         if set(scores) - set(starts):
             raise ValueError("scores: every scored start needs node parameters")
+        if order is not None and sorted(order) != sorted(starts):
+            raise ValueError(f"order: expected the start names {sorted(starts)}, got {order}")
         self.starts, self.scores = starts, scores
-        self.order = sorted(scores, key=scores.get) if scores else list(starts)
-        """Start names by score, best first (in `starts`' order when nothing was scored)."""
+        self.order = (list(order) if order is not None
+                      else sorted(scores, key=scores.get) if scores else list(starts))
+        """Start names best first: `order` when given (a race's, `core.sequence.starts`), else
+        by score (in `starts`' order when nothing was scored)."""
         self.round_steps, self.reference_loss = round_steps, reference_loss
         self.max_retries, self.ratio = retries, ratio
         self.retries = 0

@@ -121,6 +121,10 @@ def sequence_record(chosen: list[str], gop: int, sequence: SequenceConfig,
                      "deform_rounds": None if m is None or not m.get("deform_rounds")
                      else len(m["deform_rounds"]),
                      "start": None if m is None or not m.get("start") else _start_name(m),
+                     # Views the start race scored the kept start on (None: no race, or
+                     # a run from before the race).
+                     "start_views": None if m is None or not m.get("start")
+                     else (m["start"].get("views") or {}).get(_start_name(m)),
                      # Tracking lost and the frame made a key frame: the end-loss ratio.
                      "rekeyed": None if m is None or not m.get("rekeyed")
                      else m["rekeyed"]["loss_ratio"]})

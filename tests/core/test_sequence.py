@@ -272,14 +272,19 @@ def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp
     # The third frame chooses its start among rest and the first two frames' motion continued
     # at the candidate dampings (the second frame has no motion to go on).
     starts = [straight_metrics["frames"][f]["start"] for f in ("000001", "000002")]
-    assert starts[0] == {"from": "rest", "scores": {}}
+    assert starts[0] == {"from": "rest", "scores": {}, "views": {}}
     assert set(starts[1]["scores"]) == {"rest", "damped 1"}
-    assert starts[1]["scores"][starts[1]["from"]] == min(starts[1]["scores"].values())
+    # The race's winner was scored on the most views, and has the lowest mean among the
+    # starts scored on as many (core.sequence.starts).
+    won, views = starts[1]["from"], starts[1]["views"]
+    assert set(views) == {"rest", "damped 1"} and views[won] == max(views.values()) >= 4
+    assert starts[1]["scores"][won] == min(v for n, v in starts[1]["scores"].items()
+                                           if views[n] == views[won])
     seq = json.loads((straight / "sequence.json").read_text())
     assert [f["role"] for f in seq["frames"]] == ["key", "deformed", "deformed"]
     assert [f["deform_rounds"] for f in seq["frames"]][:2] == [None, 1]  # no reference: 1
     kept = straight_metrics["frames"]["000002"]["start"]["from"]
-    assert seq["frames"][2]["start"] == kept
+    assert seq["frames"][2]["start"] == kept and seq["frames"][2]["start_views"] == views[won]
     assert [g["frames"] for g in seq["gops"]] == [["000000", "000001", "000002"]]
     assert seq["timings"]["seconds_per_deformed_frame"] > 0 and seq["gaussians"]["mean"] > 0
     assert {e.phase for e in events if e.frame_index > 0} == {"deform", "refine"}
@@ -602,6 +607,24 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
         t = tracker(None, 100, second=second)
         t.train()
         assert t.refine_steps == steps, second
+    # A start race that scores more than start_views views pays the renders it took beyond
+    # them out of the refine stage: a frame far behind with no credit refines that much less.
+    from core.sequence.frame import FrameTracker
+
+    base = tracker(None, 0)
+    shifted = (base.previous.means.detach() + 0.01, torch.ones(len(base.previous), dtype=bool))
+    for race, extra in ((1e9, True), (0.0, False)):
+        seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
+                             refine_min=0.5, refine_adapt=3.0, start_race=race)
+        t = FrameTracker(base.views, base.previous, base.prev_ids, 10 ** 6, cfg.train, seq,
+                         reference_loss=1e-9, earlier=shifted)
+        views = len(t.views)
+        assert t.race.views == ({"rest": views, "damped 1": views} if extra
+                                else {"rest": 4, "damped 1": 4})
+        assert t.scoring_extra == (views - 4 if extra else 0)  # 2 starts x (views - 4) / 2
+        t.train()
+        assert t.refine_steps == 10 - t.scoring_extra
+        assert t.renders == 10 + t.refine_steps + (t.race.renders + 1) // 2
     fixed = tracker(1e-9, 100, refine_adapt=0.0)
     fixed.train()
     assert fixed.refine_steps == 10
@@ -624,6 +647,9 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     assert refine_credit(frames, 0, 10, 9) == 1  # saved 2, borrowed 1
     assert refine_credit(frames, 3, 10, 9) == 1 + 3  # and 3 frames can pay back 1 each
     assert refine_credit({"1": {"refine_steps": 14, "refine_nominal": 10}}, 3, 10, 9) == -1
+    # A frame's start race beyond start_views counts as refine steps spent.
+    frames["000002"]["scoring_extra"] = 2
+    assert refine_credit(frames, 0, 10, 9) == 1 - 2
     # The second frame's reference: the median deform loss of the run's refined tracked frames.
     frames = {"000000": {"deform_loss": None, "refine_steps": None},
               "000001": {"deform_loss": 0.3, "refine_steps": 8},
