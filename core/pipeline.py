@@ -21,6 +21,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from core.sequence.budget import median_deform_loss, refine_credit
 from core.sequence.config import SequenceConfig
 from core.progress import LogLines, TerminalBar, frame_iterations
 from core.train import Callback, CheckpointCallback, StepInfo, TrainConfig, Trainer, train_config
@@ -518,29 +519,6 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         "mesh": mesh,
         "history": _thin(history.records),
     }
-
-
-def median_deform_loss(frames: dict[str, dict]) -> float | None:
-    """Median end loss of the deform stages of the finished tracked frames of `frames`
-    (metrics.json's; a re-keyed frame refined nothing and does not count), None before the
-    first: what a group's second frame, which follows a key frame, compares its own with
-    (`SequenceConfig.refine_adapt`)."""
-    losses = [m["deform_loss"] for m in frames.values()
-              if m.get("deform_loss") is not None and m.get("refine_steps") is not None]
-    return float(np.median(losses)) if losses else None
-
-
-def refine_credit(frames: dict[str, dict], remaining: int, nominal: int, floor: int) -> int:
-    """Refine steps the next tracked frame may run beyond `nominal` (`SequenceConfig.
-    refine_adapt`): what the finished tracked frames of `frames` (metrics.json's) left unused
-    (nominal minus run, less the renders their start races took beyond `start_views`; negative
-    where they borrowed), plus what the `remaining` tracked frames after it can still pay back
-    at `floor` steps each. Every frame keeping within it leaves the run's tracked frames at no
-    more than `nominal` refine steps (and the nominal scoring) on average."""
-    saved = sum(m["refine_nominal"] - m["refine_steps"] - (m.get("scoring_extra") or 0)
-                for m in frames.values()
-                if m.get("refine_steps") is not None and m.get("refine_nominal") is not None)
-    return saved + remaining * (nominal - floor)
 
 
 def _mesh_frame(run: Path, capture, frame: str, settings: RunMesh) -> dict | None:

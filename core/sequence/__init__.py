@@ -3,6 +3,7 @@ static stages and whose other frames are the previous frame's Gaussians deformed
 deformation graph, then refined with temporal regularisation, keeping Gaussian correspondences
 (track ids) inside a group."""
 
+from core.sequence.budget import median_deform_loss, refine_credit, refine_steps
 from core.sequence.config import SequenceConfig
 from core.sequence.correspondence import track_errors
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
@@ -29,6 +30,7 @@ from core.sequence.refine import (
 )
 from core.sequence.rounds import DeformRounds, RoundEnd
 from core.sequence.run import load_frame, save_frame, sequence_record, tracker_from_capture
+from core.sequence.starts import StartRace, candidate_starts, race_starts, view_order
 
 __all__ = [
     "DeformRounds",
@@ -39,6 +41,7 @@ __all__ = [
     "Gop",
     "RoundEnd",
     "SequenceConfig",
+    "StartRace",
     "TemporalWeights",
     "TrackedState",
     "align_tracks",
@@ -49,14 +52,19 @@ __all__ = [
     "blur",
     "blur_sigma",
     "build_graph",
+    "candidate_starts",
     "deform_losses",
     "farthest_point_sampling",
     "load_frame",
+    "median_deform_loss",
     "predict_node_motion",
     "predict_node_motion_second_order",
     "prune_transparent",
     "quat_multiply",
     "quat_norm_loss",
+    "race_starts",
+    "refine_credit",
+    "refine_steps",
     "relabel",
     "roles",
     "roles_of",
@@ -67,4 +75,5 @@ __all__ = [
     "temporal_loss",
     "track_errors",
     "tracker_from_capture",
+    "view_order",
 ]

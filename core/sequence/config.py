@@ -40,10 +40,9 @@ class SequenceConfig:
     (fitted per node from the two frames before, `core.sequence.motion`): 1 continues it, 0.5
     half of it. The start whose blurred photometric + silhouette loss over the training views
     is lowest wins (rest included; `start_views`, `start_race`), so a limb that reverses or
-    stops costs no overshoot.
-    Used from a group's third frame on (the second has no motion to continue); () and no
-    `second_order` never predict. (0.5, 1) until 2026-11-26: with the second-order start
-    beside them, 0.5 won 1 frame of 44 on the synthetic sequence.)"""
+    stops costs no overshoot. Used from a group's third frame on (the second has no motion
+    to continue); () and no `second_order` never predict. ((0.5, 1) before the second-order
+    starts: beside them, 0.5 won 1 frame of 44 on the synthetic sequence.)"""
     second_order: tuple[float, ...] = (0.5,)
     """Deform stage: from a group's fourth frame on (three frames of history), more starts:
     second-order predictions, each tracked Gaussian's next displacement 2c d_t - d_{t-1}
@@ -125,10 +124,10 @@ class SequenceConfig:
     the previous frame's (the retry's signal: a frame that tracked worse than its predecessor
     gets more refinement, one that tracked better fewer); a group's second frame follows a key
     frame, which has no deform loss, and compares with the median of the run's earlier tracked
-    frames' (`core.pipeline.median_deform_loss`), or asks `refine_second` when there is none
+    frames' (`core.sequence.budget.median_deform_loss`), or asks `refine_second` when there is none
     (the run's first group). Steps beyond the nominal are paid out of what earlier
     tracked frames of the run left unused, or borrowed against at most `refine_borrow` later
-    ones, no more than they can pay back at `refine_min` (`core.pipeline.refine_credit`), so
+    ones, no more than they can pay back at `refine_min` (`core.sequence.budget.refine_credit`), so
     the run's tracked frames never refine more than the nominal on average: rate control at a
     constant budget, as a video encoder spends bits where the picture needs them (a frame
     re-keyed later pays nothing back). 0: fixed, the nominal everywhere. Measured on the

@@ -32,6 +32,7 @@ from core.losses import (
 from core.model import GaussianModel
 from core.render import RenderCamera, render
 from core.seeding import scene_extent
+from core.sequence.budget import refine_steps
 from core.sequence.config import SequenceConfig
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
 from core.sequence.graph import build_graph
@@ -89,7 +90,7 @@ class FrameTracker:
         `refine_second`)."""
         self.refine_credit = int(refine_credit)
         """Refine steps this frame may run beyond the nominal (negative: a debt it must start
-        paying back), `core.pipeline.refine_credit`."""
+        paying back), `core.sequence.budget.refine_credit`."""
         self.plan = plan(config.schedule.iterations - 1, config.schedule)
         if ao_baker is None and sequence.bake_ao and config.bake_ao:
             from core.ao import GaussianAOBaker
@@ -230,18 +231,11 @@ class FrameTracker:
         return terms, first
 
     def _refine_budget(self) -> int:
-        """Refine steps for how the deform stage ended (`SequenceConfig.refine_adapt`): the
-        nominal times the loss ratio to the power `refine_adapt` (`refine_second` without a
-        reference), clipped to [`refine_min`, `refine_max`], at most the nominal plus
-        `refine_credit` less the start race's `scoring_extra`, and at least `refine_floor`."""
-        s, nominal = self.seq, self.nominal_refine
-        ref, end = self.rounds.reference_loss or self.refine_reference, self.rounds.deform_loss
-        if s.refine_adapt <= 0 or end is None:
-            return nominal
-        scale = (end / ref) ** s.refine_adapt if ref else s.refine_second
-        want = round(nominal * min(max(scale, s.refine_min), s.refine_max))
-        room = nominal + self.refine_credit - self.scoring_extra
-        return max(s.refine_floor(nominal), min(want, room))
+        """Refine steps for how the deform stage ended (`core.sequence.budget.refine_steps`;
+        a group's second frame compares with `refine_reference`)."""
+        return refine_steps(self.seq, self.nominal_refine, self.rounds.deform_loss,
+                            self.rounds.reference_loss or self.refine_reference,
+                            self.refine_credit, self.scoring_extra)
 
     def _start_refine(self) -> None:
         """The deformed Gaussians become the model; anchors, ids, optimizer, strategy start."""

@@ -57,9 +57,10 @@ def tracker_from_capture(capture, frame: str, previous_ply: Path, next_id: int, 
     PLY (`reference_loss`: that frame's `deform_loss`, for deform retries; `earlier_ply`:
     the frame before that in the same group, whose motion the deformation continues;
     `earliest_ply`: the one before that, for second-order predictions;
-    `refine_credit`: refine steps it may run beyond the nominal, `core.pipeline.
+    `refine_credit`: refine steps it may run beyond the nominal, `core.sequence.budget.
     refine_credit`, which `SequenceConfig.refine_adapt` may spend; `refine_reference`: what
-    a group's second frame compares its deform loss with, `core.pipeline.median_deform_loss`)."""
+    a group's second frame compares its deform loss with, `core.sequence.budget.
+    median_deform_loss`)."""
     from core.data.dataset import CaptureDataset
     from core.train import View, training_cameras
 
@@ -91,7 +92,8 @@ def _aligned(ply: Path, track: torch.Tensor, frame: str, how_many: str):
 
 
 def _start_name(metrics: dict) -> str:
-    """The kept start of a frame's metrics ("damping" in runs from before 2026-11-26)."""
+    """The kept start of a frame's metrics ("damping" in runs from before the second-order
+    starts)."""
     start = metrics["start"]
     if "from" in start:
         return start["from"]

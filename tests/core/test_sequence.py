@@ -216,8 +216,8 @@ def test_gop_segmentation():
 
 
 def test_sequence_record_names_the_start_also_of_runs_that_recorded_a_damping():
-    """metrics.json before 2026-11-26 held the start's damping (0: rest); a resumed run's
-    sequence.json names it like the new ones."""
+    """metrics.json written before the second-order starts held the start's damping (0:
+    rest); a resumed run's sequence.json names it like the new ones."""
     from core.sequence import SequenceConfig
     from core.sequence.run import sequence_record
 
@@ -561,14 +561,9 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     same steps and model; the pipeline's credit is what the finished tracked frames left unused
     plus what the remaining ones can pay back."""
     from core.data import load_capture
-    from core.pipeline import (
-        apply_overrides,
-        median_deform_loss,
-        reconstruct,
-        refine_credit,
-        resolve_config,
-    )
+    from core.pipeline import apply_overrides, reconstruct, resolve_config
     from core.sequence import SequenceConfig
+    from core.sequence.budget import median_deform_loss, refine_credit
     from core.sequence.run import tracker_from_capture
 
     run = tmp_path / "key"
