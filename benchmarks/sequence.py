@@ -16,6 +16,10 @@ Results go to OUT/results.json (updated after each variant; finished variants ar
 
     python benchmarks/sequence.py [--quick] [--frames 24] [--views 16] [--size 64]
                                   [--iterations 500] [--gop 20] [--out DIR]
+                                  [--subject CHARACTER.glb [--fps 24]]
+
+`--subject` films a skinned glTF character instead of the built-in figure (`dgs synth
+--subject`), e.g. ../shared/data/animated/CesiumMan.glb when that folder exists.
 """
 
 from __future__ import annotations
@@ -105,6 +109,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--train-seed", type=int, default=0, help="training seed (TrainConfig.seed)")
     ap.add_argument("--rekey", type=float, default=0.0,
                     help="sequence.rekey_loss_ratio of the sequential variants (0: never)")
+    ap.add_argument("--subject", default="",
+                    help="a skinned glTF 2.0 character (.glb) to film instead of the figure")
+    ap.add_argument("--fps", type=float, default=24.0,
+                    help="frames per second of the character's animation")
     ap.add_argument("--out", default="/tmp/dgs-bench-sequence")
     args = ap.parse_args(argv)
     if args.quick:
@@ -118,12 +126,17 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     capture = out / "capture"
     if not (capture / "capture.json").is_file():
+        if args.subject and not Path(args.subject).is_file():
+            raise SystemExit(f"--subject: {args.subject} not found (the shared data folder "
+                             "holds CesiumMan.glb under animated/)")
         synthesize(capture, SynthConfig(frames=args.frames, views=args.views, width=args.size,
-                                        height=args.size, seed=args.seed, priors=True))
+                                        height=args.size, seed=args.seed, priors=True,
+                                        subject=args.subject, fps=args.fps))
     results_path = out / "results.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
     results["setup"] = {k: getattr(args, k) for k in ("frames", "views", "size", "iterations",
-                                                       "gop", "seed", "train_seed", "rekey")}
+                                                       "gop", "seed", "train_seed", "rekey",
+                                                       "subject", "fps")}
     total = None
     for variant in args.variants.split(","):
         run = out / variant

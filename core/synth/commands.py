@@ -1,4 +1,5 @@
-"""`dgs synth OUT [--frames F] [--views V] [--size W H] [--seed S] [--priors]`."""
+"""`dgs synth OUT [--frames F] [--views V] [--size W H] [--seed S] [--priors]
+[--subject CHARACTER.glb [--fps F]]`."""
 
 from __future__ import annotations
 
@@ -21,6 +22,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--priors", action="store_true", help="also write degraded normal priors to normals/"
     )
+    p.add_argument("--subject", default="", metavar="CHARACTER.glb",
+                   help="film a skinned, animated glTF 2.0 character instead of the built-in "
+                        "figure")
+    p.add_argument("--fps", type=float, default=24.0,
+                   help="frames per second of the character's animation (default 24)")
     p.set_defaults(func=_run)
 
 
@@ -34,6 +40,8 @@ def _run(args: argparse.Namespace) -> int:
         height=args.size[1],
         seed=args.seed,
         priors=args.priors,
+        subject=args.subject,
+        fps=args.fps,
     )
     start = time.perf_counter()
     try:

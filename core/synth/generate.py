@@ -76,10 +76,19 @@ class SynthConfig:
     supersample: int = 3
     """Odd k: k x k samples per pixel for images and coverage masks (1: one sample at the pixel
     centre, aliased edges and texture, binary masks)."""
+    subject: str = ""
+    """What is filmed: "" the articulated figure; a path to a skinned, animated glTF 2.0
+    character (.glb, `core.synth.gltf`), textured by its base-colour map."""
+    fps: float = 24.0
+    """Frames per second of a glTF subject's animation (frame i is at i / fps seconds)."""
 
     def check(self) -> None:
         if self.supersample < 1 or self.supersample % 2 == 0:
             raise ValueError(f"supersample: expected an odd integer >= 1, got {self.supersample}")
+        if not self.fps > 0:
+            raise ValueError(f"fps: expected > 0, got {self.fps}")
+        if self.subject and not Path(self.subject).is_file():
+            raise ValueError(f"subject: {self.subject} is not a file (expected a .glb)")
         for name in ("frames", "views", "width", "height", "ao_directions"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name}: expected >= 1, got {getattr(self, name)}")
@@ -131,11 +140,12 @@ def _to_u8(x: np.ndarray) -> np.ndarray:
 
 
 def _render_view(
-    mesh: FigureMesh, vis: np.ndarray, cam: Camera, palette: np.ndarray, supersample: int = 1
+    mesh: FigureMesh, vis: np.ndarray, cam: Camera, albedo_of, supersample: int = 1
 ) -> dict[str, np.ndarray]:
     """Point samples at the pixel centres ("mask", "depth", "normal"), coverage ("coverage") and
     straight stored-value colour ("albedo", "visibility" and one image per light, encoded as
-    they are written: sRGB for colours, linear for visibility)."""
+    they are written: sRGB for colours, linear for visibility). `albedo_of(frags, mesh)` gives
+    the linear albedo (M, 3) of the covered samples."""
     k, W, H = supersample, cam.width, cam.height
     # Continuous pixel coordinates scale by k, so the centre (u + 0.5) of pixel u is the centre of
     # sub-pixel k u + k // 2 when k is odd.
@@ -144,11 +154,9 @@ def _render_view(
     m = frags.mask
     normals = interpolate(frags, mesh.faces, mesh.normals)
     normals[m] /= np.linalg.norm(normals[m], axis=1, keepdims=True)
-    rest = interpolate(frags, mesh.faces, mesh.rest)
     visibility = interpolate(frags, mesh.faces, vis[:, None])
-    part = mesh.part[mesh.faces[frags.triangle[m], 0]]
     albedo = np.zeros_like(normals)
-    albedo[m] = albedo_at(rest[m], part, palette)
+    albedo[m] = albedo_of(frags, mesh)
     stored = {"albedo": linear_to_srgb(albedo), "visibility": visibility}
     for name, light in LIGHTS.items():
         rgb = np.zeros_like(normals)
@@ -224,12 +232,13 @@ def synthesize(out: str | os.PathLike[str], config: SynthConfig = SynthConfig())
     rng = np.random.default_rng(config.seed)
     figure = Figure(seed=int(rng.integers(2**31)))
     palette = rng.uniform(0.25, 0.85, size=(figure.n_parts, 3))
+    pose, albedo_of = _subject(config, figure, palette)
     cameras = dome_cameras(config, rng)
     prior_rng = np.random.default_rng(rng.integers(2**31))
     frames = [f"{i:06d}" for i in range(config.frames)]
     gt = out / "gt"
     for i, frame in enumerate(frames):
-        mesh = figure.pose(float(i))
+        mesh = pose(i)
         vis = vertex_visibility(mesh.vertices, mesh.normals, mesh.faces, config.ao_directions)
         write_ply(gt / "meshes" / f"{frame}.ply", mesh.vertices, mesh.faces, mesh.normals)
         for cam in cameras:
@@ -237,7 +246,7 @@ def synthesize(out: str | os.PathLike[str], config: SynthConfig = SynthConfig())
                 out,
                 frame,
                 cam,
-                _render_view(mesh, vis, cam, palette, config.supersample),
+                _render_view(mesh, vis, cam, albedo_of, config.supersample),
                 prior_rng if config.priors else None,
             )
     _write_lights(gt)
@@ -245,6 +254,27 @@ def synthesize(out: str | os.PathLike[str], config: SynthConfig = SynthConfig())
     capture = Capture(out, tuple(cameras), tuple(frames), _UP, extra={"synth": record})
     save_capture(capture)
     return capture
+
+
+def _subject(config: SynthConfig, figure: Figure, palette: np.ndarray):
+    """(pose(frame index) -> FigureMesh, albedo_of(frags, mesh) -> (M, 3)) of the subject."""
+    if not config.subject:
+        def figure_albedo(frags, mesh: FigureMesh) -> np.ndarray:
+            m = frags.mask
+            rest = interpolate(frags, mesh.faces, mesh.rest)
+            return albedo_at(rest[m], mesh.part[mesh.faces[frags.triangle[m], 0]], palette)
+
+        return (lambda i: figure.pose(float(i))), figure_albedo
+    from core.synth.gltf import GltfCharacter
+
+    character = GltfCharacter(config.subject)
+
+    def texture_albedo(frags, mesh: FigureMesh) -> np.ndarray:
+        m = frags.mask
+        uv = interpolate(frags, mesh.faces, character.uv)
+        return character.albedo(mesh.part[mesh.faces[frags.triangle[m], 0]], uv[m])
+
+    return (lambda i: character.pose(i / config.fps)), texture_albedo
 
 
 def _write_view(out: Path, frame: str, cam: Camera, r: dict[str, np.ndarray], prior_rng) -> None:

@@ -115,6 +115,12 @@ def linear_to_srgb(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
 
 
+def srgb_to_linear(x: np.ndarray) -> np.ndarray:
+    """The inverse of `linear_to_srgb` (IEC 61966-2-1), for values in 0..1."""
+    x = np.clip(x, 0.0, 1.0)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
+
+
 def albedo_at(rest: np.ndarray, part: np.ndarray, palette: np.ndarray) -> np.ndarray:
     """Solid texture (N, 3) in linear RGB, evaluated at rest-pose points so it moves with the body.
 
