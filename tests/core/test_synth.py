@@ -212,7 +212,7 @@ def test_coverage_is_the_area_average(tmp_path: Path) -> None:
     cap = load_capture(tmp_path / "ss")
     big = cap.cameras[1].scaled(48, 48)
     from core.synth.figure import Figure
-    from core.synth.generate import _render_view
+    from core.synth.generate import _render_view, _subject
     from core.synth.shading import vertex_visibility
 
     rng = np.random.default_rng(base.seed)
@@ -220,7 +220,7 @@ def test_coverage_is_the_area_average(tmp_path: Path) -> None:
     palette = rng.uniform(0.25, 0.85, size=(figure.n_parts, 3))
     mesh = figure.pose(0.0)
     vis = vertex_visibility(mesh.vertices, mesh.normals, mesh.faces, base.ao_directions)
-    point = _render_view(mesh, vis, big, palette, supersample=1)
+    point = _render_view(mesh, vis, big, _subject(base, figure, palette)[1], supersample=1)
     cover = point["mask"].reshape(16, 3, 16, 3).mean(axis=(1, 3))
     pre = (point["capture"] * point["mask"][..., None]).reshape(16, 3, 16, 3, 3).mean(axis=(1, 3))
     mask = np.asarray(Image.open(tmp_path / "ss/masks/000000/cam01.png")) / 255.0
