@@ -185,7 +185,7 @@ class FrameTracker:
                 posed[name] = DeformedGaussians(self.previous, self.graph, *starts[name])
             return self._start_loss(posed[name], index)
 
-        centres = torch.stack([torch.linalg.inv(c.viewmat)[:3, 3] for c in self.cameras])
+        centres = torch.stack([c.center for c in self.cameras])
         race = race_starts(list(starts), loss, view_order(centres.cpu()), s.start_views,
                            s.start_race)
         return starts, race

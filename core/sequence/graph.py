@@ -27,8 +27,9 @@ __all__ = ["DeformationGraph", "arap_loss", "blend_weights", "build_graph",
 
 
 def farthest_point_sampling(points: Tensor, count: int, start: int = 0) -> Tensor:
-    """(count,) indices into `points` (N, 3): `start` first, then each next the point farthest
-    from those chosen (deterministic; ties take the lowest index)."""
+    """(count,) distinct indices into `points` (N, 3): `start` first, then each next the point
+    farthest from those chosen (deterministic; ties take the lowest index, so points at the
+    same place come in index order)."""
     if points.dim() != 2 or points.shape[1] != 3 or points.shape[0] == 0:
         raise ValueError(f"points: expected shape (N, 3) with N > 0, got {tuple(points.shape)}")
     n = points.shape[0]
@@ -38,10 +39,12 @@ def farthest_point_sampling(points: Tensor, count: int, start: int = 0) -> Tenso
     chosen = torch.empty(count, dtype=torch.long, device=pts.device)
     chosen[0] = start
     dist = (pts - pts[start]).square().sum(dim=1)
+    dist[start] = -1.0  # never chosen twice, also where points coincide
     for i in range(1, count):
         nxt = int(dist.argmax())
         chosen[i] = nxt
         dist = torch.minimum(dist, (pts - pts[nxt]).square().sum(dim=1))
+        dist[chosen[:i + 1]] = -1.0
     return chosen
 
 

@@ -21,10 +21,9 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
-import torch
 from torch import Tensor
 
-from core.sequence.graph import DeformationGraph
+from core.sequence.graph import DeformationGraph, farthest_point_sampling
 from core.sequence.motion import predict_node_motion, predict_node_motion_second_order
 
 __all__ = ["StartRace", "candidate_starts", "race_starts", "view_order"]
@@ -52,22 +51,13 @@ class StartRace:
 
 def view_order(centres: Tensor) -> list[int]:
     """Indices of cameras with centres (V, 3) in farthest-point order from camera 0: each next
-    one the farthest from all before it (ties to the lowest index)."""
+    one the farthest from all before it (ties to the lowest index;
+    `core.sequence.graph.farthest_point_sampling`)."""
     if centres.ndim != 2 or centres.shape[-1] != 3:
         raise ValueError(f"centres: expected (V, 3) camera centres, got {tuple(centres.shape)}")
-    count = len(centres)
-    if count == 0:
+    if len(centres) == 0:
         return []
-    c = centres.double()
-    order = [0]
-    dist = (c - c[0]).norm(dim=-1)
-    dist[0] = -1.0
-    for _ in range(count - 1):
-        nxt = int(torch.argmax(dist))
-        order.append(nxt)
-        dist = torch.minimum(dist, (c - c[nxt]).norm(dim=-1))
-        dist[order] = -1.0
-    return order
+    return farthest_point_sampling(centres.double(), len(centres)).tolist()
 
 
 def _separated(diff: list[float], t_stop: float) -> bool:

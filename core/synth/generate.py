@@ -144,8 +144,8 @@ def _render_view(
 ) -> dict[str, np.ndarray]:
     """Point samples at the pixel centres ("mask", "depth", "normal"), coverage ("coverage") and
     straight stored-value colour ("albedo", "visibility" and one image per light, encoded as
-    they are written: sRGB for colours, linear for visibility). `albedo_of(frags, mesh)` gives
-    the linear albedo (M, 3) of the covered samples."""
+    they are written: sRGB for colours, linear for visibility). `albedo_of(frags, mesh, part)`
+    gives the linear albedo (M, 3) of the covered samples (`part` (M,): their mesh part)."""
     k, W, H = supersample, cam.width, cam.height
     # Continuous pixel coordinates scale by k, so the centre (u + 0.5) of pixel u is the centre of
     # sub-pixel k u + k // 2 when k is odd.
@@ -156,7 +156,7 @@ def _render_view(
     normals[m] /= np.linalg.norm(normals[m], axis=1, keepdims=True)
     visibility = interpolate(frags, mesh.faces, vis[:, None])
     albedo = np.zeros_like(normals)
-    albedo[m] = albedo_of(frags, mesh)
+    albedo[m] = albedo_of(frags, mesh, mesh.part[mesh.faces[frags.triangle[m], 0]])
     stored = {"albedo": linear_to_srgb(albedo), "visibility": visibility}
     for name, light in LIGHTS.items():
         rgb = np.zeros_like(normals)
@@ -257,22 +257,19 @@ def synthesize(out: str | os.PathLike[str], config: SynthConfig = SynthConfig())
 
 
 def _subject(config: SynthConfig, figure: Figure, palette: np.ndarray):
-    """(pose(frame index) -> FigureMesh, albedo_of(frags, mesh) -> (M, 3)) of the subject."""
+    """(pose(frame index) -> FigureMesh, albedo_of(frags, mesh, part) -> (M, 3)) of the
+    subject (`_render_view`)."""
     if not config.subject:
-        def figure_albedo(frags, mesh: FigureMesh) -> np.ndarray:
-            m = frags.mask
-            rest = interpolate(frags, mesh.faces, mesh.rest)
-            return albedo_at(rest[m], mesh.part[mesh.faces[frags.triangle[m], 0]], palette)
+        def figure_albedo(frags, mesh: FigureMesh, part: np.ndarray) -> np.ndarray:
+            return albedo_at(interpolate(frags, mesh.faces, mesh.rest)[frags.mask], part, palette)
 
         return (lambda i: figure.pose(float(i))), figure_albedo
     from core.synth.gltf import GltfCharacter
 
     character = GltfCharacter(config.subject)
 
-    def texture_albedo(frags, mesh: FigureMesh) -> np.ndarray:
-        m = frags.mask
-        uv = interpolate(frags, mesh.faces, character.uv)
-        return character.albedo(mesh.part[mesh.faces[frags.triangle[m], 0]], uv[m])
+    def texture_albedo(frags, mesh: FigureMesh, part: np.ndarray) -> np.ndarray:
+        return character.albedo(part, interpolate(frags, mesh.faces, character.uv)[frags.mask])
 
     return (lambda i: character.pose(i / config.fps)), texture_albedo
 

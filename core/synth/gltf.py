@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
+from core.data.importers.colmap import qvec_to_rotation
 from core.synth.figure import FigureMesh
 
 __all__ = ["ALBEDO_SCALE", "GltfCharacter", "sample_texture"]
@@ -38,14 +39,6 @@ erase its texture and what relighting could recover. The figure's palette (0.25-
 0.6-1 checker) is about as dark on average."""
 # glTF +Y up -> dgs synth +Z up: (x, y, z) -> (x, -z, y), a rotation (det +1).
 _Y_UP_TO_Z_UP = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation of a unit quaternion in glTF order (x, y, z, w)."""
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
 
 
 def _slerp(a: np.ndarray, b: np.ndarray, s: float) -> np.ndarray:
@@ -263,7 +256,8 @@ class GltfCharacter:
             if ch.node == index and ch.path in trs:
                 trs[ch.path] = ch.at(t)
         m = np.eye(4)
-        m[:3, :3] = _quat_to_matrix(trs["rotation"]) * trs["scale"][None, :]
+        x, y, z, w = trs["rotation"]  # glTF stores x, y, z, w
+        m[:3, :3] = qvec_to_rotation(np.array([w, x, y, z])) * trs["scale"][None, :]
         m[:3, 3] = trs["translation"]
         return m
 

@@ -188,3 +188,5 @@ def test_dgs_synth_films_a_character(tmp_path):
     assert masks[0].any() and not np.array_equal(masks[0], masks[1])  # frame 2 = 0 (looped)
     assert main(["synth", str(tmp_path / "other"), "--subject",
                  str(tmp_path / "missing.glb")]) == 2
+    assert main(["synth", str(tmp_path / "other"), "--subject", str(glb), "--fps", "0"]) == 2
+    assert not (tmp_path / "other").exists()  # refused before anything is written

@@ -59,6 +59,9 @@ def test_blend_weights_by_hand():
 def test_farthest_point_sampling_and_graph_shapes():
     pts = torch.tensor([[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [10, 0, 0]])
     assert farthest_point_sampling(pts, 3).tolist() == [0, 3, 2]
+    # Coinciding points are still each chosen once (in index order once nothing is farther).
+    twice = torch.tensor([[0.0, 0, 0], [0, 0, 0], [1, 0, 0], [1, 0, 0]])
+    assert farthest_point_sampling(twice, 4).tolist() == [0, 2, 1, 3]
     with pytest.raises(ValueError, match="count"):
         farthest_point_sampling(pts, 5)
     g = build_graph(torch.randn(200, 3, generator=torch.Generator().manual_seed(0)), 20)

@@ -30,6 +30,7 @@ def test_views_come_in_farthest_point_order():
     line = torch.tensor([[float(i), 0.0, 0.0] for i in range(5)])
     assert view_order(line)[:3] == [0, 4, 2]
     assert view_order(torch.zeros(0, 3)) == []
+    assert sorted(view_order(torch.zeros(3, 3))) == [0, 1, 2]  # coinciding: each view once
     with pytest.raises(ValueError, match="centres"):
         view_order(torch.zeros(4, 2))
 
