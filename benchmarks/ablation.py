@@ -44,7 +44,7 @@ def _appearance_normals(capture_dir: Path, run: Path, preset: str) -> None:
     from core.model import GaussianModel
     from core.pipeline import render_heldout
     from core.render import RenderCamera
-    from core.train import train_config
+    from core.config import train_config
 
     capture = load_capture(capture_dir)
     centers = torch.stack([RenderCamera.from_camera(c).center for c in capture.cameras])
@@ -60,7 +60,7 @@ def _appearance_normals(capture_dir: Path, run: Path, preset: str) -> None:
 def run_variant(capture: Path, out: Path, variant: str, preset: str) -> dict:
     from core.evaluate import evaluate_run
     from core.pipeline import reconstruct
-    from core.train import train_config
+    from core.config import train_config
 
     iterations = train_config(preset).schedule.iterations
     if (out / "eval.json").is_file() and (out / "metrics.json").is_file():

@@ -29,7 +29,8 @@ def score(capture_dir: Path, run: Path) -> dict[str, float]:
     from core.data import CaptureDataset, load_capture
     from core.model import GaussianModel
     from core.render import RenderCamera, render
-    from core.stages import Schedule, plan
+    from core.config import Schedule
+    from core.stages import plan
 
     config = json.loads((run / "config.json").read_text())
     schedule = Schedule(**config["train"]["schedule"])

@@ -71,7 +71,8 @@ def relit_rows(run: Path, capture: Path) -> list[dict]:
 def mesh_rows(run: Path, capture: Path, resolutions: tuple[int, ...]) -> list[dict]:
     import trimesh
 
-    from core.mesh import MeshConfig, mesh_distance, mesh_run
+    from core.config import MeshConfig
+    from core.mesh import mesh_distance, mesh_run
 
     rows = []
     for depth in ("geometry", "appearance"):

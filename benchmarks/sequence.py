@@ -37,7 +37,7 @@ VARIANTS = ("sequential", "independent", "no-temporal", "no-anisotropy")
 
 
 def _schedule(iterations: int) -> dict:
-    from core.stages import schedule_for
+    from core.config import schedule_for
 
     return asdict(schedule_for("paper").scaled(iterations))
 

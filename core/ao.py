@@ -11,37 +11,18 @@ visibility loss.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from core.config import AOConfig
 from core.losses import depth_to_points
 from core.model import GaussianModel
 from core.render import RenderCamera, render
 from native import gaussian_visibility, trace_visibility
 
-__all__ = ["AOConfig", "GaussianAOBaker", "init_visibility", "ao_map", "scaled_camera"]
-
-
-@dataclass(frozen=True)
-class AOConfig:
-    """How AO is baked."""
-
-    n_dirs: int = 64
-    """Rays per point, over the Fibonacci hemisphere about its normal."""
-    scale: float = 0.25
-    """Resolution of the traced maps relative to the training views."""
-    min_alpha: float = 0.5
-    """Pixels whose geometry coverage is below this are background (AO 1)."""
-    offset_pixels: float = 0.5
-    """Rays start this many full-resolution pixel footprints above the rendered surface, clear of
-    the thin Gaussians that make it (self-intersection)."""
-    sigma_color: float = 0.2
-    """Joint bilateral filter: range sigma on the normal guide (normal components in -1..1)."""
-    sigma_space: float = 2.0
-    """Joint bilateral filter: spatial sigma in full-resolution pixels."""
+__all__ = ["GaussianAOBaker", "init_visibility", "ao_map", "scaled_camera"]
 
 
 def scaled_camera(camera: RenderCamera, scale: float) -> RenderCamera:

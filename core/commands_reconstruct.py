@@ -61,7 +61,7 @@ def _one_line(exc: Exception) -> str:
 
 
 def _reconstruct(args: argparse.Namespace) -> int:
-    from core.stages import PRESETS
+    from core.config import PRESETS
 
     if args.preset not in PRESETS:
         return _fail("reconstruct", f"--preset: expected one of {', '.join(PRESETS)}, "

@@ -114,12 +114,14 @@ def _relight(args: argparse.Namespace) -> int:
 
 
 def _mesh(args: argparse.Namespace) -> int:
-    from core.mesh import MeshConfig, mesh_run
+    from core.config import MeshConfig, validate
+    from core.mesh import mesh_run
 
     try:
-        config = MeshConfig(resolution=args.resolution, depth=args.depth,
-                            colors=not args.no_colors, device=args.device,
-                            formats=tuple(f.strip() for f in args.formats.split(",") if f.strip()))
+        config = validate(MeshConfig, {
+            "resolution": args.resolution, "depth": args.depth, "colors": not args.no_colors,
+            "device": args.device,
+            "formats": [f.strip() for f in args.formats.split(",") if f.strip()]})
     except ValueError as exc:
         return _fail("mesh", str(exc))
     bar = None

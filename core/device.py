@@ -17,10 +17,12 @@ import re
 import torch
 from torch import Tensor
 
+from core.config import DEVICE_PATTERN
+
 __all__ = ["DEVICE_CHOICES", "check_device_spec", "resolve_device", "to_device"]
 
 DEVICE_CHOICES = "auto, cpu, cuda or cuda:N"
-_SPEC = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+_SPEC = re.compile(DEVICE_PATTERN)
 
 
 def check_device_spec(spec: object, where: str = "device") -> str:

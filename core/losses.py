@@ -12,14 +12,14 @@ The weights are the defaults of `LossWeights`; each function returns the weighte
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from core.config import LossWeights
+
 __all__ = [
-    "LossWeights",
     "depth_normal_consistency",
     "depth_to_normals",
     "depth_to_points",
@@ -30,28 +30,6 @@ __all__ = [
     "ssim",
     "visibility_loss",
 ]
-
-
-@dataclass(frozen=True)
-class LossWeights:
-    """Weights of each loss term (DESIGN.md section 5)."""
-
-    dssim: float = 0.2
-    """Share of D-SSIM in the photometric loss; L1 gets 1 - dssim."""
-    normal_l1: float = 0.2
-    """L1 between rendered normals and the prior."""
-    normal_smooth: float = 0.05
-    """Edge-aware smoothness of rendered normals."""
-    consistency: float = 0.01
-    """Depth-normal consistency."""
-    visibility_l1: float = 0.1
-    """L1 between rendered visibility and the baked AO maps."""
-    visibility_smooth: float = 0.01
-    """Smoothness of rendered visibility."""
-    geometry_mask: float = 1.0
-    """L1 between the geometry coverage alpha_g and the capture's mask (our addition to
-    DESIGN.md: nothing else keeps geometry-only Gaussians out of the background, and beta mixing
-    shows 15% of them in the appearance; 1.0 measured against 0.1 and 0 in docs/benchmarks.md)."""
 
 
 @functools.lru_cache(maxsize=8)

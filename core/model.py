@@ -14,18 +14,17 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
+from core.config import LearningRates
 from core.plyio import read_gaussian_ply, write_gaussian_ply
 
 __all__ = [
     "PARAM_NAMES",
     "SH_C0",
     "GaussianModel",
-    "LearningRates",
     "means_lr",
 ]
 
@@ -35,43 +34,6 @@ SH_C0 = 0.28209479177387814
 PARAM_NAMES: tuple[str, ...] = (
     "means", "scales", "quats", "sh0", "shN", "opacity_c", "opacity_g", "normals", "visibility",
 )
-
-
-@dataclass(frozen=True)
-class LearningRates:
-    """Adam learning rates per parameter group.
-
-    Defaults are those of the original 3DGS (Kerbl et al. 2023, arguments/__init__.py
-    OptimizationParams); the geometry-branch rates are ours (the paper does not give them).
-    """
-
-    means: float = 1.6e-4
-    """Initial position rate, multiplied by the scene extent (3DGS position_lr_init)."""
-    means_final: float = 1.6e-6
-    """Position rate reached at `means_decay_steps`, log-linear decay (3DGS position_lr_final)."""
-    means_decay_steps: int = 30_000
-    """Steps of the exponential position decay (3DGS position_lr_max_steps)."""
-    sh0: float = 2.5e-3
-    """Degree-0 SH (3DGS feature_lr)."""
-    shN: float = 2.5e-3 / 20
-    """Higher SH degrees: feature_lr / 20 as in 3DGS gaussian_model.training_setup."""
-    opacity: float = 5e-2
-    """Both opacity logits (original 3DGS opacity_lr; later versions use 2.5e-2)."""
-    scales: float = 5e-3
-    """Log-scales (3DGS scaling_lr)."""
-    quats: float = 1e-3
-    """Quaternions (3DGS rotation_lr)."""
-    normals: float = 1e-3
-    """Unnormalized normals (ours; of the order of the rotation rate)."""
-    visibility: float = 2.5e-3
-    """Visibility logit (ours; the colour rate)."""
-
-    def for_param(self, name: str, extent: float) -> float:
-        if name == "means":
-            return self.means * extent
-        if name in ("opacity_c", "opacity_g"):
-            return self.opacity
-        return float(getattr(self, name))
 
 
 def means_lr(rates: LearningRates, extent: float, step: int) -> float:

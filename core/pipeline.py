@@ -14,20 +14,19 @@ import os
 import sys
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field, fields, is_dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 import torch
 
-from core.sequence.budget import median_deform_loss, refine_credit
-from core.sequence.config import SequenceConfig
+from core.config import MeshConfig, RunConfig, load_config, parse_frames
 from core.progress import LogLines, TerminalBar, frame_iterations
-from core.train import Callback, CheckpointCallback, StepInfo, TrainConfig, Trainer, train_config
+from core.sequence.budget import median_deform_loss, refine_credit
+from core.train import Callback, CheckpointCallback, StepInfo, Trainer
 
-__all__ = ["Progress", "RunConfig", "RunMesh", "Stopped", "apply_overrides", "parse_frames", "reconstruct",
-           "render_heldout", "resolve_config", "write_json"]
+__all__ = ["Progress", "Stopped", "reconstruct", "render_heldout", "write_json"]
 
 # Geometry coverage above which a pixel gets a normal and AO in the pictures (else black): low
 # enough that the soft edges of a short run still show, high enough that the direction of the
@@ -77,155 +76,6 @@ class Stopped(Exception):
     def __init__(self, frame: str, step: int):
         super().__init__(f"stopped at step {step} of frame {frame} (checkpoint written)")
         self.frame, self.step = frame, step
-
-
-@dataclass(frozen=True)
-class RunMesh:
-    """The meshes `reconstruct` writes for every finished frame (RUN/meshes/<frame>.<fmt>, TSDF
-    of the geometry branch, DESIGN.md section 5; `dgs mesh` makes others afterwards)."""
-
-    enabled: bool = True
-    """Mesh each frame as soon as it is finished."""
-    resolution: int = 512
-    """Voxels along the scene diagonal (DESIGN.md: 512)."""
-    formats: str = "ply"
-    """Comma-separated file formats: any of ply, obj, glb."""
-
-    def config(self):
-        """The `core.mesh.MeshConfig` these settings stand for (ValueError when invalid)."""
-        from core.mesh import MeshConfig
-
-        return MeshConfig(resolution=self.resolution,
-                          formats=tuple(f.strip() for f in self.formats.split(",") if f.strip()))
-
-    def __post_init__(self) -> None:
-        self.config()
-
-
-@dataclass(frozen=True)
-class RunConfig:
-    """What a run needs beyond one frame's training configuration."""
-
-    train: TrainConfig = field(default_factory=TrainConfig)
-    """How each frame is trained (the preset, with overrides applied)."""
-    checkpoint_every: int = 1000
-    """Steps between checkpoints (RUN/checkpoints/<frame>.pt, written atomically)."""
-    gop: int = 20
-    """Frames per group of pictures: the first gets the static stages, the others deform +
-    refine (DESIGN.md section 5)."""
-    sequence: SequenceConfig = field(default_factory=SequenceConfig)
-    """How the frames after a group's first are deformed and refined."""
-    normal_estimator: str | None = None
-    """Model file (TorchScript, or .onnx with onnxruntime) for views without a normals/ prior."""
-    normal_estimator_space: str = "camera"
-    """'camera' or 'world': the space the estimator's normals are in."""
-    downscale: float = 1.0
-    """Train on the images reduced by this factor (area averaging, intrinsics scaled); held-out
-    views are rendered and scored at the same reduced size (as papers do with images_4)."""
-    mesh: RunMesh = field(default_factory=RunMesh)
-    """Meshes written with every finished frame."""
-
-    def __post_init__(self) -> None:
-        if not self.downscale >= 1.0:
-            raise ValueError(f"downscale: expected a factor >= 1, got {self.downscale}")
-        if self.checkpoint_every < 1:
-            raise ValueError(f"checkpoint_every: expected >= 1, got {self.checkpoint_every}")
-        if self.gop < 1:
-            raise ValueError(f"gop: expected >= 1, got {self.gop}")
-        if self.normal_estimator_space not in ("camera", "world"):
-            raise ValueError("normal_estimator_space: expected 'camera' or 'world', got "
-                             f"{self.normal_estimator_space!r}")
-
-
-def _convert(current: object, value: object, where: str, annotation: str = "") -> object:
-    """`value` from JSON in the type of `current` (tuples from lists, floats from ints); for an
-    optional field (`annotation` such as 'int | None'), None or a value of the named type; a
-    field annotated `tuple[T, ...]` takes a list of any length (empty included)."""
-    optional = annotation.replace(" ", "").endswith("|None")
-    if optional and value is None:
-        return None
-    if optional and current is None:  # judge by the annotation's type instead
-        current = {"int": 0, "float": 0.0, "bool": False}.get(annotation.split("|")[0].strip(),
-                                                                "")
-    if isinstance(current, bool) or isinstance(value, bool):
-        ok = isinstance(current, bool) and isinstance(value, bool)
-    elif isinstance(current, int):
-        ok = isinstance(value, int)
-    elif isinstance(current, float):
-        ok, value = isinstance(value, (int, float)), float(value) if isinstance(
-            value, (int, float)) else value
-    elif isinstance(current, tuple) and annotation.replace(" ", "").endswith(",...]"):
-        like = {"int": 0, "float": 0.0, "bool": False}.get(
-            annotation.split("[", 1)[1].split(",")[0].strip(), "")
-        ok = isinstance(value, list)
-        value = tuple(_convert(like, v, f"{where}[{i}]") for i, v in enumerate(value)) \
-            if ok else value
-    elif isinstance(current, tuple):
-        ok = isinstance(value, list) and len(value) == len(current)
-        value = tuple(_convert(c, v, where) for c, v in zip(current, value)) if ok else value
-    else:  # str | None fields
-        ok = value is None or isinstance(value, str)
-    if not ok:
-        raise ValueError(f"{where}: expected a value like {current!r}, got {value!r}")
-    return value
-
-
-def apply_overrides(obj, overrides: dict, where: str = "config"):
-    """A copy of dataclass `obj` with the (nested) JSON `overrides` applied; unknown keys and
-    wrong types raise ValueError naming the key."""
-    if not isinstance(overrides, dict):
-        raise ValueError(f"{where}: expected a JSON object, got {type(overrides).__name__}")
-    names = {f.name: str(f.type) for f in fields(obj)}  # annotations are strings here
-    changes = {}
-    for key, value in overrides.items():
-        if key not in names:
-            raise ValueError(f"{where}: unknown key {key!r} (known: {', '.join(sorted(names))})")
-        current = getattr(obj, key)
-        if is_dataclass(current):
-            changes[key] = apply_overrides(current, value, f"{where}.{key}")
-        else:
-            changes[key] = _convert(current, value, f"{where}.{key}", names[key])
-    try:
-        return replace(obj, **changes)
-    except ValueError as exc:
-        raise ValueError(f"{where}: {exc}") from None
-
-
-def resolve_config(preset: str, config_file: str | os.PathLike[str] | None = None) -> RunConfig:
-    """The preset's configuration with a JSON file's overrides (same shape as RUN/config.json's
-    `train`, `checkpoint_every`, ... keys)."""
-    test = preset == "test"
-    # The test preset's tiny captures mesh at 128 voxels along the diagonal (about a second a
-    # frame on a CPU instead of 15).
-    cfg = RunConfig(train=train_config(preset), checkpoint_every=100 if test else 1000,
-                    mesh=RunMesh(resolution=128) if test else RunMesh())
-    if config_file is None:
-        return cfg
-    path = Path(config_file)
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"config: cannot read {path}: {exc}") from None
-    return apply_overrides(cfg, data, where=str(path))
-
-
-def parse_frames(spec: str | None, frames: tuple[str, ...] | list[str]) -> list[str]:
-    """`A:B` (a Python slice, also `A:`, `:B`, `A:B:S` or a single index) over the capture's
-    frame list; None selects every frame."""
-    if spec is None:
-        return list(frames)
-    try:
-        parts = [int(p) if p.strip() else None for p in str(spec).split(":")]
-        if len(parts) > 3:
-            raise ValueError
-        chosen = (list(frames)[slice(*parts)] if len(parts) > 1
-                  else [list(frames)[parts[0]]])
-    except (ValueError, IndexError):
-        raise ValueError(f"frames: expected A:B (a slice over {len(frames)} frames), "
-                         f"got {spec!r}") from None
-    if not chosen:
-        raise ValueError(f"frames: {spec!r} selects no frame of the {len(frames)} in the capture")
-    return chosen
 
 
 def write_json(path: Path, data) -> None:
@@ -334,7 +184,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
                 config_file: str | os.PathLike[str] | None = None, resume: bool = False,
                 gop: int | None = None, overrides: dict | None = None,
                 progress: bool = True, on_progress: Callable[[Progress], None] | None = None,
-                should_stop: Callable[[], bool] | None = None, device: str | None = None) -> dict:
+                should_stop: Callable[[], bool] | None = None, device: str | None = None,
+                model_files: dict[str, Path] | None = None) -> dict:
     """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
     `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
     run: finished frames are skipped, an unfinished one restarts from its checkpoint. `gop`
@@ -344,20 +195,19 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
 
     `progress` shows a bar on a terminal; `on_progress` receives `Progress` events (every step,
     checkpoint and frame); `should_stop` is asked after every step and, when it returns True,
-    the frame's checkpoint is written and `Stopped` raised (a service's cooperative cancel)."""
+    the frame's checkpoint is written and `Stopped` raised (a service's cooperative cancel).
+    `model_files` maps a model the configuration names (`normal_estimator`: a service's asset
+    id or allow-listed name) to the file to load; config.json keeps the name."""
     from core.data import check_capture
 
     capture_dir, run = Path(capture_dir), Path(run_dir)
-    cfg = resolve_config(preset, config_file)
-    if overrides:
-        cfg = apply_overrides(cfg, overrides, where="overrides")
-    if gop is not None:
-        cfg = replace(cfg, gop=gop)
-    cfg = _resolve_run_device(cfg, device)
+    cfg = _resolve_run_device(load_config(preset, config_file, overrides, gop=gop,
+                                          where="config"), device)
     from core.priors import load_estimator
 
     # Every input is checked before anything is written, so bad input leaves no half run behind.
-    estimator = load_estimator(cfg.normal_estimator, cfg.normal_estimator_space)
+    named = cfg.normal_estimator
+    estimator = load_estimator((model_files or {}).get(named, named), cfg.normal_estimator_space)
     capture = check_capture(capture_dir)
     chosen = parse_frames(frames, capture.frames)
     _check_run_dir(run, resume)
@@ -521,14 +371,14 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
     }
 
 
-def _mesh_frame(run: Path, capture, frame: str, settings: RunMesh) -> dict | None:
+def _mesh_frame(run: Path, capture, frame: str, settings: MeshConfig) -> dict | None:
     """RUN/meshes/<frame>.<fmt> (kept when a resumed run already wrote them); its statistics, or
     {"error": ...} when the frame has no surface to mesh (the run goes on)."""
     if not settings.enabled:
         return None
     from core.mesh import mesh_run
 
-    result = mesh_run(run, frames=[frame], config=settings.config(), capture_dir=capture.root,
+    result = mesh_run(run, frames=[frame], config=settings, capture_dir=capture.root,
                       skip_existing=True, errors="record")
     return result["frames"].get(frame)
 

@@ -27,40 +27,12 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
+from core.config import DensifyConfig
 from core.model import GaussianModel
 from native.reference import quat_to_rotmat
 from native.types import RasterOutput
 
-__all__ = ["DensifyConfig", "DensifyStrategy", "StrategyState"]
-
-
-@dataclass(frozen=True)
-class DensifyConfig:
-    """Thresholds and factors of the densification strategy."""
-
-    grad_threshold_c: float = 0.0008
-    """AbsGS threshold of the appearance branch (AbsGS / gsplat absgrad default 0.0008)."""
-    grad_threshold_g: float = 0.0008
-    """AbsGS threshold of the geometry branch."""
-    clone_scale: float = 0.01
-    """Clone when the largest scale <= clone_scale x extent, else split (3DGS percent_dense)."""
-    split_factor: float = 1.6
-    """Split samples get scales / split_factor (3DGS: 0.8 x 2 samples)."""
-    new_branch_opacity: float = 0.005
-    """Opacity of the copy in a branch that did not pass its threshold."""
-    transparent: float = 0.005
-    """Below this opacity in both branches a Gaussian is pruned (3DGS min_opacity)."""
-    rho: float = 0.1
-    """Initial fraction pruned by lowest contribution at a reset (0.25 for ActorsHQ-like)."""
-    rho_decay: float = 0.75
-    """rho is multiplied by this after each reset."""
-    reset_value: float = 0.01
-    """Opacity reset: o = min(o, reset_value) (3DGS)."""
-    max_gaussians: int | None = None
-    """Stop growing beyond this many Gaussians (highest gradients densify first)."""
-    prune_scale: float | None = 0.1
-    """After the first reset, drop Gaussians whose largest scale exceeds this x the scene extent
-    (3DGS `0.1 * cameras_extent`); None keeps them."""
+__all__ = ["DensifyStrategy", "StrategyState"]
 
 
 @dataclass

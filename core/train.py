@@ -14,7 +14,7 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass, field, replace
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Protocol, TextIO
 
@@ -22,20 +22,20 @@ import torch
 from torch import Tensor
 
 from core.data.capture import Camera
-from core.device import check_device_spec, resolve_device, to_device
+from core.config import TrainConfig
+from core.device import resolve_device, to_device
 from core.losses import (
-    LossWeights,
     depth_normal_consistency,
     geometry_mask_loss,
     normal_prior_loss,
     photometric_loss,
     visibility_loss,
 )
-from core.model import GaussianModel, LearningRates, means_lr
+from core.model import GaussianModel, means_lr
 from core.render import RenderCamera, render
 from core.seeding import sample_points, scene_extent
-from core.stages import Schedule, StagePlan, plan, schedule_for
-from core.strategy import DensifyConfig, DensifyStrategy, StrategyState
+from core.stages import StagePlan, plan
+from core.strategy import DensifyStrategy, StrategyState
 
 __all__ = [
     "AOBaker",
@@ -43,73 +43,11 @@ __all__ = [
     "CheckpointCallback",
     "ProgressCallback",
     "StepInfo",
-    "TrainConfig",
     "Trainer",
     "View",
     "psnr",
-    "train_config",
     "training_cameras",
 ]
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    """Everything that decides how one frame is reconstructed."""
-
-    schedule: Schedule = field(default_factory=Schedule)
-    """Stage boundaries, beta ramp, densification and reset timing."""
-    rates: LearningRates = field(default_factory=LearningRates)
-    """Adam learning rates per parameter group."""
-    densify: DensifyConfig = field(default_factory=DensifyConfig)
-    """Densification and pruning thresholds."""
-    losses: LossWeights = field(default_factory=LossWeights)
-    """Loss weights."""
-    init_points: int = 100_000
-    """Random initial points (carved by masks when present)."""
-    eps2d: float = 0.1
-    """Screen-space blur of the Mip-Splatting 2D filter (DESIGN.md section 5)."""
-    antialiased: bool = True
-    """Apply the Mip-Splatting opacity compensation."""
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """Colour behind the Gaussians; masked-out target pixels take it too."""
-    random_background: bool = True
-    """Views with a mask train in front of a new uniformly random colour each step (render and
-    target alike), so the rendered coverage must match the mask: against a fixed background, a
-    Gaussian of the background's colour costs nothing where the mask says background and floats
-    into held-out views (3DGS trains masked synthetic scenes the same way, --random_background).
-    Views without a mask always use `background`."""
-    seed: int = 0
-    """Seeds initial points, view order and split samples."""
-    bake_ao: bool = True
-    """Bake ambient occlusion at the stage-3 step with the native ray tracer (per-Gaussian
-    visibility and per-view targets); off: the visibility loss stays off."""
-    device: str = "auto"
-    """Where training runs: `auto` (CUDA when torch sees a GPU and the native extension has its
-    CUDA kernels, else the CPU; $DGS_DEVICE when set), `cpu`, `cuda` or `cuda:N`
-    (`core.device.resolve_device`).
-    RUN/config.json records the device the run resolved to; a run resumes on any device."""
-
-    def __post_init__(self) -> None:
-        if self.init_points < 1:
-            raise ValueError(f"init_points: expected >= 1, got {self.init_points}")
-        check_device_spec(self.device)
-
-    def to_dict(self) -> dict:
-        """The fully resolved configuration as JSON-compatible data (for RUN/config.json)."""
-        return asdict(self)
-
-
-def train_config(preset: str) -> TrainConfig:
-    """Named presets: `paper` (30k steps), `fast` (7.5k) and `test` (500, tiny captures)."""
-    schedule = schedule_for(preset)
-    if preset == "paper":
-        return TrainConfig(schedule=schedule)
-    if preset == "fast":
-        return TrainConfig(schedule=schedule, init_points=50_000,
-                           rates=replace(LearningRates(), means_decay_steps=schedule.iterations))
-    return TrainConfig(schedule=schedule, init_points=1_000,
-                       rates=replace(LearningRates(), means_decay_steps=schedule.iterations),
-                       densify=replace(DensifyConfig(), max_gaussians=4_000))
 
 
 def training_cameras(cameras: Sequence[Camera]) -> list[Camera]:
@@ -249,7 +187,7 @@ class Trainer:
         if ao_baker is None and config.bake_ao:
             from core.ao import GaussianAOBaker
 
-            ao_baker = GaussianAOBaker()
+            ao_baker = GaussianAOBaker(config.ao)
         self.ao_baker = ao_baker if config.bake_ao else None
         self.extent = scene_extent([v.camera for v in self.views])
         self.generator = torch.Generator().manual_seed(config.seed)

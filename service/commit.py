@@ -127,7 +127,8 @@ def summarize(capture, fmt: str) -> dict[str, Any]:
     """frames, cameras, image sizes, and how many views have masks and normals."""
     sizes = collections.Counter((c.width, c.height) for c in capture.cameras)
     views = capture.views()
-    return {"frames": len(capture.frames), "cameras": len(capture.cameras), "views": len(views),
+    return {"frames": len(capture.frames), "cameras": len(capture.cameras),
+            "camera_ids": [c.id for c in capture.cameras], "views": len(views),
             "image_sizes": [{"width": w, "height": h, "cameras": n}
                             for (w, h), n in sorted(sizes.items())],
             "masks": sum(v.mask is not None for v in views),

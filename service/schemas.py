@@ -4,12 +4,13 @@
 from __future__ import annotations
 
 import datetime as dt
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field
+from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, WithJsonSchema
 
 from service.errors import ErrorInfo
-from worker.pipelines import LightParams, RelightJobParams
+from core.config import schema
+from worker.pipelines import LightParams, ReconstructParams, RelightJobParams
 
 __all__ = [
     "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
@@ -83,6 +84,9 @@ class ImageSize(BaseModel):
 class CaptureSummary(BaseModel):
     frames: int
     cameras: int
+    camera_ids: list[str] | None = Field(None, description=(
+        "The cameras' ids, in the capture's order (captures committed before this field "
+        "existed have none)."))
     views: int
     image_sizes: list[ImageSize]
     masks: int = Field(description="Views with a foreground mask.")
@@ -130,8 +134,11 @@ class JobIn(_In):
     capture_id: str = Field(min_length=1, max_length=64)
     pipeline: str = Field("reconstruct", min_length=1, max_length=32,
                           description="A pipeline of GET /v1/pipelines.")
-    params: dict[str, Any] = Field(default_factory=dict, description=(
-        "The pipeline's parameters (its JSON Schema is in GET /v1/pipelines)."))
+    params: Annotated[dict[str, Any], WithJsonSchema(schema(ReconstructParams, inline=True))] = \
+        Field(default_factory=dict, description=(
+            "The pipeline's parameters, checked before the job is made (422 naming each bad "
+            "one); the reconstruct pipeline's are described here, every pipeline's in GET "
+            "/v1/pipelines."))
     name: str = Field("", max_length=256)
     expires_at: AwareDatetime | None = None
 

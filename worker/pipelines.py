@@ -7,6 +7,7 @@ reconstruction (POST /v1/renders names it; the job row keeps it as `source_job_i
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
@@ -14,21 +15,26 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    WithJsonSchema,
     field_validator,
     model_serializer,
     model_validator,
 )
 from pydantic_core import PydanticCustomError
 
+from core.config import RunConfig, load_config, schema
 from worker.settings import WorkerSettings
 
-__all__ = ["BUILTIN_ENVMAPS", "LightParams", "PIPELINES", "Pipeline", "ReconstructParams",
+__all__ = ["BUILTIN_ENVMAPS", "LightParams", "MODEL_KIND", "PIPELINES", "Pipeline", "ReconstructParams",
            "RelightJobParams", "get_pipeline"]
 
 FRAMES = r"^-?\d*(:-?\d*){0,2}$"
 # core.relight.presets.PRESETS, named here so that the API needs no core import (a test keeps
 # the two lists equal).
 BUILTIN_ENVMAPS = ("studio", "sunset", "neon")
+# The asset kind of a tenant's own normal-prior model (TorchScript or ONNX), which a
+# reconstruction names by id as `config.normal_estimator`.
+MODEL_KIND = "normal_model"
 
 
 class ReconstructParams(BaseModel):
@@ -42,16 +48,26 @@ class ReconstructParams(BaseModel):
     frames: str | None = Field(
         None, pattern=FRAMES, max_length=32,
         description="Python slice over the capture's frame list, e.g. '0:10'; all by default.")
-    gop: int = Field(20, ge=1, le=10_000, description="Frames per group of pictures.")
+    gop: int | None = Field(
+        None, ge=1, le=10_000,
+        description="Frames per group of pictures; default: config.gop (20 unless set).")
     checkpoint_every: int | None = Field(
         None, ge=1, le=1_000_000,
         description="Steps between checkpoints (a lost worker's job resumes from the last); "
                     "default: the preset's.")
-    config: dict[str, Any] = Field(
+    config: Annotated[dict[str, Any], WithJsonSchema(schema(RunConfig, inline=True))] = Field(
         default_factory=dict,
-        description="Overrides of the resolved configuration, in the shape of RUN/config.json "
-                    "(e.g. {\"train\": {\"schedule\": {\"iterations\": 2000}}}); unknown keys "
-                    "fail the job with a clear error.")
+        description="Overrides of the preset's configuration, in the shape of RUN/config.json "
+                    "(e.g. {\"train\": {\"seed\": 3}}); every key, type and bound is checked "
+                    "before the job is made (422 naming the setting).")
+
+    def run_config(self) -> RunConfig:
+        """The configuration this job runs with: the preset, `config`, then `checkpoint_every`
+        and `gop` (core.config.ConfigError naming each bad setting under 'config')."""
+        overrides = dict(self.config)
+        if self.checkpoint_every is not None:
+            overrides["checkpoint_every"] = self.checkpoint_every
+        return load_config(self.preset, overrides=overrides, gop=self.gop, where="config")
 
 
 Coordinate = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
@@ -196,6 +212,8 @@ class Pipeline:
     source: Literal["capture", "job"] = "capture"
     """What a job of it runs on: a capture (POST /v1/jobs) or a succeeded reconstruction
     (POST /v1/renders)."""
+    check: Callable[[Any], Any] | None = None
+    """Checks across the parameters beyond their schema (ValueError with `details`)."""
 
     def schema(self) -> dict[str, Any]:
         return self.params.model_json_schema()
@@ -214,6 +232,7 @@ PIPELINES: dict[str, Pipeline] = {
         params=ReconstructParams,
         artifacts=("ply", "render", "depth", "plot", "metrics", "config", "eval", "image"),
         soft_limit="reconstruct_soft_limit_seconds",
+        check=ReconstructParams.run_config,
     ),
     "relight": Pipeline(
         name="relight",

@@ -13,8 +13,10 @@ import shutil
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from worker.models import Job
-from worker.pipelines import ReconstructParams
+from sqlalchemy import select
+
+from worker.models import Asset, Job
+from worker.pipelines import MODEL_KIND, ReconstructParams
 from worker.progress import JobLink
 from worker.runner import JobStopped
 
@@ -78,7 +80,33 @@ class ReconstructJob:
         run.parent.mkdir(parents=True, exist_ok=True)
         reconstruct(capture, run, preset=params.preset, frames=params.frames, gop=params.gop,
                     overrides=overrides or None, resume=resume, progress=False,
+                    model_files=self._model_files(run.parent),
                     on_progress=self._on_progress(run), should_stop=link.should_stop)
+
+    def _model_files(self, work: Path) -> dict[str, Path]:
+        """Where the models the configuration names are on this worker: an operator's
+        allow-listed file, or the tenant's model asset fetched into the job's folder. A name
+        that is neither fails the job (the API refuses it first; a path is never opened)."""
+        name = self.params.config.get("normal_estimator")
+        if name is None:
+            return {}
+        allowed = self.runner.settings.normal_estimators
+        if name in allowed:
+            return {name: allowed[name]}
+        with self.runner.store.session(write=False) as s:
+            asset = s.scalar(select(Asset).where(Asset.id == name,
+                                                 Asset.tenant == self.job.tenant))
+        if asset is None or asset.kind != MODEL_KIND:
+            raise ValueError(f"normal_estimator: {name!r} is neither a model asset of this "
+                             "tenant nor a model this server offers")
+        dest = work / "models" / asset.id / asset.filename
+        if not dest.is_file():
+            try:
+                self.blobs.get_file(f"assets/{asset.id}/{asset.filename}", dest)
+            except FileNotFoundError:
+                raise ValueError(f"normal_estimator: asset {asset.id} is not in the store; "
+                                 "upload the model again") from None
+        return {name: dest}
 
     def _on_progress(self, run: Path):
         link = self.link

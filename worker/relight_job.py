@@ -105,7 +105,7 @@ class RelightJob:
 
     def _run_dir(self, source: Job, capture: Path) -> Path:
         """A run directory of the source's config.json and the selected frames' PLYs."""
-        from core.pipeline import parse_frames
+        from core.config import parse_frames
 
         base = f"jobs/{source.id}/artifacts"
         published = {b.key[len(base) + 1:] for b in self.blobs.list(f"{base}/frames")}

@@ -9,10 +9,14 @@ and the same code runs distributed (DESIGN.md section 4).
 from __future__ import annotations
 
 import functools
+import re
 from pathlib import Path
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
+
+# A model the operator offers by name (not an asset id, which starts with "ast_").
+MODEL_NAME = r"^(?!ast_)[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 
 __all__ = ["WorkerSettings", "get_settings"]
 
@@ -78,6 +82,39 @@ class WorkerSettings(BaseSettings):
     retention_days: float | None = None
     """Default lifetime of captures, jobs and assets (expires_at); None keeps them until
     deleted. Expiry is shown on every object and logged when it happens."""
+    devices: str = "auto,cpu"
+    """The devices a job may ask for (`train.device`, `mesh.device`), comma separated: a GPU
+    deployment adds cuda and cuda:0 (cuda:1, ... on a worker with several GPUs)."""
+    normal_estimators: dict[str, Path] = Field(default_factory=dict)
+    """Normal-prior models the operator offers to every tenant, by name (JSON:
+    DGS_NORMAL_ESTIMATORS='{"omnidata": "/models/omnidata_normal.pt"}'); a job names one as
+    `normal_estimator`, or names a model asset of its own tenant. A path is never taken from a
+    request."""
+
+    @field_validator("devices")
+    @classmethod
+    def _devices(cls, value: str) -> str:
+        from core.config import DEVICE_PATTERN
+
+        names = [d.strip() for d in value.split(",") if d.strip()]
+        bad = [d for d in names if not re.match(DEVICE_PATTERN, d)]
+        if not names or bad:
+            raise ValueError(f"expected devices such as auto,cpu,cuda,cuda:0; got {value!r}")
+        return ",".join(names)
+
+    @field_validator("normal_estimators")
+    @classmethod
+    def _model_names(cls, value: dict[str, Path]) -> dict[str, Path]:
+        bad = [n for n in value if not re.match(MODEL_NAME, n)]
+        if bad:
+            raise ValueError(f"model names: letters, digits, '_', '-' and '.', not starting "
+                             f"like an asset id (ast_...); got {bad}")
+        return {n: p.expanduser().resolve() for n, p in value.items()}
+
+    @property
+    def offered_devices(self) -> list[str]:
+        """`devices` as a list."""
+        return self.devices.split(",")
 
     @field_validator("data_dir", "scratch_dir", mode="after")
     @classmethod

@@ -119,11 +119,14 @@ class JobStore:
         return session_scope(self.url, write)
 
     @staticmethod
-    def envmap_users(s: Session, tenant: str, asset_id: str) -> list[str]:
-        """Queued or running jobs of `tenant` that render with envmap asset `asset_id`."""
+    def asset_users(s: Session, tenant: str, asset_id: str) -> list[str]:
+        """Queued or running jobs of `tenant` that use asset `asset_id`: a render's envmap or
+        a reconstruction's normal estimator."""
         rows = s.execute(select(Job.id, Job.params).where(
-            Job.tenant == tenant, Job.pipeline == "relight", Job.state.in_(ACTIVE)))
-        return [job_id for job_id, params in rows if (params or {}).get("envmap") == asset_id]
+            Job.tenant == tenant, Job.state.in_(ACTIVE)))
+        return [job_id for job_id, params in rows
+                if asset_id in ((params or {}).get("envmap"),
+                                ((params or {}).get("config") or {}).get("normal_estimator"))]
 
     @staticmethod
     def _event(s: Session, job_id: str, kind: str, data: dict[str, Any]) -> None:

@@ -18,59 +18,15 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
-from typing import Literal
 
 import numpy as np
 import torch
 
+from core.config import MeshConfig
 from core.mesh.tsdf import TSDFVolume
 from core.render import RenderCamera, render, safe_divide
 
-__all__ = ["MeshConfig", "appearance_model", "mesh_model", "scene_box"]
-
-
-@dataclass(frozen=True)
-class MeshConfig:
-    """How a frame is meshed."""
-
-    resolution: int = 512
-    """Voxels along the scene box's diagonal (voxel = diagonal / resolution)."""
-    truncation_voxels: float = 5.0
-    """TSDF truncation distance in voxels."""
-    alpha_threshold: float = 0.5
-    """Pixels count as surface where the coverage is above this."""
-    depth: Literal["geometry", "appearance"] = "geometry"
-    """Which branch's depth is fused ('appearance' is the baseline, see module doc)."""
-    box: Literal["gaussians", "cameras"] = "gaussians"
-    """Scene box: the opaque Gaussians' extent (0.5-99.5 percentiles of their means) or the
-    ball every training camera sees around their look-at centre."""
-    margin: float = 0.05
-    """Box padding as a fraction of its diagonal (plus the truncation distance)."""
-    min_component: float = 0.05
-    """Connected components with fewer faces than this fraction of the largest are dropped."""
-    colors: bool = True
-    """Vertex colours from the appearance branch."""
-    formats: tuple[str, ...] = ("ply",)
-    """Files written per frame: any of ply, obj, glb."""
-    chunk: int = 1 << 20
-    """Voxels per vectorized TSDF step (memory bound of the temporaries)."""
-    device: str | None = None
-    """Torch device of the TSDF; None: CUDA when available, else CPU."""
-
-    def __post_init__(self) -> None:
-        from core.mesh.surface import FORMATS
-
-        if not 16 <= self.resolution <= 2048:
-            raise ValueError(f"resolution: expected 16..2048 voxels, got {self.resolution}")
-        if not 0 < self.alpha_threshold < 1:
-            raise ValueError(f"alpha_threshold: expected in (0, 1), got {self.alpha_threshold}")
-        if self.depth not in ("geometry", "appearance"):
-            raise ValueError(f"depth: expected 'geometry' or 'appearance', got {self.depth!r}")
-        if self.box not in ("gaussians", "cameras"):
-            raise ValueError(f"box: expected 'gaussians' or 'cameras', got {self.box!r}")
-        if not self.formats or any(f not in FORMATS for f in self.formats):
-            raise ValueError(f"formats: expected some of {FORMATS}, got {self.formats!r}")
+__all__ = ["appearance_model", "mesh_model", "scene_box"]
 
 
 def appearance_model(model, beta: float):

@@ -20,7 +20,7 @@ from typing import Literal
 
 import numpy as np
 
-from core.mesh.build import MeshConfig
+from core.config import MeshConfig
 
 __all__ = ["mesh_run", "source_from_world", "training_views"]
 
@@ -48,7 +48,7 @@ def training_views(capture, downscale: float) -> list:
 
 
 def _chosen(frames, finished: list[str]) -> list[str]:
-    from core.pipeline import parse_frames
+    from core.config import parse_frames
 
     if frames is None or isinstance(frames, str):
         return parse_frames(frames, finished)

@@ -8,9 +8,12 @@ from pathlib import Path
 
 import numpy as np
 
+from core.config import MESH_FORMATS
+
 __all__ = ["FORMATS", "clean_mesh", "export_mesh", "extract_surface", "transform_mesh"]
 
-FORMATS = ("ply", "obj", "glb")
+FORMATS = MESH_FORMATS
+"""The file formats a mesh is written in."""
 
 
 def extract_surface(values: np.ndarray, lo: np.ndarray, voxel: float):

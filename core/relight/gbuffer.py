@@ -61,7 +61,8 @@ class RunRender:
 
 def run_render(run_dir, capture_dir=None) -> RunRender:
     """Read RUN/config.json; ValueError when `run_dir` is not a run directory."""
-    from core.stages import Schedule, plan
+    from core.config import Schedule
+    from core.stages import plan
 
     path = Path(run_dir) / "config.json"
     if not path.is_file():

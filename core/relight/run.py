@@ -138,7 +138,7 @@ class Plan:
 def prepare(run: Path, params: RelightParams, capture_dir) -> Plan:
     """Check every input before anything is written."""
     from core.data import load_capture
-    from core.pipeline import parse_frames
+    from core.config import parse_frames
     from core.relight.envmap import load_envmap
     from core.relight.gbuffer import run_render
     from core.relight.lights import load_capture_light

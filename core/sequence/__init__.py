@@ -4,7 +4,6 @@ deformation graph, then refined with temporal regularisation, keeping Gaussian c
 (track ids) inside a group."""
 
 from core.sequence.budget import median_deform_loss, refine_credit, refine_steps
-from core.sequence.config import SequenceConfig
 from core.sequence.correspondence import track_errors
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
 from core.sequence.frame import FrameTracker
@@ -40,7 +39,6 @@ __all__ = [
     "FrameTracker",
     "Gop",
     "RoundEnd",
-    "SequenceConfig",
     "StartRace",
     "TemporalWeights",
     "TrackedState",

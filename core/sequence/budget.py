@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from core.sequence.config import SequenceConfig
+from core.config import SequenceConfig
 
 __all__ = ["median_deform_loss", "refine_credit", "refine_steps"]
 

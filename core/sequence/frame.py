@@ -33,7 +33,7 @@ from core.model import GaussianModel
 from core.render import RenderCamera, render
 from core.seeding import scene_extent
 from core.sequence.budget import refine_steps
-from core.sequence.config import SequenceConfig
+from core.config import SequenceConfig
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
 from core.sequence.graph import build_graph
 from core.sequence.rounds import DeformRounds
@@ -49,7 +49,8 @@ from core.sequence.refine import (
 )
 from core.stages import plan
 from core.strategy import DensifyStrategy
-from core.train import Callback, StepInfo, TrainConfig, View, psnr
+from core.config import TrainConfig
+from core.train import Callback, StepInfo, View, psnr
 
 __all__ = ["FrameTracker"]
 
@@ -95,7 +96,7 @@ class FrameTracker:
         if ao_baker is None and sequence.bake_ao and config.bake_ao:
             from core.ao import GaussianAOBaker
 
-            ao_baker = GaussianAOBaker()
+            ao_baker = GaussianAOBaker(config.ao)
         self.ao_baker = ao_baker if (sequence.bake_ao and config.bake_ao) else None
         self.cameras = [RenderCamera.from_camera(v.camera, device=self.device)
                         for v in self.views]

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from core.model import GaussianModel
-from core.sequence.config import SequenceConfig
+from core.config import SequenceConfig
 from core.sequence.frame import FrameTracker
 from core.sequence.gop import roles_of, with_rekeys
 from core.sequence.motion import align_tracks

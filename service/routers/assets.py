@@ -1,5 +1,6 @@
-"""/v1/assets: inputs that are not captures. Today: environment maps (equirectangular EXR or
-Radiance HDR) for relight requests."""
+"""/v1/assets: inputs that are not captures: environment maps (equirectangular EXR or Radiance
+HDR) for relight requests, and normal-prior models (TorchScript or ONNX) a reconstruction names
+as its `normal_estimator`."""
 
 from __future__ import annotations
 
@@ -18,12 +19,14 @@ from service.archive import spool
 from service.auth import TenantDep
 from service.deps import Services, ServicesDep, absolute_url, default_expiry
 from service.envmap import CONTENT_TYPES, EnvmapError, inspect_envmap
+from service.modelfile import MODEL_CONTENT_TYPES, ModelFileError, inspect_model
 from service.errors import COMMON, ApiError, error_responses
 from service.pagination import encode_cursor, newest_first
 from service.ranges import blob_response
 from service.records import get_asset
 from service.schemas import AssetOut, AssetPage
 from worker.models import Asset
+from worker.pipelines import MODEL_KIND
 from worker.store import JobStore, new_id
 
 __all__ = ["router"]
@@ -44,13 +47,25 @@ def asset_out(a: Asset) -> AssetOut:
                     links={"self": base, "content": f"{base}/content"})
 
 
-def _suffix(filename: str) -> str:
+def _suffix(filename: str, kind: str) -> str:
     suffix = Path(filename).suffix.lower()
-    if not _FILENAME.match(filename) or suffix not in CONTENT_TYPES:
-        raise ApiError(422, f"filename: expected a plain file name ending in .exr or .hdr "
-                            f"(letters, digits, '_', '-', '.'), got {filename!r}",
+    known = CONTENT_TYPES if kind == "envmap" else MODEL_CONTENT_TYPES
+    if not _FILENAME.match(filename) or suffix not in known:
+        raise ApiError(422, f"filename: expected a plain file name ending in "
+                            f"{' or '.join(known)} for a {kind} (letters, digits, '_', '-', "
+                            f"'.'), got {filename!r}",
                        details=[{"path": "filename", "message": "invalid file name"}])
     return suffix
+
+
+def _inspect(tmp: Path, kind: str, suffix: str) -> tuple[dict, str]:
+    """(metadata, content type) of an uploaded file of `kind`; ValueError saying what is
+    wrong with it."""
+    if kind == MODEL_KIND:
+        return inspect_model(tmp, suffix), MODEL_CONTENT_TYPES[suffix]
+    info = inspect_envmap(tmp, suffix)
+    return ({"width": info.width, "height": info.height, "channels": info.channels},
+            CONTENT_TYPES[suffix])
 
 
 @router.post("", status_code=201, response_model=AssetOut, responses=error_responses(413),
@@ -59,10 +74,11 @@ def _suffix(filename: str) -> str:
                                                          "format": "binary"}}}}})
 async def upload_asset(request: Request, services: ServicesDep, tenant: TenantDep,
                        filename: Annotated[str, Query(min_length=1, max_length=200)],
-                       kind: Literal["envmap"] = "envmap",
+                       kind: Literal["envmap", "normal_model"] = "envmap",
                        expires_at: AwareDatetime | None = None) -> JSONResponse:
-    """Upload an environment map as the request body (checked; refused with the reason)."""
-    suffix = _suffix(filename)
+    """Upload an environment map (.exr, .hdr) or a normal-prior model (`normal_model`:
+    TorchScript .pt/.ts or .onnx) as the request body (checked; refused with the reason)."""
+    suffix = _suffix(filename, kind)
     expiry = default_expiry(services, expires_at)
     tmp = services.staging.tmp_dir() / f"{secrets.token_hex(8)}{suffix}"
     try:
@@ -79,14 +95,12 @@ async def upload_asset(request: Request, services: ServicesDep, tenant: TenantDe
 def _store_asset(services: Services, tenant: str, kind: str, filename: str, suffix: str,
                  tmp: Path, size: int, sha: str, expires_at) -> Asset:
     try:
-        info = inspect_envmap(tmp, suffix)
-    except EnvmapError as exc:
+        meta, content_type = _inspect(tmp, kind, suffix)
+    except (EnvmapError, ModelFileError) as exc:
         raise ApiError(422, f"{filename}: {exc}", code="invalid_asset",
                        details=[{"path": filename, "message": str(exc)}]) from None
     asset = Asset(id=new_id("ast"), tenant=tenant, kind=kind, filename=filename, size=size,
-                  sha256=sha, content_type=CONTENT_TYPES[suffix],
-                  meta={"width": info.width, "height": info.height, "channels": info.channels},
-                  expires_at=expires_at)
+                  sha256=sha, content_type=content_type, meta=meta, expires_at=expires_at)
     key = f"assets/{asset.id}/{filename}"
     try:
         services.blobs.put_file(key, tmp)
@@ -140,13 +154,13 @@ router.add_api_route("/{asset_id}/content", asset_content, methods=["HEAD"],
 @router.delete("/{asset_id}", status_code=204, responses={204: {"description": "Deleted"},
                                                           **error_responses(409)})
 def delete_asset(asset_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
-    """Delete the asset and its file (409 while a queued or running render uses it)."""
+    """Delete the asset and its file (409 while a queued or running job uses it)."""
     a = get_asset(services.store, asset_id, tenant)
     with services.store.session() as s:
-        users = JobStore.envmap_users(s, tenant, a.id)
+        users = JobStore.asset_users(s, tenant, a.id)
         if users:
-            raise ApiError(409, f"render job {users[0]} uses asset {a.id}; cancel it or wait "
-                                "for it to end, then delete")
+            raise ApiError(409, f"job {users[0]} uses asset {a.id}; cancel it or wait for it "
+                                "to end, then delete")
         s.execute(Asset.__table__.delete().where(Asset.id == a.id))
     services.blobs.delete_prefix(f"assets/{a.id}")
     return Response(status_code=204)

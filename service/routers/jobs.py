@@ -9,11 +9,12 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import JSONResponse, StreamingResponse
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 
 from service.auth import TenantDep
+from service.checks import check_params, check_reconstruct
 from service.deps import Services, ServicesDep, absolute_url, default_expiry
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.events import job_events
@@ -64,7 +65,7 @@ def send(services: Services, job: Job) -> None:
             s.execute(update(Job).where(Job.id == job.id).values(dispatched_at=None))
 
 
-def _params(pipeline_name: str, params: dict) -> dict:
+def _params(pipeline_name: str, params: dict) -> BaseModel:
     try:
         pipeline = get_pipeline(pipeline_name)
         if pipeline.source != "capture":
@@ -73,25 +74,31 @@ def _params(pipeline_name: str, params: dict) -> dict:
     except ValueError as exc:
         raise ApiError(422, str(exc), details=[{"path": "pipeline", "message": str(exc)}]) from None
     try:
-        return pipeline.params.model_validate(params).model_dump(mode="json")
+        model = pipeline.params.model_validate(params)
     except ValidationError as exc:
         details = [{"path": ".".join(["params", *map(str, e["loc"])]), "message": e["msg"]}
                    for e in exc.errors()]
         raise ApiError(422, f"{details[0]['path']}: {details[0]['message']}",
                        details=details) from None
+    check_params(pipeline, model)
+    return model
 
 
 @router.post("", status_code=202, response_model=JobOut, responses=error_responses(409))
 def create_job(body: JobIn, request: Request, services: ServicesDep,
                tenant: TenantDep) -> JSONResponse:
-    """Queue a pipeline run on a ready capture (202; Location is the job)."""
+    """Queue a pipeline run on a ready capture (202; Location is the job). Every parameter is
+    checked first, against the capture too (its frames), the devices this deployment offers
+    and the models the tenant may use: 422 naming each bad one, and no job is made."""
+    params = _params(body.pipeline, body.params)
     capture = get_capture(services.store, body.capture_id, tenant)
     if capture.state != "ready":
         raise ApiError(409, f"capture {capture.id} is {capture.state}; commit it first "
                             "(POST /v1/captures/{id}/commit)")
-    params = _params(body.pipeline, body.params)
+    check_reconstruct(services, tenant, capture, params)
     try:
-        job = services.store.create(tenant, body.pipeline, params, capture_id=capture.id,
+        job = services.store.create(tenant, body.pipeline, params.model_dump(mode="json"),
+                                    capture_id=capture.id,
                                     name=body.name,
                                     expires_at=default_expiry(services, body.expires_at))
     except IntegrityError:  # the capture was deleted meanwhile

@@ -12,6 +12,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from service.auth import TenantDep
+from service.checks import check_render
 from service.deps import ServicesDep, default_expiry
 from service.errors import COMMON, ApiError, error_responses
 from service.records import get_asset, get_job
@@ -45,6 +46,7 @@ def request_render(body: RenderIn, request: Request, services: ServicesDep,
                             "succeeded reconstruction" + (
                                 " (wait for it to end)" if source.state in ("queued", "running")
                                 else ""), retryable=source.state in ("queued", "running"))
+    check_render(services, source, body)
     job = services.store.create_render(
         tenant, source.id, "relight", body.params(), name=body.name,
         expires_at=default_expiry(services, body.expires_at))

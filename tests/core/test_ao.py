@@ -6,8 +6,10 @@ import math
 
 import torch
 
-from core.ao import AOConfig, ao_map, init_visibility, scaled_camera
-from core.model import GaussianModel, LearningRates
+from core.ao import ao_map, init_visibility, scaled_camera
+from core.config import AOConfig
+from core.config import LearningRates
+from core.model import GaussianModel
 from core.render import RenderCamera
 from core.synth.generate import look_at
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from core.sequence import SequenceConfig
+from core.config import SequenceConfig
 from core.sequence.budget import refine_steps
 
 SEQ = SequenceConfig(refine_adapt=3.0, refine_min=0.5, refine_max=2.0, refine_second=2.0)

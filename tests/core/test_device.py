@@ -14,8 +14,10 @@ import torch
 
 from core.data import CaptureDataset, load_capture
 from core.device import resolve_device, to_device
-from core.pipeline import _same_config, apply_overrides, resolve_config
-from core.train import TrainConfig, Trainer, View, train_config, training_cameras
+from core.config import apply_overrides, preset_config as resolve_config
+from core.pipeline import _same_config
+from core.config import TrainConfig, train_config
+from core.train import Trainer, View, training_cameras
 
 
 def _cuda_usable() -> bool:

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 import torch
 
+from core.config import MeshConfig
 from core.mesh import (
-    MeshConfig,
     TSDFVolume,
     clean_mesh,
     export_mesh,

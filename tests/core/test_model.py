@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from core.model import PARAM_NAMES, SH_C0, GaussianModel, LearningRates, means_lr
+from core.config import LearningRates
+from core.model import PARAM_NAMES, SH_C0, GaussianModel, means_lr
 from core.plyio import gaussian_ply_properties
 
 

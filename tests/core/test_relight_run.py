@@ -249,7 +249,8 @@ def test_meshes_are_written_in_the_source_coordinates(tiny_run: Path, synth_capt
     gets meshes in the source's coordinates: the same surface, moved by that transform."""
     import trimesh
 
-    from core.mesh import MeshConfig, mesh_run
+    from core.config import MeshConfig
+    from core.mesh import mesh_run
 
     capture = tmp_path / "capture"
     shutil.copytree(synth_capture, capture, ignore=shutil.ignore_patterns("gt"))

@@ -33,7 +33,8 @@ from core.sequence import (
     temporal_loss,
     with_rekeys,
 )
-from core.strategy import DensifyConfig, DensifyStrategy
+from core.config import DensifyConfig
+from core.strategy import DensifyStrategy
 
 TOL = dict(rtol=1e-5, atol=1e-6)
 
@@ -221,7 +222,7 @@ def test_gop_segmentation():
 def test_sequence_record_names_the_start_also_of_runs_that_recorded_a_damping():
     """metrics.json written before the second-order starts held the start's damping (0:
     rest); a resumed run's sequence.json names it like the new ones."""
-    from core.sequence import SequenceConfig
+    from core.config import SequenceConfig
     from core.sequence.run import sequence_record
 
     frames = ["a", "b", "c", "d"]
@@ -353,8 +354,9 @@ def test_a_deform_step_averages_its_views_and_scores_the_silhouette(capture3, tm
     deform_mask x mean |blur(alpha_c) - blur(mask)| at the step's coarse-to-fine blur."""
     import core.sequence.frame as frame_mod
     from core.data import load_capture
-    from core.pipeline import apply_overrides, reconstruct, resolve_config
-    from core.sequence import SequenceConfig
+    from core.config import apply_overrides, preset_config as resolve_config
+    from core.pipeline import reconstruct
+    from core.config import SequenceConfig
     from core.sequence.deform import blur, blur_sigma
     from core.sequence.run import tracker_from_capture
 
@@ -395,8 +397,9 @@ def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(cap
     the round that ended lowest is kept, and a checkpoint inside the second round resumes to
     the same model."""
     from core.data import load_capture
-    from core.pipeline import apply_overrides, reconstruct, resolve_config
-    from core.sequence import SequenceConfig
+    from core.config import apply_overrides, preset_config as resolve_config
+    from core.pipeline import reconstruct
+    from core.config import SequenceConfig
     from core.sequence.motion import align_tracks
     from core.sequence.run import load_frame, tracker_from_capture
 
@@ -500,8 +503,9 @@ def test_a_frame_that_loses_track_becomes_a_key_frame_and_resumes_exactly(captur
 
     # The tracker alone: a reference it cannot reach stops it after the deform stage.
     from core.data import load_capture
-    from core.pipeline import apply_overrides, reconstruct, resolve_config
-    from core.sequence import SequenceConfig
+    from core.config import apply_overrides, preset_config as resolve_config
+    from core.pipeline import reconstruct
+    from core.config import SequenceConfig
 
     key = tmp_path / "key"
     reconstruct(capture3, key, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
@@ -564,8 +568,9 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     same steps and model; the pipeline's credit is what the finished tracked frames left unused
     plus what the remaining ones can pay back."""
     from core.data import load_capture
-    from core.pipeline import apply_overrides, reconstruct, resolve_config
-    from core.sequence import SequenceConfig
+    from core.config import apply_overrides, preset_config as resolve_config
+    from core.pipeline import reconstruct
+    from core.config import SequenceConfig
     from core.sequence.budget import median_deform_loss, refine_credit
     from core.sequence.run import tracker_from_capture
 

@@ -6,7 +6,8 @@ import math
 
 import pytest
 
-from core.stages import PRESETS, Schedule, plan, schedule_for
+from core.config import PRESETS, Schedule, schedule_for
+from core.stages import plan
 
 
 def test_paper_stage_boundaries_and_flags():
@@ -14,7 +15,7 @@ def test_paper_stage_boundaries_and_flags():
     p = plan(0, s)
     assert (p.stage, p.beta, p.sh_degree, p.tie_opacity, p.geometry_branch) == (1, 0.0, 0, True,
                                                                                  False)
-    assert not (p.normal_prior or p.consistency or p.visibility) and p.photometric
+    assert not (p.normal_prior or p.consistency or p.visibility)
     assert plan(6_999, s).stage == 1 and plan(6_999, s).beta == 0.0
     p = plan(7_000, s)
     assert p.stage == 2 and p.start_geometry and p.geometry_branch and not p.tie_opacity

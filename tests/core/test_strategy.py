@@ -10,7 +10,8 @@ import torch
 
 from core.model import GaussianModel
 from core.render import RenderCamera, render
-from core.strategy import DensifyConfig, DensifyStrategy
+from core.config import DensifyConfig
+from core.strategy import DensifyStrategy
 from native.types import RasterOutput
 
 

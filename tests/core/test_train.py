@@ -13,17 +13,16 @@ import numpy as np
 import pytest
 import torch
 
+from core.config import Schedule, train_config
 from core.data import CaptureDataset, load_capture
 from core.model import GaussianModel
 from core.seeding import look_at_center, sample_points, scene_extent
-from core.stages import Schedule
 from core.synth import SynthConfig, synthesize
 from core.train import (
     CheckpointCallback,
     ProgressCallback,
     Trainer,
     View,
-    train_config,
     training_cameras,
 )
 

@@ -19,7 +19,8 @@ def make_settings(data_dir: Path, **overrides) -> ServiceSettings:
     """Settings that ignore the developer's DGS_* environment."""
     fields = {"data_dir": data_dir, "database_url": None, "broker_url": None,
               "storage_url": None, "public_url": None, "retention_days": None,
-              "queue": "dgs-test", "commit_wait_seconds": 30.0, "sse_poll_seconds": 0.05}
+              "queue": "dgs-test", "commit_wait_seconds": 30.0, "sse_poll_seconds": 0.05,
+              "devices": "auto,cpu", "normal_estimators": {}}
     fields.update(overrides)
     return ServiceSettings(_env_file=None, **fields)
 

@@ -117,6 +117,7 @@ def test_upload_commit_freezes_a_valid_capture(client, services, new_capture, sy
     out = r.json()
     assert out["state"] == "ready" and out["committed_at"] and out["error"] is None
     assert out["summary"] == {"frames": 1, "cameras": 8, "views": 8, "masks": 8, "normals": 0,
+                              "camera_ids": [f"cam{i:02d}" for i in range(8)],
                               "image_sizes": [{"width": 32, "height": 32, "cameras": 8}],
                               "source_format": "canonical"}
     assert out["files"]["received"] == len(files) and out["files"]["missing"] == 0

@@ -5,18 +5,22 @@ lost its lease writes nothing more, the sweeper deletes what expired."""
 from __future__ import annotations
 
 import datetime as dt
+import json
 import subprocess
 import sys
 import textwrap
 import time
+import warnings
 from pathlib import Path
 
 import pytest
+import torch
 from sqlalchemy import update
 from worker_harness import add_capture, tiny_config, wait_for
 
 from worker.blobs import LocalBlobStore
 from worker.models import Asset, Capture, Job, utcnow
+from worker.pipelines import MODEL_KIND
 from worker.progress import JobLink
 from worker.runner import Runner
 from worker.settings import WorkerSettings
@@ -45,7 +49,7 @@ def test_bad_parameters_and_missing_capture_fail_clearly(setup, tiny_capture: Pa
     unknown = store.create("t1", "reconstruct", {"preset": "test", "config": {"nope": 1}},
                            capture_id=cap)
     assert runner.run(unknown.id).status == "failed"
-    assert "unknown key 'nope'" in store.get(unknown.id).error["message"]
+    assert "config.nope: unknown setting" in store.get(unknown.id).error["message"]
 
     gone = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=None)
     assert runner.run(gone.id).status == "failed"
@@ -187,3 +191,60 @@ def test_sweeper_keeps_what_an_active_render_needs(setup, tiny_capture: Path):
     assert gone == {"jobs": [sources[1]], "captures": [], "assets": ["ast_free"]}
     assert store.get(active.id).source_job_id == sources[0]
     assert store.get(ended.id).source_job_id is None  # its source went; the render stays
+
+
+class _Facing(torch.nn.Module):
+    """A normal estimator: every pixel faces the camera."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = torch.zeros_like(x)
+        out[:, 2] = -1.0
+        return out
+
+
+def test_a_normal_estimator_is_a_model_asset_or_an_allowed_name_never_a_path(
+        setup, tmp_path: Path):
+    """A job's `normal_estimator` names the tenant's model asset (fetched from the store) or a
+    model the operator allows; a path fails the job with the same message whether or not the
+    file exists, and nothing is loaded from it."""
+    from core.synth import SynthConfig, synthesize
+
+    settings, store, blobs = setup
+    capture = tmp_path / "capture"  # no normals/: the priors must come from the estimator
+    synthesize(capture, SynthConfig(frames=1, views=8, width=24, height=24, seed=5,
+                                    priors=False, ao_directions=4))
+    cap = add_capture(store, blobs, capture)
+    model = tmp_path / "facing.pt"
+    with warnings.catch_warnings():  # TorchScript is deprecated in torch 2.x, still shipped
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.jit.script(_Facing()).save(str(model))
+    blobs.put_file("assets/ast_model/facing.pt", model)
+    with store.session() as s:
+        s.add(Asset(id="ast_model", tenant="t1", kind=MODEL_KIND, filename="facing.pt",
+                    size=model.stat().st_size, sha256="0" * 64,
+                    content_type="application/octet-stream", meta={}))
+    settings = settings.model_copy(update={"normal_estimators": {"served": model}})
+    runner = Runner(settings, store, blobs)
+
+    def job(name: str) -> str:
+        config = {**tiny_config(3), "normal_estimator": name, "mesh": {"enabled": False}}
+        return store.create("t1", "reconstruct", {"preset": "test", "config": config},
+                            capture_id=cap).id
+
+    messages = []
+    for path in (str(model), str(tmp_path / "missing.pt"), "ast_other"):
+        failed = job(path)
+        assert runner.run(failed).status == "failed"
+        error = store.get(failed).error
+        assert error["code"] == "invalid_input" and not error["retryable"]
+        messages.append(error["message"].replace(path, "NAME"))
+    assert messages[0] == messages[1] == messages[2] and "neither" in messages[0], messages
+    for name in ("ast_model", "served"):
+        done = job(name)
+        assert runner.run(done).status == "succeeded", store.get(done).error
+        metrics = json.loads((settings.data_dir / "store" / "jobs" / done / "artifacts" /
+                              "metrics.json").read_text())
+        assert metrics["frames"]["000000"]["normal_prior"] == "estimator"
+        config = json.loads((settings.data_dir / "store" / "jobs" / done / "artifacts" /
+                             "config.json").read_text())
+        assert config["normal_estimator"] == name  # the name, not where the worker put it

@@ -218,8 +218,12 @@ def test_a_render_is_made_only_from_a_succeeded_job_of_its_tenant(store: JobStor
     assert render.source_job_id == source and render.state == "queued"
     with store.session() as s:
         assert JobStore.dependents(s, source) == [render.id]
-        assert JobStore.envmap_users(s, "t1", "a") == [render.id]
-        assert JobStore.envmap_users(s, "t2", "a") == []
+        assert JobStore.asset_users(s, "t1", "a") == [render.id]
+        assert JobStore.asset_users(s, "t2", "a") == []
+    model_user = store.create("t1", "reconstruct", {"config": {"normal_estimator": "m"}},
+                              capture_id=None)
+    with store.session() as s:
+        assert JobStore.asset_users(s, "t1", "m") == [model_user.id]
     store.request_cancel(render.id, "t1")
     with store.session() as s:
         assert JobStore.dependents(s, source) == []

@@ -1,0 +1,57 @@
+"""The run configuration, typed once (pydantic dataclasses, torch-free): what `dgs reconstruct
+--config` reads, what `POST /v1/jobs` validates and `GET /v1/pipelines` publishes as JSON Schema.
+
+Every section is a frozen dataclass that validates when built (`dataclasses.replace` too);
+`load_config` lays a preset, a JSON file and request overrides on each other and reports every
+bad setting by its path (`ConfigError.details`).
+"""
+
+from core.config.base import ConfigError, schema, validate
+from core.config.run import (
+    MESH_FORMATS,
+    MeshConfig,
+    RunConfig,
+    apply_overrides,
+    load_config,
+    parse_frames,
+    preset_config,
+)
+from core.config.sequence import SequenceConfig
+from core.config.train import (
+    DEVICE_PATTERN,
+    PRESETS,
+    AOConfig,
+    DensifyConfig,
+    LearningRates,
+    LossWeights,
+    Preset,
+    Schedule,
+    TrainConfig,
+    schedule_for,
+    train_config,
+)
+
+__all__ = [
+    "AOConfig",
+    "ConfigError",
+    "DEVICE_PATTERN",
+    "DensifyConfig",
+    "LearningRates",
+    "LossWeights",
+    "MESH_FORMATS",
+    "MeshConfig",
+    "PRESETS",
+    "Preset",
+    "RunConfig",
+    "Schedule",
+    "SequenceConfig",
+    "TrainConfig",
+    "apply_overrides",
+    "load_config",
+    "parse_frames",
+    "preset_config",
+    "schedule_for",
+    "schema",
+    "train_config",
+    "validate",
+]

@@ -1,0 +1,184 @@
+"""What every configuration section shares: frozen pydantic dataclasses that validate strictly
+(no strings for numbers, no booleans for integers, no NaN or infinity, no unknown keys), and one
+way of turning a validation failure into messages that name the setting.
+
+Torch-free: the API process validates a job's configuration with these before the job exists.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import re
+import typing
+from collections.abc import Callable
+from typing import Annotated, Any, TypeVar
+
+from pydantic import AfterValidator, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic.dataclasses import dataclass as pydantic_dataclass
+
+__all__ = ["ConfigError", "Device", "Fraction", "Positive", "Steps", "Weight", "section", "validate"]
+
+T = TypeVar("T")
+
+STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False,
+                    use_attribute_docstrings=True)
+
+# Upper bounds a request cannot exceed. They are far beyond any run that makes sense (the paper
+# preset is 30k steps; a 4 MP studio frame stays under a few million Gaussians) and low enough
+# that a typo cannot hold a worker for days.
+MAX_STEPS = 300_000
+
+Steps = Annotated[int, Field(ge=0, le=MAX_STEPS)]
+"""A step count or interval."""
+Positive = Annotated[float, Field(gt=0, le=1e6)]
+"""A finite number > 0."""
+Weight = Annotated[float, Field(ge=0, le=1e4)]
+"""A loss weight (0 turns the term off)."""
+Fraction = Annotated[float, Field(ge=0, le=1)]
+"""A number in [0, 1]."""
+DEVICE_PATTERN = r"^(auto|cpu|cuda(:\d{1,2})?)$"
+
+
+def _device(value: str) -> str:
+    if not re.match(DEVICE_PATTERN, value):
+        raise ValueError(f"expected auto, cpu, cuda or cuda:N, got {value!r}")
+    return value
+
+
+Device = Annotated[str, AfterValidator(_device), Field(json_schema_extra={
+    "pattern": DEVICE_PATTERN})]
+"""A torch device as configuration names it (whether it exists is `core.device`'s question)."""
+
+
+def section(cls: type[T]) -> type[T]:
+    """A frozen, strictly validated configuration dataclass (`dataclasses.replace`, `asdict` and
+    `fields` work on it as on any dataclass). Building one validates: a bad value raises
+    ConfigError naming the field."""
+    cls = pydantic_dataclass(frozen=True, config=STRICT)(cls)
+    init = cls.__init__
+
+    @functools.wraps(init)
+    def __init__(self, *args, **kwargs) -> None:
+        try:
+            init(self, *args, **kwargs)
+        except ValidationError as exc:
+            raise ConfigError(errors_of(exc, type(self))) from None
+
+    cls.__init__ = __init__
+    return cls
+
+
+class ConfigError(ValueError):
+    """Invalid configuration: `details` lists {"path", "message"} per problem; the message is
+    the first one, "path: message"."""
+
+    def __init__(self, details: list[dict[str, str]]):
+        self.details = details
+        first = details[0]
+        more = f" (+{len(details) - 1} more)" if len(details) > 1 else ""
+        super().__init__(f"{first['path']}: {first['message']}{more}")
+
+
+def _field_type(cls: Any, name: str) -> Any:
+    """The declared type of field `name` of dataclass `cls` (None when there is none)."""
+    if not dataclasses.is_dataclass(cls):
+        return None
+    hints = typing.get_type_hints(cls)
+    return hints.get(name)
+
+
+def _known_keys(root: Any, loc: tuple) -> list[str]:
+    """The setting names of the section at `loc` (walking dataclass fields from `root`)."""
+    cls = root
+    for part in loc:
+        cls = _field_type(cls, part) if isinstance(part, str) else None
+        while typing.get_origin(cls) is Annotated:
+            cls = typing.get_args(cls)[0]
+    return sorted(f.name for f in dataclasses.fields(cls)) if dataclasses.is_dataclass(cls) else []
+
+
+def _message(error: dict, root: Any) -> str:
+    kind, loc = error["type"], tuple(error["loc"])
+    if kind == "unexpected_keyword_argument":
+        known = _known_keys(root, loc[:-1])
+        return "unknown setting" + (f" (known: {', '.join(known)})" if known else "")
+    message = error["msg"].removeprefix("Value error, ")
+    value = error.get("input")
+    if kind != "value_error" and isinstance(value, (bool, int, float, str)) and \
+            len(repr(value)) <= 40:
+        message += f", got {json.dumps(value)}"
+    return message
+
+
+def _path(loc: tuple, where: str) -> str:
+    text = where
+    for part in loc:
+        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
+    return text or "config"
+
+
+def errors_of(exc: ValidationError, root: Any, where: str = "") -> list[dict[str, str]]:
+    """{"path", "message"} per problem of a pydantic validation of `root` (paths under
+    `where`)."""
+    out = []
+    for error in exc.errors(include_url=False):
+        # A failed check across fields reports the section; its message names the fields.
+        out.append({"path": _path(tuple(error["loc"]), where),
+                    "message": _message(error, root)})
+    return out
+
+
+_ADAPTERS: dict[Any, TypeAdapter] = {}
+
+
+def adapter(cls: Any) -> TypeAdapter:
+    if cls not in _ADAPTERS:
+        _ADAPTERS[cls] = TypeAdapter(cls)
+    return _ADAPTERS[cls]
+
+
+def validate(cls: type[T], data: Any, where: str = "") -> T:
+    """An instance of section `cls` from JSON-like `data` (dicts, lists, numbers, strings,
+    None); ConfigError naming each bad setting (under `where`) otherwise. Validation is strict
+    and goes through JSON, so a tuple field takes a list and NaN or infinity is refused."""
+    try:
+        text = json.dumps(data, allow_nan=True)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError([{"path": where or "config",
+                            "message": f"not JSON data ({exc})"}]) from None
+    try:
+        return adapter(cls).validate_json(text)
+    except ValidationError as exc:
+        raise ConfigError(errors_of(exc, cls, where)) from None
+
+
+def schema(cls: Any, *, inline: bool = False) -> dict[str, Any]:
+    """The JSON Schema of section `cls` (every field has a default, so any subset of the keys is
+    a valid override); `inline`: its sections written out in place instead of `$ref`s, for
+    embedding in another document (an OpenAPI property)."""
+    doc = adapter(cls).json_schema()
+    if not inline:
+        return doc
+    defs = doc.pop("$defs", {})
+
+    def expand(node: Any) -> Any:
+        if isinstance(node, dict):
+            if "$ref" in node:
+                target = expand(defs[node["$ref"].rsplit("/", 1)[-1]])
+                return {**target, **{k: expand(v) for k, v in node.items() if k != "$ref"}}
+            return {k: expand(v) for k, v in node.items()}
+        if isinstance(node, list):
+            return [expand(v) for v in node]
+        return node
+
+    return expand(doc)
+
+
+def checked(build: Callable[[], T], root: Any, where: str = "") -> T:
+    """`build()`, with a pydantic ValidationError it raises turned into ConfigError."""
+    try:
+        return build()
+    except ValidationError as exc:
+        raise ConfigError(errors_of(exc, root, where)) from None

@@ -1,0 +1,235 @@
+"""How one frame is trained: the stage schedule, learning rates, densification, loss weights,
+ambient-occlusion baking, and the named presets (docs/design.md, "Training")."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import field, replace
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from core.config.base import DEVICE_PATTERN, MAX_STEPS, Device, Fraction, Positive, Steps, Weight, section
+
+__all__ = ["AOConfig", "DEVICE_PATTERN", "DensifyConfig", "LearningRates", "LossWeights",
+           "PRESETS", "Preset", "Schedule", "TrainConfig", "schedule_for", "train_config"]
+
+Preset = Literal["paper", "fast", "test"]
+Rate = Annotated[float, Field(gt=0, le=1)]
+
+
+@section
+class Schedule:
+    """Step counts and targets of the staged schedule (steps count from 0); densification and
+    opacity resets follow 3DGS (Kerbl et al. 2023, arguments/__init__.py)."""
+
+    iterations: Annotated[int, Field(ge=3, le=MAX_STEPS)] = 30_000
+    """Total optimisation steps of a key frame."""
+    stage2_start: Steps = 7_000
+    """First step of stage 2 (geometry branch)."""
+    stage3_start: Steps = 21_000
+    """First step of stage 3 (AO baked, visibility loss, SH raised)."""
+    beta_max: Fraction = 0.7
+    """Beta reached at the last step by the cosine ramp that starts with stage 2."""
+    sh_max_degree: Annotated[int, Field(ge=0, le=3)] = 3
+    """SH degree reached in stage 3."""
+    sh_interval: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 1_000
+    """Steps per SH degree increase in stage 3 (3DGS oneupSHdegree every 1000)."""
+    densify_from: Steps = 500
+    """Densification runs at steps > densify_from (3DGS densify_from_iter)."""
+    densify_until: Steps = 15_000
+    """... and < densify_until (3DGS densify_until_iter); opacity resets stop here too."""
+    densify_interval: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 100
+    """Steps between densifications (3DGS densification_interval)."""
+    reset_interval: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 3_000
+    """Steps between opacity resets, each after pruning (3DGS opacity_reset_interval)."""
+
+    def __post_init__(self) -> None:
+        if not 0 < self.stage2_start <= self.stage3_start <= self.iterations:
+            raise ValueError(
+                "stage2_start, stage3_start: expected 0 < stage2_start <= stage3_start <= "
+                f"iterations, got {self.stage2_start}, {self.stage3_start}, {self.iterations} "
+                "(a preset's boundaries do not follow a new iterations: give them too)")
+
+    def scaled(self, iterations: int) -> Schedule:
+        """The same plan for `iterations` steps: every step count scaled proportionally
+        (intervals at least 1 step)."""
+        if iterations < 3:
+            raise ValueError(f"iterations: expected >= 3, got {iterations}")
+        f = iterations / self.iterations
+        counts = {name: max(1, round(getattr(self, name) * f)) for name in (
+            "stage2_start", "stage3_start", "sh_interval", "densify_from", "densify_until",
+            "densify_interval", "reset_interval")}
+        counts["stage3_start"] = max(counts["stage3_start"], counts["stage2_start"])
+        return replace(self, iterations=iterations, **counts)
+
+
+PRESETS: dict[str, Schedule] = {
+    "paper": Schedule(),
+    "fast": Schedule().scaled(7_500),
+    "test": Schedule().scaled(500),
+}
+
+
+def schedule_for(preset: str) -> Schedule:
+    """The named preset's schedule."""
+    if preset not in PRESETS:
+        raise ValueError(f"preset: expected one of {sorted(PRESETS)}, got {preset!r}")
+    return PRESETS[preset]
+
+
+@section
+class LearningRates:
+    """Adam learning rates per parameter group: those of 3DGS (Kerbl et al. 2023,
+    arguments/__init__.py OptimizationParams); the geometry branch's are ours."""
+
+    means: Rate = 1.6e-4
+    """Initial position rate, times the scene extent (3DGS position_lr_init)."""
+    means_final: Rate = 1.6e-6
+    """Position rate reached at `means_decay_steps`, log-linear decay (3DGS position_lr_final)."""
+    means_decay_steps: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 30_000
+    """Steps of the exponential position decay (3DGS position_lr_max_steps)."""
+    sh0: Rate = 2.5e-3
+    """Degree-0 SH (3DGS feature_lr)."""
+    shN: Rate = 2.5e-3 / 20
+    """Higher SH degrees: feature_lr / 20 as in 3DGS gaussian_model.training_setup."""
+    opacity: Rate = 5e-2
+    """Both opacity logits (original 3DGS opacity_lr)."""
+    scales: Rate = 5e-3
+    """Log-scales (3DGS scaling_lr)."""
+    quats: Rate = 1e-3
+    """Quaternions (3DGS rotation_lr)."""
+    normals: Rate = 1e-3
+    """Unnormalized normals (ours; of the order of the rotation rate)."""
+    visibility: Rate = 2.5e-3
+    """Visibility logit (ours; the colour rate)."""
+
+    def for_param(self, name: str, extent: float) -> float:
+        """The initial rate of parameter group `name` in a scene of `extent`."""
+        if name == "means":
+            return self.means * extent
+        if name in ("opacity_c", "opacity_g"):
+            return self.opacity
+        return float(getattr(self, name))
+
+
+@section
+class DensifyConfig:
+    """Thresholds and factors of the densification strategy (`core.strategy`)."""
+
+    grad_threshold_c: Positive = 0.0008
+    """AbsGS threshold of the appearance branch (AbsGS / gsplat absgrad default 0.0008)."""
+    grad_threshold_g: Positive = 0.0008
+    """AbsGS threshold of the geometry branch."""
+    clone_scale: Positive = 0.01
+    """Clone when the largest scale <= clone_scale x extent, else split (3DGS percent_dense)."""
+    split_factor: Annotated[float, Field(ge=1, le=100)] = 1.6
+    """Split samples get scales / split_factor (3DGS: 0.8 x 2 samples)."""
+    new_branch_opacity: Annotated[float, Field(gt=0, lt=1)] = 0.005
+    """Opacity of the copy in a branch that did not pass its threshold."""
+    transparent: Fraction = 0.005
+    """Below this opacity in both branches a Gaussian is pruned (3DGS min_opacity)."""
+    rho: Fraction = 0.1
+    """Initial fraction pruned by lowest contribution at a reset (0.25 for ActorsHQ-like)."""
+    rho_decay: Fraction = 0.75
+    """rho is multiplied by this after each reset."""
+    reset_value: Annotated[float, Field(gt=0, lt=1)] = 0.01
+    """Opacity reset: o = min(o, reset_value) (3DGS)."""
+    max_gaussians: Annotated[int, Field(ge=1, le=50_000_000)] | None = None
+    """Stop growing beyond this many Gaussians (highest gradients densify first); None: no cap."""
+    prune_scale: Positive | None = 0.1
+    """After the first reset, drop Gaussians whose largest scale exceeds this x the scene extent
+    (3DGS `0.1 * cameras_extent`); None keeps them."""
+
+
+@section
+class LossWeights:
+    """Weight of each loss term (docs/design.md, "Losses"); 0 turns a term off."""
+
+    dssim: Fraction = 0.2
+    """Share of D-SSIM in the photometric loss; L1 gets 1 - dssim."""
+    normal_l1: Weight = 0.2
+    """L1 between rendered normals and the prior."""
+    normal_smooth: Weight = 0.05
+    """Edge-aware smoothness of rendered normals."""
+    consistency: Weight = 0.01
+    """Depth-normal consistency."""
+    visibility_l1: Weight = 0.1
+    """L1 between rendered visibility and the baked AO maps."""
+    visibility_smooth: Weight = 0.01
+    """Smoothness of rendered visibility."""
+    geometry_mask: Weight = 1.0
+    """L1 between the geometry coverage and the capture's mask (ours: keeps geometry-only
+    Gaussians out of the background)."""
+
+
+@section
+class AOConfig:
+    """How ambient occlusion is baked (`core.ao`)."""
+
+    n_dirs: Annotated[int, Field(ge=1, le=1024)] = 64
+    """Rays per point, over the Fibonacci hemisphere about its normal."""
+    scale: Annotated[float, Field(gt=0, le=1)] = 0.25
+    """Resolution of the traced maps relative to the training views."""
+    min_alpha: Annotated[float, Field(gt=0, lt=1)] = 0.5
+    """Pixels whose geometry coverage is below this are background (AO 1)."""
+    offset_pixels: Annotated[float, Field(ge=0, le=100)] = 0.5
+    """Rays start this many full-resolution pixel footprints above the rendered surface, clear
+    of the thin Gaussians that make it."""
+    sigma_color: Annotated[float, Field(gt=0, le=10)] = 0.2
+    """Joint bilateral filter: range sigma on the normal guide (components in -1..1)."""
+    sigma_space: Annotated[float, Field(gt=0, le=64)] = 2.0
+    """Joint bilateral filter: spatial sigma in full-resolution pixels."""
+
+
+Color = Annotated[float, Field(ge=0, le=1)]
+
+
+@section
+class TrainConfig:
+    """Everything that decides how one key frame is reconstructed."""
+
+    schedule: Schedule = field(default_factory=Schedule)
+    """Stage boundaries, beta ramp, densification and reset timing."""
+    rates: LearningRates = field(default_factory=LearningRates)
+    """Adam learning rates per parameter group."""
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    """Densification and pruning thresholds."""
+    losses: LossWeights = field(default_factory=LossWeights)
+    """Loss weights."""
+    ao: AOConfig = field(default_factory=AOConfig)
+    """Ambient-occlusion baking."""
+    init_points: Annotated[int, Field(ge=1, le=10_000_000)] = 100_000
+    """Random initial points (carved by masks when present)."""
+    eps2d: Annotated[float, Field(ge=0, le=10)] = 0.1
+    """Screen-space blur of the Mip-Splatting 2D filter."""
+    antialiased: bool = True
+    """Apply the Mip-Splatting opacity compensation."""
+    background: tuple[Color, Color, Color] = (0.0, 0.0, 0.0)
+    """Colour behind the Gaussians; masked-out target pixels take it too."""
+    random_background: bool = True
+    """Views with a mask train in front of a new random colour each step (render and target
+    alike), so coverage must match the mask (3DGS --random_background)."""
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    """Seeds initial points, view order and split samples."""
+    bake_ao: bool = True
+    """Bake ambient occlusion at stage 3's first step; off: the visibility loss stays off."""
+    device: Device = "auto"
+    """Where training runs: auto (CUDA when usable, else the CPU; $DGS_DEVICE when set), cpu,
+    cuda or cuda:N. RUN/config.json records the device it resolved to."""
+
+    def to_dict(self) -> dict:
+        """The fully resolved configuration as JSON-compatible data."""
+        return dataclasses.asdict(self)
+
+
+def train_config(preset: str) -> TrainConfig:
+    """Named presets: `paper` (30k steps), `fast` (7.5k) and `test` (500, tiny captures)."""
+    schedule = schedule_for(preset)
+    if preset == "paper":
+        return TrainConfig(schedule=schedule)
+    rates = replace(LearningRates(), means_decay_steps=schedule.iterations)
+    if preset == "fast":
+        return TrainConfig(schedule=schedule, init_points=50_000, rates=rates)
+    return TrainConfig(schedule=schedule, init_points=1_000, rates=rates,
+                       densify=replace(DensifyConfig(), max_gaussians=4_000))

@@ -1,0 +1,106 @@
+"""A job's parameters checked against what only the server knows, before the job is made: the
+capture's frames and cameras, the devices this deployment offers, the tenant's own model assets
+and the operator's allow-list. Every refusal is a 422 naming the parameter; nothing a request
+sends is ever opened as a file."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pydantic import BaseModel
+from sqlalchemy import select
+
+from core.config import parse_frames
+from service.deps import Services
+from service.errors import ApiError
+from worker.models import Asset, Capture, Job
+from worker.pipelines import MODEL_KIND, Pipeline, ReconstructParams, RelightJobParams
+
+__all__ = ["check_params", "check_reconstruct", "check_render", "refuse"]
+
+
+def refuse(path: str, message: str) -> ApiError:
+    """A 422 whose message and single detail name `path`."""
+    return ApiError(422, f"{path}: {message}", details=[{"path": path, "message": message}])
+
+
+def _frame_ids(count: int) -> list[str]:
+    return [str(i) for i in range(count)]
+
+
+def _frames(spec: str | None, count: int, path: str, what: str) -> list[str]:
+    try:
+        return parse_frames(spec, _frame_ids(count))
+    except ValueError:
+        raise refuse(path, f"{spec!r} selects no frame of the {count} in the {what} (a Python "
+                           f"slice over 0..{count - 1}, e.g. '0:{count}')") from None
+
+
+def check_params(pipeline: Pipeline, params: BaseModel) -> None:
+    """The pipeline's own checks across its parameters (a reconstruction's configuration
+    resolves): 422 with a detail per bad setting, under `params.`."""
+    if pipeline.check is None:
+        return
+    try:
+        pipeline.check(params)
+    except ValueError as exc:
+        details = [{"path": f"params.{d['path']}", "message": d["message"]}
+                   for d in getattr(exc, "details", [{"path": "", "message": str(exc)}])]
+        raise ApiError(422, f"{details[0]['path']}: {details[0]['message']}",
+                       details=details) from None
+
+
+def check_reconstruct(services: Services, tenant: str, capture: Capture,
+                      params: ReconstructParams) -> None:
+    """The frames exist, the devices are offered and the normal estimator is one the tenant
+    may use (`check_params` has resolved the configuration)."""
+    cfg = params.run_config()
+    summary = capture.summary or {}
+    if "frames" in summary:
+        _frames(params.frames, int(summary["frames"]), "params.frames", "capture")
+    offered = services.settings.offered_devices
+    for path, device in (("params.config.train.device", cfg.train.device),
+                         ("params.config.mesh.device", cfg.mesh.device)):
+        if device is not None and device not in offered:
+            raise refuse(path, f"{device!r} is not offered by this deployment (offered: "
+                               f"{', '.join(offered)})")
+    if cfg.normal_estimator is not None:
+        _check_model(services, tenant, cfg.normal_estimator)
+
+
+def _check_model(services: Services, tenant: str, name: str) -> None:
+    allowed = services.settings.normal_estimators
+    if name in allowed:
+        return
+    with services.store.session(write=False) as s:
+        asset = s.scalar(select(Asset).where(Asset.id == name, Asset.tenant == tenant))
+    if asset is not None and asset.kind == MODEL_KIND:
+        return
+    served = ", ".join(sorted(allowed)) or "none configured"
+    what = (f"asset {name} is a {asset.kind}, not a {MODEL_KIND}" if asset is not None
+            else f"{name!r} is neither a {MODEL_KIND} asset of yours nor a model this server "
+                 f"offers")
+    raise refuse("params.config.normal_estimator",
+                 f"{what}; upload the model with POST /v1/assets?kind={MODEL_KIND} and give its "
+                 f"id, or name one of the server's models ({served})")
+
+
+def check_render(services: Services, source: Job, params: RelightJobParams) -> None:
+    """The frames are among the reconstruction's and the cameras among its capture's."""
+    capture = None
+    if source.capture_id is not None:
+        with services.store.session(write=False) as s:
+            capture = s.get(Capture, source.capture_id)
+    summary: dict[str, Any] = (capture.summary or {}) if capture is not None else {}
+    if "frames" in summary:
+        made = _frames(source.params.get("frames"), int(summary["frames"]), "params.frames",
+                       "capture")
+        _frames(params.frames, len(made), "frames", f"reconstruction {source.id}")
+    ids = summary.get("camera_ids")
+    if params.orbit is None and params.cameras not in ("heldout", "all") and ids is not None:
+        asked = [c.strip() for c in params.cameras.split(",")]
+        unknown = [c for c in asked if c not in ids]
+        if unknown or not any(asked):
+            shown = ", ".join(ids[:12]) + (", ..." if len(ids) > 12 else "")
+            raise refuse("cameras", f"no camera {unknown[0] if unknown else '(empty)'!r} in "
+                                    f"the capture (heldout, all, or ids among: {shown})")
