@@ -58,7 +58,7 @@ def _appearance_normals(capture_dir: Path, run: Path, preset: str) -> None:
 
 
 def run_variant(capture: Path, out: Path, variant: str, preset: str) -> dict:
-    from core.evaluate import evaluate_run
+    from core.evaluation import evaluate_run
     from core.pipeline import reconstruct
     from core.config import train_config
 

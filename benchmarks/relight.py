@@ -4,8 +4,8 @@ One reconstruction of a `dgs synth` capture (one frame), then:
 - relit held-out views under the capture's second light (gt/lights.json, gt/relight) against
   ground truth: the method (visibility times the map's SH9 irradiance, albedo divided by the
   capture light's SH9 irradiance), the baseline without the AO term (visibility 1 in the
-  shading), and DESIGN.md's uniform capture irradiance (pi) instead of the stage's SH9 light;
-- meshes (TSDF of the geometry branch's depth, DESIGN.md section 5) against the ground-truth
+  shading), and docs/design.md's uniform capture irradiance (pi) instead of the stage's SH9 light;
+- meshes (TSDF of the geometry branch's depth, docs/design.md section 5) against the ground-truth
   mesh: Chamfer distance (percent of the reference's diagonal) and normal consistency, beside
   the baseline that fuses the appearance branch's depth, at 512 and 256 voxels per diagonal.
 
@@ -30,7 +30,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 def reconstruct_once(capture: Path, run: Path, preset: str) -> dict:
     """The run's metrics: a finished run is reused, an interrupted one resumed."""
-    from core.commands_demo import DEMO_OVERRIDES
+    from core.demo import DEMO_OVERRIDES
     from core.pipeline import reconstruct
 
     if (run / "metrics.json").is_file() and not any((run / "checkpoints").glob("*.pt")):
@@ -47,7 +47,7 @@ def relit_rows(run: Path, capture: Path) -> list[dict]:
     """Scores of the relit held-out views: the method, no AO, uniform capture light."""
     import numpy as np
 
-    from core.evaluate import evaluate_run
+    from core.evaluation import evaluate_run
     from core.relight.metrics import relit_heldout
 
     ev = evaluate_run(run)["relight"]
@@ -55,7 +55,7 @@ def relit_rows(run: Path, capture: Path) -> list[dict]:
         "psnr", "psnr_full", "ssim")}},
             {"variant": "without the AO term (baseline)", "psnr": ev["psnr_no_ao"],
              "psnr_full": ev["psnr_full_no_ao"], "ssim": ev["ssim_no_ao"]}]
-    # DESIGN.md's default: a uniform capture irradiance of pi.
+    # docs/design.md's default: a uniform capture irradiance of pi.
     config = json.loads((run / "config.json").read_text())
     cams = [c["id"] for i, c in enumerate(json.loads(
         (capture / "capture.json").read_text())["cameras"]) if i % 8 == 0]
@@ -63,7 +63,7 @@ def relit_rows(run: Path, capture: Path) -> list[dict]:
     for frame in config["frames"]:
         scores += relit_heldout(run, capture, frame, cams, float(config.get("downscale", 1)),
                                 sheet_maps=(), capture_light=None)["scores"]
-    rows.append({"variant": "uniform capture light pi + AO (DESIGN.md default)",
+    rows.append({"variant": "uniform capture light pi + AO (docs/design.md default)",
                  **{k: float(np.mean([s[k] for s in scores])) for k in ("psnr", "psnr_full", "ssim")}})
     return rows
 

@@ -105,7 +105,7 @@ def _same_model(a: Path, b: Path) -> tuple[bool, float]:
 
 
 def main() -> None:
-    from core.commands_demo import DEMO_OVERRIDES, DEMO_SYNTH
+    from core.demo import DEMO_OVERRIDES, DEMO_SYNTH
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--out", type=Path, default=None)

@@ -43,14 +43,12 @@ def _schedule(iterations: int) -> dict:
 
 
 def overrides(variant: str, iterations: int, total: int | None, frames: int, gop: int,
-              train_seed: int = 0, rekey: float = 0.0) -> dict:
+              train_seed: int = 0) -> dict:
     """The run's configuration overrides for `variant` (`total`: the sequential run's rendered
-    training images; `rekey`: `sequence.rekey_loss_ratio` of the sequential variants)."""
+    training images)."""
     base = {"gop": gop, "checkpoint_every": 100_000,
             "train": {"schedule": _schedule(iterations), "init_points": 2_000,
                       "seed": train_seed}}
-    if rekey and variant != "independent":
-        base["sequence"] = {"rekey_loss_ratio": rekey}
     if variant == "independent":
         per_frame = max(3, round(total / frames))
         base["train"]["schedule"] = _schedule(per_frame)
@@ -64,7 +62,7 @@ def overrides(variant: str, iterations: int, total: int | None, frames: int, gop
 
 def summarize(run: Path) -> dict:
     """The row of one finished run."""
-    from core.evaluate import evaluate_run
+    from core.evaluation import evaluate_run
 
     ev = evaluate_run(run)
     seq = json.loads((run / "sequence.json").read_text())
@@ -80,11 +78,10 @@ def summarize(run: Path) -> dict:
             "seconds_other": seq["timings"]["seconds_per_deformed_frame"],
             "steps_total": sum(m["iterations"] for m in metrics.values()),
             "renders_total": sum(m.get("renders", m["iterations"]) for m in metrics.values()),
-            # Across group boundaries too (a frame re-keyed after losing track starts a group).
+            # Across group boundaries too.
             "largest_drop_any_db": max((a - b for a, b in zip(t["psnr_per_frame"],
                                                               t["psnr_per_frame"][1:])),
                                        default=None),
-            "rekeyed": [f for f, m in sorted(metrics.items()) if m.get("rekeyed")],
             "psnr_per_frame": [round(p, 2) for p in t["psnr_per_frame"]]}
 
 
@@ -107,8 +104,6 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--variants", default=",".join(VARIANTS))
     ap.add_argument("--train-seed", type=int, default=0, help="training seed (TrainConfig.seed)")
-    ap.add_argument("--rekey", type=float, default=0.0,
-                    help="sequence.rekey_loss_ratio of the sequential variants (0: never)")
     ap.add_argument("--subject", default="",
                     help="a skinned glTF 2.0 character (.glb) to film instead of the figure")
     ap.add_argument("--fps", type=float, default=24.0,
@@ -135,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     results_path = out / "results.json"
     results = json.loads(results_path.read_text()) if results_path.is_file() else {}
     results["setup"] = {k: getattr(args, k) for k in ("frames", "views", "size", "iterations",
-                                                       "gop", "seed", "train_seed", "rekey",
+                                                       "gop", "seed", "train_seed",
                                                        "subject", "fps")}
     total = None
     for variant in args.variants.split(","):
@@ -149,7 +144,7 @@ def main(argv: list[str] | None = None) -> int:
         start = time.perf_counter()
         reconstruct(capture, run, preset="test", resume=(run / "config.json").is_file(),
                     overrides=overrides(variant, args.iterations, total, args.frames, args.gop,
-                                        args.train_seed, args.rekey),
+                                        args.train_seed),
                     progress=False)
         row = summarize(run)
         row["wall_s"] = round(time.perf_counter() - start, 1)

@@ -1,4 +1,4 @@
-"""Ambient occlusion baking (DESIGN.md section 5, "Ambient occlusion").
+"""Ambient occlusion baking (docs/design.md section 5, "Ambient occlusion").
 
 At the bake step of stage 3: every Gaussian's visibility attribute is initialised by tracing
 rays over the hemisphere about its normal, and every training view gets a per-pixel AO map: the

@@ -1,10 +1,11 @@
 """The `dgs` command line.
 
-Each command family lives in its own module exposing ``register(subparsers)``; the modules are
-listed in ``_COMMAND_MODULES`` and imported only when the command line starts, so ``import core``
-stays cheap. Packages above core (the service and the workers: ``dgs serve``, ``dgs worker``,
-``dgs keys``) add theirs through the ``dgs.commands`` entry-point group, so core never imports
-them (imports go one way, DESIGN.md section 2).
+Each command lives beside its code in a ``commands`` module exposing ``register(subparsers)``
+(``core/pipeline/commands.py`` is ``dgs reconstruct``, ``core/mesh/commands.py`` ``dgs mesh``,
+...); the modules are listed in ``_COMMAND_MODULES`` and imported only when the command line
+starts, so ``import core`` stays cheap. Packages above core (the service and the workers:
+``dgs serve``, ``dgs worker``, ``dgs keys``) add theirs through the ``dgs.commands``
+entry-point group, so core never imports them (imports go one way, docs/design.md 2.2).
 """
 
 from __future__ import annotations
@@ -12,19 +13,36 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
-from importlib.metadata import entry_points
 from collections.abc import Sequence
+from importlib.metadata import entry_points
 
-__all__ = ["main", "build_parser"]
+__all__ = ["build_parser", "fail", "main"]
 
 # Modules that add sub-commands; each has `register(subparsers) -> None`.
 _COMMAND_MODULES: tuple[str, ...] = (
-    "core.commands_demo",
-    "core.commands_reconstruct",
-    "core.commands_relight",
     "core.data.commands",
+    "core.demo.commands",
+    "core.evaluation.commands",
+    "core.mesh.commands",
+    "core.pipeline.commands",
+    "core.relight.commands",
     "core.synth.commands",
 )
+
+
+def fail(command: str, error: str | Exception) -> int:
+    """Print `dgs COMMAND: message` on one line of stderr (a capture's problems, the first
+    three, with a pointer to `dgs capture validate`) and return exit status 2."""
+    from core.data.capture import CaptureError  # lazy: `dgs --help` needs no capture reader
+
+    message = str(error)
+    if isinstance(error, CaptureError):
+        shown = "; ".join(str(p) for p in error.problems[:3])
+        more = len(error.problems) - 3
+        message = (f"not a valid capture: {shown}" + (f" (+{more} more)" if more > 0 else "")
+                   + " (see dgs capture validate)")
+    print(f"dgs {command}: {message.replace(chr(10), ' ')}", file=sys.stderr)
+    return 2
 
 
 def build_parser() -> argparse.ArgumentParser:

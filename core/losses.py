@@ -1,4 +1,4 @@
-"""Training losses of DESIGN.md section 5, on (H, W, C) image tensors.
+"""Training losses of docs/design.md section 5, on (H, W, C) image tensors.
 
 - photometric: (1 - 0.2) L1 + 0.2 D-SSIM, SSIM with an 11x11 Gaussian window, sigma 1.5
   (3DGS, Kerbl et al. 2023, lambda_dssim = 0.2; SSIM constants of Wang et al. 2004).

@@ -250,7 +250,7 @@ class GaussianModel:
     def init_geometry(self, camera_centers: Tensor,
                       optimizer: torch.optim.Optimizer | None = None,
                       seen_from: Tensor | None = None) -> None:
-        """Start of stage 2 (DESIGN.md section 5): opacity_g becomes its own parameter, a copy of
+        """Start of stage 2 (docs/design.md section 5): opacity_g becomes its own parameter, a copy of
         opacity_c; normals are the shortest axes, flipped to face the cameras: those that see
         the Gaussian when `seen_from` (N, 3) (sum of directions to them,
         core.render.seen_directions) is non-zero, else the mean direction to all `camera_centers`

@@ -1,4 +1,4 @@
-"""Gaussian PLY files (DESIGN.md section 3.3): the standard 3DGS vertex layout, so common splat
+"""Gaussian PLY files (docs/design.md section 3.3): the standard 3DGS vertex layout, so common splat
 viewers open them, plus the disentangled extras ``opacity_geo``, ``normal_x/y/z``, ``visibility``.
 
 Values are stored raw exactly as 3DGS stores them (logit opacities, log-scales, unnormalized
@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import Tensor
+
+from core.files import atomic_path
 
 __all__ = ["gaussian_ply_properties", "read_gaussian_ply", "read_track_ids", "write_gaussian_ply"]
 
@@ -72,11 +74,9 @@ def write_gaussian_ply(path: str | os.PathLike[str], params: dict[str, Tensor],
         data = rec
         header.append("property int track_id")
     header.append("end_header")
-    tmp = path.with_name(path.name + ".tmp")
-    with open(tmp, "wb") as fh:
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
         fh.write(("\n".join(header) + "\n").encode("ascii"))
         fh.write(data.tobytes())
-    os.replace(tmp, path)
 
 
 def _parse_header(path: Path, raw: bytes) -> tuple[int, np.dtype, int]:

@@ -1,4 +1,4 @@
-"""Normal priors for training (DESIGN.md section 5, "Normal prior").
+"""Normal priors for training (docs/design.md section 5, "Normal prior").
 
 A view's prior comes from the capture's normals/ folder (the dataset serves it, in world space),
 or else from a pluggable estimator named in configuration: a model file that maps an image to
@@ -111,7 +111,7 @@ def load_estimator(path: str | os.PathLike[str] | None,
 
 
 def fill_priors(views: Sequence, estimator: NormalEstimator | None) -> str:
-    """Give every `core.train.View` without a prior one from `estimator` (rotated to world
+    """Give every `core.training.View` without a prior one from `estimator` (rotated to world
     space when it estimates camera-space normals), on the device of the view's image (the
     estimator itself runs on the CPU). Returns where the priors came from: 'capture',
     'estimator', 'mixed' or 'off'."""

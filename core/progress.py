@@ -9,14 +9,9 @@ import sys
 import time
 from typing import TextIO
 
-from core.train import Callback, StepInfo
+from core.training import Callback, StepInfo
 
-__all__ = ["LogLines", "TerminalBar", "frame_iterations", "format_seconds"]
-
-
-def frame_iterations(trainer) -> int:
-    """Steps of the frame: a key frame's schedule, or a tracked frame's deform + refine."""
-    return getattr(trainer, "iterations", None) or trainer.config.schedule.iterations
+__all__ = ["LogLines", "TerminalBar", "format_seconds"]
 
 
 def format_seconds(seconds: float) -> str:
@@ -38,12 +33,12 @@ class TerminalBar(Callback):
     def on_train_start(self, trainer) -> None:
         from tqdm import tqdm
 
-        self.bar = tqdm(total=frame_iterations(trainer), initial=trainer.step,
+        self.bar = tqdm(total=trainer.iterations, initial=trainer.step,
                         desc=self.label, unit="it", dynamic_ncols=True, leave=True)
 
     def on_step_end(self, trainer, info: StepInfo) -> None:
         self.bar.update(1)
-        if info.step % 10 == 0 or info.step == frame_iterations(trainer) - 1:
+        if info.step % 10 == 0 or info.step == trainer.iterations - 1:
             self.bar.set_postfix(stage=info.plan.stage, loss=f"{info.losses['total']:.4f}",
                                  gaussians=info.n_gaussians, refresh=False)
 
@@ -70,11 +65,11 @@ class LogLines(Callback):
     def on_train_start(self, trainer) -> None:
         self.start = self.last = self.clock()
         self.start_step = self.last_step = trainer.step
-        total = frame_iterations(trainer)
+        total = trainer.iterations
         self._print(f"{'resumed at' if trainer.step else 'started,'} step {trainer.step}/{total}")
 
     def on_step_end(self, trainer, info: StepInfo) -> None:
-        now, done, total = self.clock(), trainer.step, frame_iterations(trainer)
+        now, done, total = self.clock(), trainer.step, trainer.iterations
         if now - self.last < self.every_s and done < total:
             return
         rate = (now - self.last) / max(done - self.last_step, 1)

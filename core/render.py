@@ -137,7 +137,7 @@ def render(
     `geometry=False` runs the appearance branch only (stage 1); `tie_opacity=True` passes the
     appearance opacity for the geometry one too (opacity_g tied to opacity_c, so that beta mixing
     leaves the appearance opacity unchanged). The defaults eps2d 0.1, antialiased follow the
-    Mip-Splatting 2D filter of DESIGN.md section 5. Renders on the model's device; a camera or
+    Mip-Splatting 2D filter of docs/design.md section 5. Renders on the model's device; a camera or
     background elsewhere is copied there (give a trainer's cameras that device once, so no
     step pays for the copy).
     """

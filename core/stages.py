@@ -1,4 +1,4 @@
-"""The training schedule as a pure function from step to stage (DESIGN.md section 5).
+"""The training schedule as a pure function from step to stage (docs/design.md section 5).
 
 Paper preset, 30k iterations per key frame:
 - stage 1 (0-7k): appearance only, SH degree 0, opacity_g tied to opacity_c, beta 0;

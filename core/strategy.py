@@ -1,4 +1,4 @@
-"""Densification and pruning for disentangled Gaussians (DESIGN.md section 5), as a strategy
+"""Densification and pruning for disentangled Gaussians (docs/design.md section 5), as a strategy
 object with explicit state, in the manner of gsplat's `strategy/` (called after each step).
 
 - Statistics: AbsGS (Ye et al. 2024) per branch, the mean over the views that saw a Gaussian of

@@ -37,7 +37,7 @@ def rasterize(
     backend: Backend = "native",
     validate: bool = True,
 ) -> RasterOutput:
-    """Render both branches of N Gaussians in one pass (DESIGN.md section 3.4).
+    """Render both branches of N Gaussians in one pass (docs/design.md section 3.4).
 
     With `geometry=None` only the appearance branch runs (a plain single-opacity RGB pass, as in
     the first training stage): `geometry` comes back (H, W, 0) and `depth` and `alpha_g` are zero.

@@ -1,4 +1,4 @@
-"""Ambient occlusion by ray tracing through Gaussians (DESIGN.md section 5).
+"""Ambient occlusion by ray tracing through Gaussians (docs/design.md section 5).
 
 From each origin, `n_dirs` rays leave over the Fibonacci hemisphere about its normal; along each
 ray, T = prod (1 - alpha) over the Gaussians whose 3-sigma box the ray meets, alpha taken at the

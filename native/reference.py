@@ -1,7 +1,7 @@
 """Plain PyTorch reference of `native.rasterize`: the same signature and result, computed densely
 (every Gaussian at every pixel) with autograd, on any device and dtype.
 
-It states the math of DESIGN.md section 3.4 as directly as possible; tests compare the native
+It states the math of docs/design.md section 3.4 as directly as possible; tests compare the native
 op against it. Memory is O(N * H * W), so it is for small scenes (or as a slow fallback).
 """
 

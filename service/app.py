@@ -1,5 +1,5 @@
 """The FastAPI application: `create_app(settings)` migrates the job store, opens the artifact
-store and the Celery client, and mounts one router per resource (DESIGN.md 3.5)."""
+store and the Celery client, and mounts one router per resource (docs/design.md 3.5)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""A small Python client of the HTTP API (DESIGN.md 3.5): what a studio's script does with the
+"""A small Python client of the HTTP API (docs/design.md 3.5): what a studio's script does with the
 service. Torch-free; only httpx.
 
     c = Client("http://127.0.0.1:8000", api_key)
@@ -29,13 +29,15 @@ from urllib.parse import quote
 
 import httpx
 
+from core.files import sha256_file
+
 __all__ = ["ApiError", "Client", "Event", "manifest_of"]
 
 CHUNK = 8 << 20
 """Bytes per tus PATCH when each carries a checksum (Client chunk_checksum)."""
 TERMINAL = ("succeeded", "failed", "cancelled")
 CANONICAL = ("capture.json", "images/", "masks/", "normals/")
-"""What a canonical capture holds (DESIGN.md 3.1); anything else in its folder (a synthetic
+"""What a canonical capture holds (docs/design.md 3.1); anything else in its folder (a synthetic
 capture's ground truth, notes) stays on the client."""
 
 
@@ -72,14 +74,6 @@ def _blocks(f, length: int, start: int,
             progress(start + sent)
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
-
-
 def manifest_of(folder: str | os.PathLike[str], format: str = "canonical") -> list[dict]:
     """[{path, size, sha256}] of the files under `folder` that a capture of `format` sends:
     for canonical, capture.json, images/, masks/ and normals/; otherwise every file. Hidden
@@ -93,7 +87,7 @@ def manifest_of(folder: str | os.PathLike[str], format: str = "canonical") -> li
         if (not p.is_file() or any(part.startswith(".") for part in rel.split("/"))
                 or (format == "canonical" and not rel.startswith(CANONICAL))):
             continue
-        out.append({"path": rel, "size": p.stat().st_size, "sha256": _sha256(p)})
+        out.append({"path": rel, "size": p.stat().st_size, "sha256": sha256_file(p)})
     if not out:
         raise ValueError(f"folder: {root} has no file to upload as a {format} capture")
     return out
@@ -393,7 +387,7 @@ class Client:
         artifact starts over); with `sha256` the result is checked and a finished `dest` that
         matches is not fetched again."""
         dest = Path(dest)
-        if sha256 is not None and dest.is_file() and _sha256(dest) == sha256:
+        if sha256 is not None and dest.is_file() and sha256_file(dest) == sha256:
             return dest
         dest.parent.mkdir(parents=True, exist_ok=True)
         part = dest.with_name(dest.name + ".part")
@@ -414,7 +408,7 @@ class Client:
                 with open(part, "ab" if r.status_code == 206 else "wb") as f:
                     for chunk in r.iter_bytes(1 << 20):
                         f.write(chunk)
-        if sha256 is not None and _sha256(part) != sha256:
+        if sha256 is not None and sha256_file(part) != sha256:
             part.unlink()
             raise ApiError(502, "checksum_mismatch", f"{path}: the downloaded bytes do not "
                            "have the artifact's SHA-256; download it again", True)

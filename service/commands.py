@@ -49,20 +49,19 @@ def _missing_service_packages() -> list[str]:
 
 
 def _demo(args: argparse.Namespace) -> int:
-    from core import commands_demo
+    # lazy: the demo imports torch, which `dgs serve` and the API process must not load
+    from core.demo import run_demo, run_raster_demo
 
     if args.raster:
-        from core.demo_raster import run_raster_demo
-
         return run_raster_demo(args.out)
     if args.in_process:
-        return commands_demo.run_demo(args.out)
+        return run_demo(args.out)
     missing = _missing_service_packages()
     if missing:
         print(f"dgs demo: the service extra is not installed ({', '.join(missing)} missing), "
               "so the job runs in this process (pip install -e '.[service]' to run it through "
               "the HTTP service)", flush=True)
-        return commands_demo.run_demo(args.out)
+        return run_demo(args.out)
     from service.demo import run_service_demo
 
     try:

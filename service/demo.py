@@ -6,7 +6,7 @@ own data folder under the demo's) -> upload the capture with the client (tus) ->
 reconstruct job -> follow its server-sent events as a progress bar -> download the artifacts ->
 evaluate and make the contact sheet here -> stop the server.
 
-The command keeps core's `dgs demo` arguments (core.commands_demo registers it; this module
+The command keeps core's `dgs demo` arguments (core.demo.commands registers it; this module
 takes it over through the dgs.commands entry point, see service.commands).
 """
 
@@ -182,8 +182,8 @@ def run_service_demo(out: str = "demo", *, synth: dict | None = None,
                      overrides: dict | None = None, preset: str = "test") -> int:
     """The demo through the service (see the module docstring); `synth` (SynthConfig fields)
     and `overrides` (the job's config) default to core's demo."""
-    from core.commands_demo import DEMO_OVERRIDES, demo_capture, report
-    from core.evaluate import evaluate_run
+    from core.demo import DEMO_OVERRIDES, demo_capture, report
+    from core.evaluation import evaluate_run
 
     root = Path(out)
     capture_dir, run_dir, data_dir = root / "capture", root / "run", root / "service"

@@ -1,5 +1,5 @@
 """Every error the API answers is `{"error": {"code", "message", "retryable", "details"}}` with a
-real HTTP status (DESIGN.md 3.5): raised as `ApiError` by the routers, and converted here from
+real HTTP status (docs/design.md 3.5): raised as `ApiError` by the routers, and converted here from
 FastAPI's validation errors, Starlette's 404/405 and any unhandled exception (500)."""
 
 from __future__ import annotations

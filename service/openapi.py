@@ -1,5 +1,5 @@
 """`python -m service.openapi > openapi.yaml`: the app's OpenAPI document as stable YAML (sorted
-keys), the contract committed at the repository root (DESIGN.md section 2)."""
+keys), the contract committed at the repository root (docs/design.md section 2)."""
 
 from __future__ import annotations
 

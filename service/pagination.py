@@ -13,7 +13,7 @@ from sqlalchemy import Select, and_, or_
 
 from service.errors import ApiError
 
-__all__ = ["decode_cursor", "encode_cursor", "newest_first"]
+__all__ = ["decode_cursor", "encode_cursor", "newest_first", "newest_page"]
 
 
 def encode_cursor(*key: Any) -> str:
@@ -50,3 +50,14 @@ def newest_first(query: Select, created_col, id_col, cursor: str | None, limit: 
         query = query.where(or_(created_col < created,
                                 and_(created_col == created, id_col < ident)))
     return query.order_by(created_col.desc(), id_col.desc()).limit(limit + 1)
+
+
+def newest_page(session, query: Select, created_col, id_col, cursor: str | None,
+                limit: int) -> tuple[list, str | None]:
+    """One page of `query`'s rows, newest first after `cursor`, and the cursor of the next page
+    (None on the last)."""
+    rows = list(session.scalars(newest_first(query, created_col, id_col, cursor, limit)))
+    if len(rows) <= limit:
+        return rows, None
+    rows = rows[:limit]
+    return rows, encode_cursor(rows[-1].created_at, rows[-1].id)

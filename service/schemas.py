@@ -58,7 +58,7 @@ class ManifestPatchIn(_In):
 class CaptureIn(_In):
     name: str = Field("", max_length=256)
     format: Format = Field(description=(
-        "canonical (DESIGN.md 3.1), an importer's format, or auto (detected at commit)."))
+        "canonical (docs/design.md 3.1), an importer's format, or auto (detected at commit)."))
     manifest: ManifestIn
     expires_at: AwareDatetime | None = Field(None, description=(
         "When the capture is deleted; default: the server's retention (none: kept)."))

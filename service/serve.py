@@ -1,4 +1,4 @@
-"""`dgs serve`: the API with everything a fresh machine needs (DESIGN.md section 4): the job
+"""`dgs serve`: the API with everything a fresh machine needs (docs/design.md section 4): the job
 store migrated, a sweeper thread (re-sends jobs whose worker was lost, deletes what expired),
 and, when no broker is configured, one supervised worker subprocess on the embedded SQLite
 broker. With DGS_BROKER_URL and DGS_DATABASE_URL set the same command serves a deployment

@@ -1,4 +1,4 @@
-"""Imports go one way: service -> worker (contract only) -> core -> native (DESIGN.md section 2),
+"""Imports go one way: service -> worker (contract only) -> core -> native (docs/design.md section 2),
 and the API process (service) never imports torch."""
 
 from __future__ import annotations

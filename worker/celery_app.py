@@ -1,4 +1,4 @@
-"""The Celery application, configured from settings (DESIGN.md section 4), and dispatch.
+"""The Celery application, configured from settings (docs/design.md section 4), and dispatch.
 
 Torch-free: the API builds the same app to send jobs (`dispatch`) without importing the tasks;
 `worker.app` is the module `celery -A worker.app worker` loads, with the tasks registered.

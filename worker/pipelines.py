@@ -38,7 +38,7 @@ MODEL_KIND = "normal_model"
 
 
 class ReconstructParams(BaseModel):
-    """Parameters of `reconstruct` (the `dgs reconstruct` command line, DESIGN.md 3.2)."""
+    """Parameters of `reconstruct` (the `dgs reconstruct` command line, docs/design.md 3.2)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -136,7 +136,7 @@ class LightParams(BaseModel):
 
 
 class RelightJobParams(BaseModel):
-    """Parameters of `relight` (the `dgs relight` command line, DESIGN.md 3.2): relit renders
+    """Parameters of `relight` (the `dgs relight` command line, docs/design.md 3.2): relit renders
     of a succeeded reconstruction under an environment map and added lights."""
 
     model_config = ConfigDict(extra="forbid")

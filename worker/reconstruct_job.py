@@ -139,7 +139,7 @@ class ReconstructJob:
         return on_progress
 
     def _evaluate(self, run: Path, capture: Path) -> None:
-        from core.evaluate import evaluate_run
+        from core.evaluation import evaluate_run
 
         self.link.update(fraction=1 - PUBLISH_SHARE, stage="evaluating", message="")
         try:

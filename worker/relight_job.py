@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 
+from core.files import write_json
 from worker.models import Asset, Job
 from worker.pipelines import RelightJobParams
 from worker.progress import JobLink
@@ -182,6 +183,4 @@ class RelightJob:
         record = json.loads(path.read_text())
         record["run"] = f"jobs/{source.id}"
         record["params"].update(envmap=self.params.envmap, frames=self.params.frames)
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(json.dumps(record, indent=2) + "\n")
-        os.replace(tmp, path)
+        write_json(path, record)

@@ -8,18 +8,16 @@ publishing a folder's files as typed artifacts under jobs/<id>/artifacts/.
 
 from __future__ import annotations
 
-import hashlib
-import shutil
 import signal
 import threading
 import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-
 from typing import Protocol
 
-from worker.artifacts import classify
+from core.files import sha256_file
+from core.rundir import classify
 from worker.blobs import BlobStore, open_store
 from worker.models import Job
 from worker.pipelines import get_pipeline
@@ -37,14 +35,6 @@ class Outcome:
     is shutting down), lost (lease taken away), leased, terminal, missing, exhausted."""
     retry_in: float | None = None
     """Seconds after which the task should try again (another worker holds the lease)."""
-
-
-def sha256_of(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 class JobStopped(Exception):
@@ -220,7 +210,7 @@ class Runner:
             stat = path.stat()
             if kind is None or self._published.get(rel) == (stat.st_size, stat.st_mtime_ns):
                 continue
-            digest = sha256_of(path)
+            digest = sha256_file(path)
             self.blobs.put_file(f"jobs/{job.id}/artifacts/{rel}", path)
             self.store.add_artifact(job.id, rel, kind=kind.kind, size=stat.st_size,
                                     sha256=digest, content_type=kind.content_type,

@@ -3,7 +3,7 @@
 The embedded default needs nothing set: a data folder holds the SQLite job store, the SQLite
 broker (Kombu's SQLAlchemy transport) and the local artifact store. A deployment sets
 DGS_DATABASE_URL (PostgreSQL), DGS_BROKER_URL (Redis) and DGS_STORAGE_URL (s3://bucket/prefix)
-and the same code runs distributed (DESIGN.md section 4).
+and the same code runs distributed (docs/design.md section 4).
 """
 
 from __future__ import annotations
@@ -147,7 +147,7 @@ class WorkerSettings(BaseSettings):
 
     @property
     def visibility_timeout(self) -> float:
-        """Redis visibility timeout: longer than the longest hard limit (DESIGN.md section 4),
+        """Redis visibility timeout: longer than the longest hard limit (docs/design.md section 4),
         so a long job's message is never handed to a second worker while the first runs."""
         longest = max(self.reconstruct_soft_limit_seconds, self.relight_soft_limit_seconds)
         return 2 * (longest + self.hard_limit_margin_seconds)

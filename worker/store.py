@@ -3,7 +3,7 @@
 A job is run by whoever holds its lease. A worker claims the lease atomically (a conditional
 UPDATE), renews it with every heartbeat, and loses it when it stops renewing; only the holder may
 write progress or finish the job. So a message delivered twice, a worker that was presumed dead,
-or two sweepers racing can never run one job twice at the same time (DESIGN.md section 4).
+or two sweepers racing can never run one job twice at the same time (docs/design.md section 4).
 
 States: queued -> running -> succeeded | failed | cancelled; `retry` puts a failed or cancelled
 job back to queued (it resumes from its checkpoint). Every change appends a JobEvent, the stream
@@ -103,7 +103,7 @@ class Claim:
 
 
 def progress_of(job: Job) -> dict[str, Any]:
-    """The progress object of the API (DESIGN.md 3.5)."""
+    """The progress object of the API (docs/design.md 3.5)."""
     return {"stage": job.stage, "frame": job.frame, "frames": job.frames,
             "iteration": job.iteration, "iterations": job.iterations,
             "fraction": round(job.fraction, 6), "eta_s": job.eta_s, "message": job.message}

@@ -1,5 +1,5 @@
 """Starting workers: `run_worker` (what `dgs worker` runs) and `EmbeddedWorker`, the worker
-subprocess that `dgs serve` supervises when no broker is configured (DESIGN.md section 4)."""
+subprocess that `dgs serve` supervises when no broker is configured (docs/design.md section 4)."""
 
 from __future__ import annotations
 

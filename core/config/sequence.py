@@ -61,14 +61,6 @@ class SequenceConfig:
     """Deform stage: training views whose losses are averaged in each step."""
     deform_mask: Weight = 1.0
     """Deform stage: weight of the silhouette L1 (blurred coverage against the blurred mask)."""
-    deform_retries: Annotated[int, Field(ge=0, le=8)] = 0
-    """Deform rounds a frame may add when its deform loss is `retry_loss_ratio` times the
-    previous frame's or more; 0: never."""
-    retry_loss_ratio: Annotated[float, Field(ge=1, le=100)] = 1.2
-    """The end-loss ratio to the previous frame's that starts a retry."""
-    rekey_loss_ratio: Annotated[float, Field(ge=0, le=100)] = 0.0
-    """A tracked frame whose deform stage ends at this ratio of the previous frame's loss or
-    more becomes a key frame; 0: never."""
     refine_adapt: Annotated[float, Field(ge=0, le=10)] = 3.0
     """Refine steps = nominal x r ** refine_adapt, r the deform loss over the previous frame's,
     within [`refine_min`, `refine_max`] and the run's credit; 0: fixed."""
@@ -96,17 +88,11 @@ class SequenceConfig:
     """Largest scale ratio r the anisotropy loss leaves alone."""
     means_lr_scale: Positive = 3.0
     """Refine stage: position rate = this x the key frame's initial rate (no decay)."""
-    densify_every: Annotated[int, Field(ge=0, le=1_000_000)] = 0
-    """Refine stage: steps between densifications (0: 4 per refine)."""
     max_growth: Fraction = 0.02
-    """Refine stage: densification adds at most this fraction of the frame's Gaussians."""
+    """Refine stage: densification (four times a stage) adds at most this fraction of the
+    frame's Gaussians."""
     bake_ao: bool = False
     """Refine stage: re-bake ambient occlusion of the deformed pose (visibility loss on)."""
-
-    def __post_init__(self) -> None:
-        if 0 < self.rekey_loss_ratio < 1:
-            raise ValueError(f"rekey_loss_ratio: expected 0 (never) or >= 1, got "
-                             f"{self.rekey_loss_ratio}")
 
     def nodes(self, gaussians: int) -> int:
         """Graph nodes for a model of `gaussians` Gaussians."""

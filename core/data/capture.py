@@ -1,4 +1,4 @@
-"""The canonical capture (DESIGN.md section 3.1): typed cameras, frames and per-view file paths.
+"""The canonical capture (docs/design.md section 3.1): typed cameras, frames and per-view file paths.
 
 Parsing capture.json lives in :mod:`core.data.schema`, file-level checks (images exist, sizes
 agree, ...) in :mod:`core.data.validate`.
@@ -9,14 +9,14 @@ This module must not import torch: the API process validates uploads with it.
 from __future__ import annotations
 
 import json
-import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
+
+from core.files import write_text
 
 __all__ = [
     "CAPTURE_JSON",
@@ -225,12 +225,8 @@ def _find(folder: Path, stem: str, exts: tuple[str, ...]) -> Path | None:
 def save_capture(capture: Capture, root: Path | None = None) -> Path:
     """Write capture.json atomically under ``root`` (default ``capture.root``); returns the path."""
     root = Path(root if root is not None else capture.root)
-    root.mkdir(parents=True, exist_ok=True)
     path = root / CAPTURE_JSON
-    fd, tmp = tempfile.mkstemp(dir=root, prefix=".capture.", suffix=".json")
-    with os.fdopen(fd, "w") as fh:
-        fh.write(_dumps(capture.to_json()) + "\n")
-    os.replace(tmp, path)
+    write_text(path, _dumps(capture.to_json()) + "\n")
     return path
 
 

@@ -1,4 +1,4 @@
-"""Parsing ``capture.json`` (DESIGN.md section 3.1), here and nowhere else.
+"""Parsing ``capture.json`` (docs/design.md section 3.1), here and nowhere else.
 
 Parsing collects every schema problem instead of stopping at the first, so ``dgs capture
 validate`` can report them all in one pass. This module must not import torch.

@@ -1,4 +1,4 @@
-"""Meshes of reconstructed frames (DESIGN.md section 5, Mesh): TSDF fusion of the geometry
+"""Meshes of reconstructed frames (docs/design.md section 5, Mesh): TSDF fusion of the geometry
 branch's depth, marching cubes, cleanup, vertex colours, PLY/OBJ/GLB export in the capture's
 original coordinates, and accuracy against reference meshes."""
 

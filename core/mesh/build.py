@@ -1,4 +1,4 @@
-"""A watertight mesh of one reconstructed frame (DESIGN.md section 5, Mesh): TSDF fusion of the
+"""A watertight mesh of one reconstructed frame (docs/design.md section 5, Mesh): TSDF fusion of the
 geometry branch's expected depth where alpha_g > 0.5 over the training cameras, voxel = scene
 diagonal / 512, truncation 5 voxels, marching cubes, the largest components kept.
 
@@ -9,7 +9,7 @@ of its nearest opaque Gaussian.
 
 `depth="appearance"` is the baseline that meshes the appearance branch's depth instead: both
 opacities of every Gaussian are set to its appearance opacity as the final render mixes it,
-o_c = ((1 + beta) opacity_c + (1 - beta) opacity_g) / 2 (DESIGN.md 3.4), and the model is
+o_c = ((1 + beta) opacity_c + (1 - beta) opacity_g) / 2 (docs/design.md 3.4), and the model is
 rendered at beta 0, so the rasterizer's (geometry-weighted) depth and coverage are exactly the
 appearance branch's alpha_c-weighted ones.
 """
@@ -117,7 +117,7 @@ def vertex_colors(mesh, model, cameras, settings, *, voxel: float, alpha_thresho
                 else (model.params["sh0"][:, 0] * SH_C0 + 0.5).clamp(0, 1)).cpu().numpy()
         colors[unseen] = base[cKDTree(means).query(verts[unseen])[1]]
     if linear_capture:
-        from core.synth.shading import linear_to_srgb
+        from core.color import linear_to_srgb
 
         colors = linear_to_srgb(colors)
     rgba = np.concatenate([colors, np.ones((len(verts), 1))], axis=1)

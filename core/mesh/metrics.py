@@ -1,4 +1,4 @@
-"""Mesh accuracy against a reference mesh: symmetric Chamfer distance (DESIGN.md section 5: the
+"""Mesh accuracy against a reference mesh: symmetric Chamfer distance (docs/design.md section 5: the
 mean of both directions' mean nearest-neighbour distances) and normal consistency (Mescheder et
 al. 2019, Occupancy Networks: the mean |cos| between a sample's face normal and the normal of its
 nearest neighbour on the other mesh, averaged over both directions), on points sampled uniformly

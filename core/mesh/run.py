@@ -41,7 +41,7 @@ def source_from_world(capture) -> np.ndarray | None:
 
 def training_views(capture, downscale: float) -> list:
     """The training cameras (index % 8 != 0) at the run's resolution."""
-    from core.train import training_cameras
+    from core.training import training_cameras
 
     return [c.scaled(max(1, round(c.width / downscale)), max(1, round(c.height / downscale)))
             for c in training_cameras(capture.cameras)]
@@ -77,7 +77,7 @@ def mesh_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str] | 
     from core.mesh.build import mesh_model
     from core.mesh.surface import export_mesh, transform_mesh
     from core.model import GaussianModel
-    from core.pipeline import write_json
+    from core.files import write_json
     from core.relight.gbuffer import run_render
 
     if errors not in ("raise", "record"):

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from core.config import MESH_FORMATS
+from core.files import atomic_path
 
 __all__ = ["FORMATS", "clean_mesh", "export_mesh", "extract_surface", "transform_mesh"]
 
@@ -79,9 +80,8 @@ def export_mesh(mesh, stem: Path, formats=("ply",)) -> list[Path]:
     out = []
     for fmt in formats:
         path = stem.with_suffix(f".{fmt}")
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_bytes(_export_bytes(mesh, fmt))
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            tmp.write_bytes(_export_bytes(mesh, fmt))
         out.append(path)
     return out
 

@@ -1,4 +1,4 @@
-"""Relighting (DESIGN.md section 5): environment maps and their SH9 irradiance, lights, the
+"""Relighting (docs/design.md section 5): environment maps and their SH9 irradiance, lights, the
 deferred shading of a reconstruction's G-buffer, camera paths, image and video output, and
 `relight_run`, the entry point of `dgs relight` and of the service's render jobs.
 

@@ -28,7 +28,7 @@ _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def select_cameras(cameras: Sequence[Camera], spec: str) -> list[Camera]:
-    """`heldout` (index % 8 == 0, DESIGN.md 3.2), `all`, or comma-separated camera ids."""
+    """`heldout` (index % 8 == 0, docs/design.md 3.2), `all`, or comma-separated camera ids."""
     spec = (spec or "").strip()
     if spec == "heldout":
         return [c for i, c in enumerate(cameras) if i % 8 == 0]

@@ -1,4 +1,4 @@
-"""The G-buffer of a reconstructed frame seen from one camera (DESIGN.md section 5, relighting):
+"""The G-buffer of a reconstructed frame seen from one camera (docs/design.md section 5, relighting):
 base colour (SH degree 0), the view-dependent SH residual, normal, visibility, depth, coverage,
 world positions; all linear light.
 
@@ -18,25 +18,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from core.color import srgb_to_linear
 from core.render import RenderCamera, render, safe_divide
 
-__all__ = ["GBuffer", "RunRender", "gbuffer", "linear_to_srgb", "pixel_points", "run_render",
-           "srgb_to_linear"]
+__all__ = ["GBuffer", "RunRender", "gbuffer", "pixel_points", "run_render"]
 
 # Coverage below which a pixel has no surface in the G-buffer (its normal and albedo are noise).
 MIN_ALPHA = 1e-3
-
-
-def srgb_to_linear(x: Tensor) -> Tensor:
-    """IEC 61966-2-1 sRGB decoding of values in 0..1 (clamped)."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.04045, x / 12.92, ((x + 0.055) / 1.055) ** 2.4)
-
-
-def linear_to_srgb(x: Tensor) -> Tensor:
-    """IEC 61966-2-1 sRGB encoding, clipping to 0..1 first (the clip is the tone map)."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(1e-12) ** (1 / 2.4) - 0.055)
 
 
 @dataclass(frozen=True)

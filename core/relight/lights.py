@@ -96,7 +96,7 @@ class CaptureLight:
     """The lighting the capture was filmed under, which the albedo is divided by."""
 
     uniform: float | None
-    """Uniform irradiance (DESIGN.md section 5's default); None when `sh9` is given."""
+    """Uniform irradiance (docs/design.md section 5's default); None when `sh9` is given."""
     sh9: np.ndarray | None
     """(9, 3) radiance SH of the stage's lighting (this project's extension, see
     docs/benchmarks.md): the albedo is divided by its irradiance E_capture(n)."""

@@ -1,5 +1,5 @@
 """Relit held-out views of a run, scored against a synthetic capture's second-light ground truth
-(`dgs eval`, DESIGN.md 3.3 and section 5), and the relit pictures of the contact sheet.
+(`dgs eval`, docs/design.md 3.3 and section 5), and the relit pictures of the contact sheet.
 
 A `dgs synth` capture records its two lights in gt/lights.json: `images` names the light the
 capture was filmed under, `relight` the second one, whose renders are gt/relight/<frame>/<cam>.png
@@ -78,7 +78,7 @@ def relit_heldout(run: Path, capture_dir: Path, frame: str, cameras: list[str],
     The model is rendered on `device` (a torch device)."""
     from core.data import CaptureDataset
     from core.data.images import write_png
-    from core.evaluate import rgb_scores
+    from core.metrics import rgb_scores
     from core.model import GaussianModel
     from core.relight.envmap import load_envmap
     from core.relight.output import to_uint8

@@ -1,7 +1,7 @@
 """`relight_run`: relit renders of a finished run (what `dgs relight` and the service's render
 jobs call), with progress events and a cooperative stop, in the manner of core.pipeline.
 
-Output (DESIGN.md 3.2): OUT/<frame>/<camera>.png (sRGB) and .exr (linear, premultiplied RGBA);
+Output (docs/design.md 3.2): OUT/<frame>/<camera>.png (sRGB) and .exr (linear, premultiplied RGBA);
 with an orbit or a camera path also OUT/<frame>.mp4 (the views around one frame); with capture
 cameras over several frames OUT/videos/<camera>.mp4 (the performance seen by that camera);
 OUT/relight.json records the parameters, the map's SH9 coefficients and the files.
@@ -206,7 +206,7 @@ def compose(g, plan: Plan, env_sh9, lights=(), *, ao: bool = True,
     scales the result so that its mean luminance over the covered pixels is that of the
     reconstruction under the capture's own light (a camera's auto exposure: pictures under maps
     much brighter or darker than the stage stay readable)."""
-    from core.relight.gbuffer import linear_to_srgb
+    from core.color import linear_to_srgb
     from core.relight.shade import shade
 
     s = shade(g, env_sh9, plan.capture_light, lights, ao=ao)
@@ -257,7 +257,7 @@ def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
                on_progress=None, should_stop=None) -> dict:
     """`relight_run` with the parameters as one `RelightParams`."""
     from core.model import GaussianModel
-    from core.pipeline import write_json
+    from core.files import write_json
     from core.relight.output import Mp4Writer, to_uint8, write_views
 
     start = time.perf_counter()

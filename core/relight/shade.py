@@ -1,11 +1,11 @@
-"""Deferred shading of a G-buffer under new light (DESIGN.md section 5):
+"""Deferred shading of a G-buffer under new light (docs/design.md section 5):
 
     albedo = base / max(visibility, 0.05) / E_capture(n)
     output = albedo * (visibility * E_env(n) + sum_lights intensity * colour * max(0, n . l))
              + residual
 
 E_env is the SH9 irradiance of the environment map. E_capture is the capture's irradiance:
-uniform (DESIGN.md's default) or, this project's extension, the SH9 irradiance of the stage's
+uniform (docs/design.md's default) or, this project's extension, the SH9 irradiance of the stage's
 lighting, which undoes a directional key light that no constant can (docs/benchmarks.md).
 `ao=False` is the no-AO baseline: visibility = 1 in the shading term (the albedo is still
 divided by the visibility the model learnt).
@@ -26,7 +26,7 @@ from core.relight.lights import CaptureLight, LightSpec
 
 __all__ = ["MIN_VISIBILITY", "Shading", "capture_irradiance", "light_irradiance", "shade"]
 
-# DESIGN.md section 5: the albedo divides by max(visibility, 0.05).
+# docs/design.md section 5: the albedo divides by max(visibility, 0.05).
 MIN_VISIBILITY = 0.05
 # E_capture is floored at this fraction of its mean over the sphere: a normal the stage light
 # barely reached carries no albedo information, and dividing by ~0 would blow its noise up.

@@ -10,6 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.files import atomic_path
+
 __all__ = ["contact_sheet"]
 
 LABEL_HEIGHT = 16
@@ -108,8 +110,6 @@ def contact_sheet(capture_dir: Path, run_dir: Path, views: list[tuple[str, str]]
     tile = rows[0].shape[1] // len(names)
     for i, name in enumerate(names):
         draw.text((i * tile + 4, 2), name, fill=(0, 0, 0))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    sheet.save(tmp, format="PNG")
-    tmp.replace(out)
+    with atomic_path(out) as tmp:
+        sheet.save(tmp, format="PNG")
     return out

@@ -1,13 +1,16 @@
-"""Volumetric video (DESIGN.md section 5, Sequence): groups of pictures whose first frame gets the
+"""Volumetric video (docs/design.md section 5.9): groups of pictures whose first frame gets the
 static stages and whose other frames are the previous frame's Gaussians deformed by an embedded
 deformation graph, then refined with temporal regularisation, keeping Gaussian correspondences
-(track ids) inside a group."""
+(track ids) inside a group.
+
+plan (the groups, each tracked frame's inputs, sequence.json), tracker (deform + refine on the
+shared fitting loop), deform and graph (the deformation), starts and motion (where the deform
+stage begins), refine (temporal losses, tracked densification), budget (refine rate control),
+tracks (frame PLYs with track ids), metrics and correspondence (flicker, track error)."""
 
 from core.sequence.budget import median_deform_loss, refine_credit, refine_steps
 from core.sequence.correspondence import track_errors
 from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
-from core.sequence.frame import FrameTracker
-from core.sequence.gop import FrameRole, Gop, roles, roles_of, segment, with_rekeys
 from core.sequence.graph import (
     DeformationGraph,
     arap_loss,
@@ -18,6 +21,7 @@ from core.sequence.graph import (
     quat_norm_loss,
 )
 from core.sequence.motion import align_tracks, predict_node_motion, predict_node_motion_second_order
+from core.sequence.plan import FrameRole, Gop, GopPlan, TrackedInputs, roles, segment
 from core.sequence.refine import (
     TemporalWeights,
     TrackedState,
@@ -27,20 +31,20 @@ from core.sequence.refine import (
     relabel,
     temporal_loss,
 )
-from core.sequence.rounds import DeformRounds, RoundEnd
-from core.sequence.run import load_frame, save_frame, sequence_record, tracker_from_capture
 from core.sequence.starts import StartRace, candidate_starts, race_starts, view_order
+from core.sequence.tracker import FrameTracker
+from core.sequence.tracks import load_frame, save_frame, tracker_for
 
 __all__ = [
-    "DeformRounds",
     "DeformationGraph",
     "DeformedGaussians",
     "FrameRole",
     "FrameTracker",
     "Gop",
-    "RoundEnd",
+    "GopPlan",
     "StartRace",
     "TemporalWeights",
+    "TrackedInputs",
     "TrackedState",
     "align_tracks",
     "anchors_of",
@@ -65,13 +69,10 @@ __all__ = [
     "refine_steps",
     "relabel",
     "roles",
-    "roles_of",
     "save_frame",
     "segment",
-    "with_rekeys",
-    "sequence_record",
     "temporal_loss",
     "track_errors",
-    "tracker_from_capture",
+    "tracker_for",
     "view_order",
 ]

@@ -16,7 +16,7 @@ __all__ = ["median_deform_loss", "refine_credit", "refine_steps"]
 
 def refine_steps(seq: SequenceConfig, nominal: int, end_loss: float | None,
                  reference: float | None, credit: int, scoring_extra: int = 0) -> int:
-    """Refine steps of a frame whose kept deform round ended at `end_loss`: the nominal times
+    """Refine steps of a frame whose deform stage ended at `end_loss`: the nominal times
     (end_loss / reference) ** refine_adapt (`refine_second` without a reference), clipped to
     [`refine_min`, `refine_max`] x nominal, at most the nominal plus `credit` less
     `scoring_extra` (the renders its start race took beyond `start_views`), and at least
@@ -30,7 +30,7 @@ def refine_steps(seq: SequenceConfig, nominal: int, end_loss: float | None,
 
 def median_deform_loss(frames: dict[str, dict]) -> float | None:
     """Median end loss of the deform stages of the finished tracked frames of `frames`
-    (metrics.json's; a re-keyed frame refined nothing and does not count), None before the
+    (metrics.json's), None before the
     first: what a group's second frame, which follows a key frame, compares its own with
     (`SequenceConfig.refine_adapt`)."""
     losses = [m["deform_loss"] for m in frames.values()

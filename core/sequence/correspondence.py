@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.sequence.tracks import load_frame
+
 __all__ = ["track_errors"]
 
 
@@ -50,8 +52,6 @@ def track_errors(run_dir, capture_dir) -> dict | None:
     (scene units x 1000), "track_error_per_frame": per frame in sequence.json order (None for
     key frames), "tracked_gaussians": how many key-frame Gaussians were followed}; None without
     usable ground truth (module docstring)."""
-    from core.sequence.run import load_frame
-
     run, gt = Path(run_dir), Path(capture_dir) / "gt"
     seq_path = run / "sequence.json"
     if not seq_path.is_file():

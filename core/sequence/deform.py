@@ -1,6 +1,6 @@
 """The deform stage: the previous frame's Gaussians moved by the embedded deformation graph, whose
 node rotations and translations are optimised against this frame's views with photometric +
-normal + quaternion unit-norm + ARAP losses (DESIGN.md section 5). Everything but positions,
+normal + quaternion unit-norm + ARAP losses (docs/design.md section 5). Everything but positions,
 rotations and normals stays as it was, so the Gaussians keep their identity (correspondence).
 
 Fast motion (a limb moving by more than its width between frames) is outside the basin of a

@@ -1,5 +1,5 @@
 """The embedded deformation graph (Sumner, Schmid and Pauly 2007, "Embedded deformation for shape
-manipulation") over a frame's Gaussians, as DESIGN.md section 5 fixes it:
+manipulation") over a frame's Gaussians, as docs/design.md section 5 fixes it:
 
 - nodes: farthest-point samples of the Gaussian centres (default 1024);
 - each Gaussian blends its 4 nearest nodes with weights (1 - d/d_max)^2, d_max the distance to the

@@ -1,4 +1,4 @@
-"""The refine stage's losses and its correspondence bookkeeping (DESIGN.md section 5, Sequence).
+"""The refine stage's losses and its correspondence bookkeeping (docs/design.md section 5, Sequence).
 
 - Temporal L1 to the deformed values ("anchors"), per attribute: geometry opacity 0.01,
   position 1.0, rotation 0.3, normal 0.5; rotations compared as unit quaternions on the anchor's
@@ -32,7 +32,7 @@ ANCHORED = ("means", "quats", "normals", "opacity_g")
 
 @dataclass(frozen=True)
 class TemporalWeights:
-    """Per-attribute weights of the temporal L1 (DESIGN.md section 5)."""
+    """Per-attribute weights of the temporal L1 (docs/design.md section 5)."""
 
     opacity_g: float = 0.01
     means: float = 1.0

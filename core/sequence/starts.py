@@ -5,7 +5,7 @@ as few rendered views as the evidence allows.
 A start is judged by the image loss (blurred photometric + silhouette) the deform stage's first
 step would see from it. On one view that loss depends as much on the view as on the start: at
 the walk's crossing phase a start can lead by 0.02 on one camera and trail by as much on the
-next (docs/method.md), so four views picked the wrong start where all fourteen picked the right
+next (docs/design.md), so four views picked the wrong start where all fourteen picked the right
 one. The race (racing algorithms for model selection drop a candidate once the evidence separates
 it, Maron and Moore's Hoeffding races, 1993; here the evidence is a paired t statistic) scores
 every start on `first` views, then keeps adding views, a few at a time, to the leader and

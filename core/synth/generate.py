@@ -1,6 +1,6 @@
 """`dgs synth`: a synthetic multi-view sequence of the articulated figure, with ground truth.
 
-Layout written (capture content per DESIGN.md 3.1, ground truth beside it under ``gt/``)::
+Layout written (capture content per docs/design.md 3.1, ground truth beside it under ``gt/``)::
 
     OUT/capture.json
     OUT/images/<frame>/<cam>.png           sRGB 8-bit, straight colour (see below), black background
@@ -33,19 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
+from core.color import linear_to_srgb
 from core.data.capture import Camera, Capture, save_capture
 from core.data.images import write_exr, write_png
 from core.synth.figure import Figure, FigureMesh
 from core.synth.ply import write_ply
 from core.synth.raster import interpolate, rasterize_perspective
-from core.synth.shading import (
-    LIGHTS,
-    albedo_at,
-    irradiance,
-    linear_to_srgb,
-    sh9_basis,
-    vertex_visibility,
-)
+from core.synth.shading import LIGHTS, albedo_at, irradiance, sh9_basis, vertex_visibility
 
 __all__ = ["SynthConfig", "dome_cameras", "look_at", "synthesize"]
 

@@ -208,7 +208,7 @@ class GltfCharacter:
         """(H, W, 3) linear albedo of a material (a 1 x 1 map of its factor without a texture)."""
         from PIL import Image
 
-        from core.synth.shading import srgb_to_linear
+        from core.color import srgb_to_linear
 
         pbr = {} if material is None else self._doc["materials"][material].get(
             "pbrMetallicRoughness", {})

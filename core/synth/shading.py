@@ -1,6 +1,6 @@
 """Appearance of the synthetic figure: procedural albedo, ambient occlusion, SH environment light.
 
-Shading follows the relighting model of DESIGN.md section 5 with no extra lights:
+Shading follows the relighting model of docs/design.md section 5 with no extra lights:
 ``linear = albedo * visibility * E(n)``, where E is the irradiance of a 9-coefficient real-SH
 environment (Ramamoorthi & Hanrahan) and visibility is cosine-weighted ambient occlusion.
 """
@@ -19,7 +19,6 @@ __all__ = [
     "albedo_at",
     "fibonacci_sphere",
     "irradiance",
-    "linear_to_srgb",
     "sh9_basis",
     "vertex_visibility",
 ]
@@ -108,17 +107,6 @@ LIGHTS: dict[str, EnvLight] = {
 def irradiance(normals: np.ndarray, sh: np.ndarray) -> np.ndarray:
     """Irradiance (N, 3) at unit normals (N, 3) from SH radiance ``sh`` (9, 3), clamped at 0."""
     return np.maximum(sh9_basis(normals) @ (sh * _A_HAT[:, None]), 0.0)
-
-
-def linear_to_srgb(x: np.ndarray) -> np.ndarray:
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
-def srgb_to_linear(x: np.ndarray) -> np.ndarray:
-    """The inverse of `linear_to_srgb` (IEC 61966-2-1), for values in 0..1."""
-    x = np.clip(x, 0.0, 1.0)
-    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4))
 
 
 def albedo_at(rest: np.ndarray, part: np.ndarray, palette: np.ndarray) -> np.ndarray:

@@ -21,7 +21,7 @@ from service.deps import Services, ServicesDep, absolute_url, default_expiry
 from service.envmap import CONTENT_TYPES, EnvmapError, inspect_envmap
 from service.modelfile import MODEL_CONTENT_TYPES, ModelFileError, inspect_model
 from service.errors import COMMON, ApiError, error_responses
-from service.pagination import encode_cursor, newest_first
+from service.pagination import newest_page
 from service.ranges import blob_response
 from service.records import get_asset
 from service.schemas import AssetOut, AssetPage
@@ -119,11 +119,8 @@ def list_assets(services: ServicesDep, tenant: TenantDep,
     """The caller's assets, newest first."""
     q = select(Asset).where(Asset.tenant == tenant)
     with services.store.session(write=False) as s:
-        rows = list(s.scalars(newest_first(q, Asset.created_at, Asset.id, cursor, limit)))
-    more = len(rows) > limit
-    rows = rows[:limit]
-    return AssetPage(items=[asset_out(a) for a in rows], next_cursor=encode_cursor(
-        rows[-1].created_at, rows[-1].id) if more else None)
+        rows, after = newest_page(s, q, Asset.created_at, Asset.id, cursor, limit)
+    return AssetPage(items=[asset_out(a) for a in rows], next_cursor=after)
 
 
 @router.get("/{asset_id}", response_model=AssetOut)

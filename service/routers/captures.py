@@ -19,7 +19,7 @@ from service.commit import OWNER_KEY, begin_commit, run_commit
 from service.deps import Services, ServicesDep, absolute_url, default_expiry
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.manifest import check_manifest
-from service.pagination import decode_cursor, encode_cursor, newest_first
+from service.pagination import decode_cursor, encode_cursor, newest_page
 from service.records import get_capture
 from service.schemas import (
     CaptureFilesOut, CaptureIn, CaptureItem, CaptureOut, CapturePage, CaptureSummary, FileOut,
@@ -107,11 +107,8 @@ def list_captures(services: ServicesDep, tenant: TenantDep,
     if state is not None:
         q = q.where(Capture.state == state)
     with services.store.session(write=False) as s:
-        rows = list(s.scalars(newest_first(q, Capture.created_at, Capture.id, cursor, limit)))
-    more = len(rows) > limit
-    rows = rows[:limit]
-    return CapturePage(items=[_item(c) for c in rows], next_cursor=encode_cursor(
-        rows[-1].created_at, rows[-1].id) if more else None)
+        rows, after = newest_page(s, q, Capture.created_at, Capture.id, cursor, limit)
+    return CapturePage(items=[_item(c) for c in rows], next_cursor=after)
 
 
 @router.get("/{capture_id}", response_model=CaptureOut)

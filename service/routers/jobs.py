@@ -18,7 +18,7 @@ from service.checks import check_params, check_reconstruct
 from service.deps import Services, ServicesDep, absolute_url, default_expiry
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.events import job_events
-from service.pagination import encode_cursor, newest_first
+from service.pagination import newest_page
 from service.records import get_capture, get_job
 from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressOut
 from worker.celery_app import dispatch
@@ -116,11 +116,8 @@ def list_jobs(services: ServicesDep, tenant: TenantDep, state: JobState | None =
     if state is not None:
         q = q.where(Job.state == state)
     with services.store.session(write=False) as s:
-        rows = list(s.scalars(newest_first(q, Job.created_at, Job.id, cursor, limit)))
-    more = len(rows) > limit
-    rows = rows[:limit]
-    return JobPage(items=[job_out(j) for j in rows], next_cursor=encode_cursor(
-        rows[-1].created_at, rows[-1].id) if more else None)
+        rows, after = newest_page(s, q, Job.created_at, Job.id, cursor, limit)
+    return JobPage(items=[job_out(j) for j in rows], next_cursor=after)
 
 
 @router.get("/{job_id}", response_model=JobOut)

@@ -14,7 +14,7 @@ import torch
 
 from core.model import GaussianModel
 from core.sequence.correspondence import track_errors
-from core.sequence.run import save_frame
+from core.sequence.tracks import save_frame
 from core.synth.figure import vertex_normals
 from core.synth.ply import write_ply
 

@@ -15,9 +15,9 @@ import torch
 from core.data import CaptureDataset, load_capture
 from core.device import resolve_device, to_device
 from core.config import apply_overrides, preset_config as resolve_config
-from core.pipeline import _same_config
+from core.pipeline.run import _same_config
 from core.config import TrainConfig, train_config
-from core.train import Trainer, View, training_cameras
+from core.training import Trainer, View, training_cameras
 
 
 def _cuda_usable() -> bool:
@@ -189,7 +189,7 @@ def test_to_device_keeps_structure():
 @pytest.mark.skipif(not CUDA, reason="needs a CUDA GPU and the native extension's CUDA build")
 def test_cuda_reconstruction_matches_cpu_and_resumes_on_cpu(views: list[View], synth_capture,
                                                            tmp_path: Path):
-    from core.train import Callback, CheckpointCallback
+    from core.training import Callback, CheckpointCallback
 
     class Losses(Callback):
         def __init__(self):
@@ -230,7 +230,7 @@ def test_cuda_reconstruction_matches_cpu_and_resumes_on_cpu(views: list[View], s
 def test_cuda_pipeline_end_to_end(synth_capture: Path, tmp_path: Path):
     """`reconstruct(device='cuda')` (checkpoints, held-out renders, PLY, meshes) and `dgs eval`
     rendering on the GPU; then the run resumes on the CPU from a checkpoint the GPU wrote."""
-    from core.evaluate import evaluate_run
+    from core.evaluation import evaluate_run
     from core.pipeline import Stopped, reconstruct
 
     overrides = {**SHORT, "gop": 1, "checkpoint_every": 20}

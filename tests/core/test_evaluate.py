@@ -1,4 +1,4 @@
-"""core.evaluate.evaluate_run on hand-made runs (renders copied from the ground truth, then
+"""core.evaluation.evaluate_run on hand-made runs (renders copied from the ground truth, then
 spoiled) and on a short real reconstruction."""
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import pytest
 import torch
 from PIL import Image
 
-from core.evaluate import evaluate_run, normal_agreement
+from core.evaluation import evaluate_run
+from core.metrics import normal_agreement
 from core.pipeline import reconstruct
 from core.synth import SynthConfig, synthesize
 

@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from core.synth.gltf import ALBEDO_SCALE, GltfCharacter, sample_texture
-from core.synth.shading import srgb_to_linear
+from core.color import srgb_to_linear
 
 TEXELS = np.array([[[255, 0, 0], [0, 255, 0]], [[0, 0, 255], [255, 255, 255]]], np.uint8)
 

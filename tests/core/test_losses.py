@@ -1,4 +1,4 @@
-"""Losses of DESIGN.md section 5 on inputs with known answers."""
+"""Losses of docs/design.md section 5 on inputs with known answers."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""core.pipeline.reconstruct: the run directory of DESIGN.md 3.3, config overrides, frame
+"""core.pipeline.reconstruct: the run directory of docs/design.md 3.3, config overrides, frame
 selection, checkpoints and resume, progress only on a terminal."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from core.model import GaussianModel
 from core.config import preset_config, train_config
 from core.pipeline import Progress, Stopped, reconstruct
 from core.synth import SynthConfig, synthesize
-from core.train import Trainer
+from core.training import Trainer
 
 # Tiny tensors: a second intra-op thread only adds synchronisation.
 pytestmark = pytest.mark.usefixtures("one_thread")

@@ -16,7 +16,7 @@ from core.data import CaptureDataset, load_capture
 from core.pipeline import reconstruct
 from core.priors import TorchScriptNormalEstimator, fill_priors, load_estimator
 from core.synth import SynthConfig, synthesize
-from core.train import View, training_cameras
+from core.training import View, training_cameras
 
 # Tiny tensors: a second intra-op thread only adds synchronisation.
 pytestmark = pytest.mark.usefixtures("one_thread")

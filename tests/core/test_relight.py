@@ -25,7 +25,8 @@ from core.relight import (
     sh9_basis,
 )
 from core.relight.cameras import load_camera_path, orbit_cameras
-from core.relight.gbuffer import GBuffer, linear_to_srgb, srgb_to_linear
+from core.color import linear_to_srgb, srgb_to_linear
+from core.relight.gbuffer import GBuffer
 from core.relight.output import Mp4Writer, read_mp4_info
 from core.relight.shade import light_irradiance, shade
 

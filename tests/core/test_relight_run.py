@@ -221,7 +221,7 @@ def test_cli_mesh_formats_and_baseline(tiny_run: Path, tmp_path: Path,
 
 
 def test_eval_scores_relit_views_meshes_and_draws_the_sheet(tiny_run: Path, tmp_path: Path):
-    from core.evaluate import evaluate_run
+    from core.evaluation import evaluate_run
 
     run = tmp_path / "run"
     shutil.copytree(tiny_run, run)

@@ -28,10 +28,8 @@ from core.sequence import (
     quat_norm_loss,
     relabel,
     roles,
-    roles_of,
     segment,
     temporal_loss,
-    with_rekeys,
 )
 from core.config import DensifyConfig
 from core.strategy import DensifyStrategy
@@ -207,33 +205,52 @@ def test_gop_segmentation():
     assert [x.key for x in r] == [True, False, False, True, False, False, True]
     assert r[2].previous == frames[1] and r[3].previous is None and r[5].gop == 1
     assert all(x.key for x in roles(frames, 1))
-    rekeyed = with_rekeys(frames, 3, {frames[1], frames[3], frames[5]})
-    assert [g.frames for g in rekeyed] == [(frames[0],), tuple(frames[1:3]), (frames[3], frames[4]),
-                                           (frames[5],), (frames[6],)]
-    assert [g.index for g in rekeyed] == [0, 1, 2, 3, 4]
-    assert [x.previous for x in roles_of(rekeyed)] == [None, None, frames[1], None, frames[3],
-                                                       None, None]
     with pytest.raises(ValueError, match="gop"):
         segment(frames, 0)
     with pytest.raises(ValueError, match="distinct"):
         segment(["a", "a"], 2)
 
 
-def test_sequence_record_names_the_start_also_of_runs_that_recorded_a_damping():
-    """metrics.json written before the second-order starts held the start's damping (0:
-    rest); a resumed run's sequence.json names it like the new ones."""
+def test_the_plan_gives_each_tracked_frame_its_inputs_from_the_records():
+    """GopPlan: a tracked frame starts from its predecessor (with the two before it in its group
+    for the motion), takes the group's next track id and the previous frame's deform loss, or
+    the run's median where a key frame precedes it, and the credit the records leave it."""
     from core.config import SequenceConfig
-    from core.sequence.run import sequence_record
+    from core.sequence import GopPlan
 
-    frames = ["a", "b", "c", "d"]
+    frames = ["a", "b", "c", "d", "e"]
+    plan = GopPlan(frames, 4, SequenceConfig(refine_borrow=1), 100)
+    assert [r.key for r in plan.roles] == [True, False, False, False, True]
+    assert plan.nominal == 28 and plan.inputs(0, {}) is None
     done = {"gaussians": 100, "seconds": 1.0}
-    metrics = {"a": {**done, "start": None},
-               "b": {**done, "start": {"damping": 0.0, "scores": {}}},
-               "c": {**done, "start": {"damping": 0.5, "scores": {"0.0": 0.2, "0.5": 0.1}}},
-               "d": {**done, "start": {"from": "second-order 0.5", "scores": {}}}}
-    record = sequence_record(frames, 4, SequenceConfig(), metrics)
-    assert [r["start"] for r in record["frames"]] == [None, "rest", "damped 0.5",
-                                                     "second-order 0.5"]
+    records = {"a": {**done, "next_track_id": 100, "previous": None},
+               "b": {**done, "next_track_id": 104, "previous": "a", "deform_loss": 0.2,
+                     "refine_steps": 26, "refine_nominal": 28,
+                     "start": {"from": "rest", "scores": {}, "views": {}}}}
+    second = plan.inputs(1, {"a": records["a"]})
+    assert (second.previous, second.earlier, second.earliest, second.next_id) == \
+        ("a", None, None, 100)
+    assert second.reference_loss is None and second.refine_reference is None
+    assert second.refine_credit == 1 * (28 - 24)  # borrow against one frame at its floor
+    third = plan.inputs(2, records)
+    assert (third.previous, third.earlier, third.next_id) == ("b", "a", 104)
+    assert third.reference_loss == 0.2 and third.refine_reference is None
+    assert third.refine_credit == 2 + 4  # b saved 2; d can pay back 4
+    seq = plan.record(records)
+    assert [f["done"] for f in seq["frames"]] == [True, True, False, False, False]
+    assert [f["start"] for f in seq["frames"]][:2] == [None, "rest"]
+    assert [g["frames"] for g in seq["gops"]] == [frames[:4], frames[4:]]
+    independent = GopPlan(frames, 4, SequenceConfig(enabled=False), 100)
+    assert all(r.key for r in independent.roles) and independent.record({})["gop"] == 1
+
+
+def _track(capture, ply, train, seq, **kw):
+    """A tracker of frame 000001 from the frame PLY `ply`."""
+    from core.sequence import FrameTracker, load_frame
+    from core.training import frame_views
+
+    model, ids = load_frame(ply)
+    return FrameTracker(frame_views(capture, "000001"), model, ids, 10 ** 6, train, seq, **kw)
 
 
 # -- end to end ----------------------------------------------------------------------------------
@@ -242,7 +259,7 @@ TINY_RUN = {"train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3
                                    "reset_interval": 15, "sh_interval": 5},
                       "init_points": 300},
             "sequence": {"num_nodes": 64, "deform_fraction": 0.25, "refine_fraction": 0.25,
-                         "deform_retries": 0, "deform_views": 2},
+                         "deform_views": 2},
             "checkpoint_every": 4, "gop": 3}
 
 
@@ -264,7 +281,7 @@ def _reconstruct(capture: Path, run: Path, **kwargs) -> dict:
 
 def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp_path,
                                                                    one_thread):
-    from core.evaluate import evaluate_run
+    from core.evaluation import evaluate_run
     from core.pipeline import Stopped
 
     straight = tmp_path / "straight"
@@ -286,7 +303,6 @@ def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp
                                            if views[n] == views[won])
     seq = json.loads((straight / "sequence.json").read_text())
     assert [f["role"] for f in seq["frames"]] == ["key", "deformed", "deformed"]
-    assert [f["deform_rounds"] for f in seq["frames"]][:2] == [None, 1]  # no reference: 1
     kept = straight_metrics["frames"]["000002"]["start"]["from"]
     assert seq["frames"][2]["start"] == kept and seq["frames"][2]["start_views"] == views[won]
     assert [g["frames"] for g in seq["gops"]] == [["000000", "000001", "000002"]]
@@ -352,25 +368,23 @@ def test_a_deform_step_averages_its_views_and_scores_the_silhouette(capture3, tm
                                                                     one_thread, monkeypatch):
     """deform_views renders per step, each view's terms averaged; the silhouette term is
     deform_mask x mean |blur(alpha_c) - blur(mask)| at the step's coarse-to-fine blur."""
-    import core.sequence.frame as frame_mod
+    import core.training.loop as loop_mod
     from core.data import load_capture
     from core.config import apply_overrides, preset_config as resolve_config
     from core.pipeline import reconstruct
     from core.config import SequenceConfig
     from core.sequence.deform import blur, blur_sigma
-    from core.sequence.run import tracker_from_capture
 
     run = tmp_path / "key"
     reconstruct(capture3, run, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
     cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
     seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
                          deform_views=3, deform_mask=2.0, coarse_sigma=1.5)
-    tracker = tracker_from_capture(load_capture(capture3), "000001",
-                                   run / "frames" / "000000" / "gaussians.ply", 10 ** 6,
-                                   cfg.train, seq)
+    tracker = _track(load_capture(capture3), run / "frames" / "000000" / "gaussians.ply",
+                     cfg.train, seq)
     assert tracker.renders == 10 * 3 + 10 and tracker.iterations == 20
     drawn = []
-    real = frame_mod.render
+    real = loop_mod.render
 
     def counting(model, camera, **kw):
         out = real(model, camera, **kw)
@@ -378,7 +392,7 @@ def test_a_deform_step_averages_its_views_and_scores_the_silhouette(capture3, tm
                       out.alpha_c.detach()))
         return out
 
-    monkeypatch.setattr(frame_mod, "render", counting)
+    monkeypatch.setattr(loop_mod, "render", counting)
     info = tracker.train_step()
     assert len(drawn) == 3 and len({i for i, _ in drawn}) == 3  # three different views
     sigma = blur_sigma(0, tracker.deform_steps, 1.5)
@@ -390,172 +404,66 @@ def test_a_deform_step_averages_its_views_and_scores_the_silhouette(capture3, tm
         SequenceConfig(deform_views=0)
 
 
-def test_a_frame_that_falls_behind_deforms_another_round_and_resumes_exactly(capture3, tmp_path,
-                                                                             one_thread):
-    """A deform round ending at retry_loss_ratio x the previous frame's loss or more is followed
-    by one more (fresh rates, blur and Adam moments), from the next start when there is one;
-    the round that ended lowest is kept, and a checkpoint inside the second round resumes to
-    the same model."""
+def test_the_deform_stage_starts_from_the_previous_motion_and_resumes_exactly(
+        capture3, tmp_path, one_thread):
+    """The deform stage's end loss is the mean image loss of its last sixth of steps; a
+    checkpoint inside it resumes to the same model; with the previous frames' motion known
+    the candidate starts continue it (first and second order), and the race's leader is the
+    start the nodes begin from."""
     from core.data import load_capture
     from core.config import apply_overrides, preset_config as resolve_config
     from core.pipeline import reconstruct
     from core.config import SequenceConfig
+    from core.sequence import FrameTracker
     from core.sequence.motion import align_tracks
-    from core.sequence.run import load_frame, tracker_from_capture
+    from core.sequence.tracks import load_frame
 
     run = tmp_path / "key"
     reconstruct(capture3, run, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
     cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
     seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
-                         deform_retries=1, retry_loss_ratio=1.2, deform_views=2, refine_adapt=0)
+                         deform_views=2, refine_adapt=0)
     capture = load_capture(capture3)
     ply = run / "frames" / "000000" / "gaussians.ply"
 
-    def tracker(reference, sequence=seq, earlier=None, earliest=None):
-        t = tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, sequence,
-                                 reference_loss=reference)
-        if earlier is None:
-            return t
-        from core.sequence.frame import FrameTracker
-
-        return FrameTracker(t.views, t.previous, t.prev_ids, 10 ** 6, cfg.train, sequence,
-                            reference_loss=reference, earlier=earlier, earliest=earliest)
-
-    calm = tracker(None)  # no reference: never retries
-    calm.train()
-    assert calm.deform_steps == 10 and calm.retries == 0 and calm.step == 20
-    assert len(calm.rounds.ended) == 1 and calm.deform_loss == calm.rounds.ended[0][0] > 0
-    reachable = tracker(1e9)  # every round ends far below it: no retry either
-    reachable.train()
-    assert reachable.retries == 0 and reachable.renders == 10 * 2 + 10
-    assert torch.equal(reachable.model.means, calm.model.means)
-
-    behind = tracker(1e-9)  # every round ends above it: one retry, from where round 1 ended
-    phases = []
-    while behind.step < behind.iterations:
-        behind.train_step()
-        phases.append("deform" if behind.step - 1 < behind.deform_steps else "refine")
-        if behind.step == 13:
-            behind.save_checkpoint(tmp_path / "mid.pt")
-    assert behind.retries == 1 and behind.deform_steps == 20 and behind.iterations == 30
-    assert behind.renders == 20 * 2 + 10 and phases.count("deform") == 20
-    assert "deform round 2 from where round 1 ended" in behind.notes[0]
-    assert len(behind.rounds.ended) == 2
-    assert behind.deform_loss == min(r[0] for r in behind.rounds.ended)
-    resumed = tracker(1e-9)
+    straight = _track(capture, ply, cfg.train, seq)
+    while straight.step < straight.iterations:
+        straight.train_step()
+        if straight.step == 6:
+            straight.save_checkpoint(tmp_path / "mid.pt")
+    assert straight.deform_steps == 10 and straight.step == 20 and straight.start == "rest"
+    assert straight.renders == 10 * 2 + 10 and len(straight.deform_losses) == 10
+    assert straight.deform_loss == pytest.approx(straight.deform_losses[-1])  # 10 // 6 = 1
+    resumed = _track(capture, ply, cfg.train, seq)
     resumed.load_checkpoint(tmp_path / "mid.pt")
-    assert (resumed.deform_steps, resumed.round_start, resumed.step) == (20, 10, 13)
+    assert resumed.step == 6 and resumed.deform_losses == straight.deform_losses[:6]
     resumed.train()
-    for k, v in behind.model.params.items():
+    for k, v in straight.model.params.items():
         assert torch.equal(v, resumed.model.params[k]), k
-    assert resumed.rounds.ended[0][0] == behind.rounds.ended[0][0]
-    assert resumed.deform_loss == behind.deform_loss
+    assert resumed.deform_loss == straight.deform_loss
 
-    # With the previous motion known (here: every Gaussian 2 cm lower one frame before), the
-    # second round starts from the second-best start, with no Adam moments carried over.
+    # With the previous motion known (here: every Gaussian 2 cm lower one frame before, 5 cm
+    # two frames before), the damped and the second-order predictions join rest.
     model, ids = load_frame(ply)
     earlier = align_tracks(ids, ids, model.means.detach() - torch.tensor([0.0, 0.0, 0.02]))
-    # Two frames before known too: the second-order prediction joins the damped starts.
     earliest = align_tracks(ids, ids, model.means.detach() - torch.tensor([0.0, 0.0, 0.05]))
-    second = tracker(1e-9, seq, earlier, earliest)
-    assert list(second.rounds.starts) == ["rest", "damped 1", "second-order 0.5"]
-    assert set(second.rounds.scores) == set(second.rounds.starts)
+    second = FrameTracker(straight.views, model, ids, 10 ** 6, cfg.train, seq,
+                          earlier=earlier, earliest=earliest)
+    assert list(second.starts) == ["rest", "damped 1", "second-order 0.5"]
+    assert set(second.race.scores) == set(second.starts)
     # The Gaussians rose 3 cm, then 2: 2c 2 - 3 = -1 cm at c = 0.5, the turn of a swing.
-    _, t = second.rounds.starts["second-order 0.5"]
+    _, t = second.starts["second-order 0.5"]
     # (A node that carries fewer than 4 Gaussians stays at rest.)
     moved = t.abs().sum(dim=1) > 0
     assert int(moved.sum()) >= 0.9 * len(t)
     assert torch.allclose(t[moved], torch.tensor([0.0, 0.0, -0.01]).expand_as(t[moved]),
                           atol=1e-4)
-    switch = tracker(1e-9, replace(seq, motion_candidates=(0.5, 1.0)), earlier)
-    assert list(switch.rounds.starts) == ["rest", "damped 0.5", "damped 1"]
-    order = switch.rounds.order
-    assert len(order) == 3 and switch.start == order[0]
-    scores = switch.rounds.scores
-    assert [scores[a] for a in order] == sorted(scores.values())
-    while switch.step < switch.round_steps:
-        switch.train_step()
-    assert switch.optimizer.state
-    switch._end_round()
-    q, t = switch.rounds.starts[order[1]]
+    switch = FrameTracker(straight.views, model, ids, 10 ** 6, cfg.train,
+                          replace(seq, motion_candidates=(0.5, 1.0)), earlier=earlier)
+    assert list(switch.starts) == ["rest", "damped 0.5", "damped 1"]
+    assert switch.start == switch.race.order[0] and len(switch.race.order) == 3
+    q, t = switch.starts[switch.start]
     assert torch.equal(switch.node_q.detach(), q) and torch.equal(switch.node_t.detach(), t)
-    assert not switch.optimizer.state and switch.retries == 1
-    assert f"start {order[1]}" in switch.notes[0]
-    switch.train()
-    kept = min(range(2), key=lambda r: switch.rounds.ended[r][0])
-    assert switch.start == order[kept]
-    q, t = switch.rounds.ended[kept][1:]
-    assert torch.equal(switch.node_q.detach(), q) and torch.equal(switch.node_t.detach(), t)
-    with pytest.raises(ValueError, match="retry_loss_ratio"):
-        SequenceConfig(retry_loss_ratio=0.5)
-
-
-def test_a_frame_that_loses_track_becomes_a_key_frame_and_resumes_exactly(capture3, tmp_path,
-                                                                          one_thread,
-                                                                          monkeypatch):
-    """`rekey_loss_ratio`: a tracked frame whose deform stage ends at that ratio of the previous
-    frame's loss or more stops before its refine stage and is made a key frame (a new group,
-    fresh track ids); what it rendered counts, and a run stopped in its key stages resumes to
-    the same result."""
-    from core.pipeline import Stopped
-    from core.sequence.frame import FrameTracker
-    from core.sequence.run import tracker_from_capture
-
-    # The tracker alone: a reference it cannot reach stops it after the deform stage.
-    from core.data import load_capture
-    from core.config import apply_overrides, preset_config as resolve_config
-    from core.pipeline import reconstruct
-    from core.config import SequenceConfig
-
-    key = tmp_path / "key"
-    reconstruct(capture3, key, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
-    cfg = apply_overrides(resolve_config("test"), TINY_RUN, where="test")
-    seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
-                         rekey_loss_ratio=1.5, deform_views=2, refine_adapt=0)
-    ply = key / "frames" / "000000" / "gaussians.ply"
-    lost = tracker_from_capture(load_capture(capture3), "000001", ply, 10 ** 6, cfg.train, seq,
-                                reference_loss=1e-9)
-    lost.train()
-    assert lost.step == lost.deform_steps == 10 and lost.state is None  # no refine step
-    assert lost.lost_track > 1.5 and lost.renders_done == 10 * 2
-    kept = tracker_from_capture(load_capture(capture3), "000001", ply, 10 ** 6, cfg.train, seq,
-                                reference_loss=1e9)
-    kept.train()
-    assert kept.lost_track is None and kept.step == 20
-    with pytest.raises(ValueError, match="rekey_loss_ratio"):
-        SequenceConfig(rekey_loss_ratio=0.5)
-
-    # In a run: the third frame (the first with a reference) loses track.
-    real = FrameTracker.lost_track
-    monkeypatch.setattr(FrameTracker, "lost_track", property(
-        lambda self: 3.0 if self.rounds.kept is not None and self.rounds.reference_loss
-        else real.fget(self)))
-    straight = tmp_path / "straight"
-    metrics = _reconstruct(capture3, straight)["frames"]
-    third = metrics["000002"]
-    assert third["rekeyed"]["loss_ratio"] == 3.0 and third["rekeyed"]["from"] == "000001"
-    assert third["previous"] is None and third["position"] == 0
-    assert third["renders"] == 40 + third["rekeyed"]["tracked_renders"]
-    assert third["rekeyed"]["tracked_renders"] >= 10 * 2
-    seq_json = json.loads((straight / "sequence.json").read_text())
-    assert [f["role"] for f in seq_json["frames"]] == ["key", "deformed", "key"]
-    assert [f["rekeyed"] for f in seq_json["frames"]] == [None, None, 3.0]
-    assert [g["frames"] for g in seq_json["gops"]] == [["000000", "000001"], ["000002"]]
-    ids = read_track_ids(straight / "frames" / "000002" / "gaussians.ply")
-    assert ids.tolist() == list(range(len(ids)))  # a key frame's ids
-    assert not list((straight / "checkpoints").glob("000002*"))
-
-    # Stopped inside the re-keyed frame's key stages, then resumed: the same frame.
-    resumed = tmp_path / "resumed"
-    seen: list = [None]
-    with pytest.raises(Stopped):
-        _reconstruct(capture3, resumed, should_stop=lambda: seen[0] == ("000002", "key", 6),
-                     on_progress=lambda e: seen.__setitem__(0, (e.frame, e.phase, e.step)))
-    assert (resumed / "checkpoints" / "000002.rekey.json").is_file()
-    again = _reconstruct(capture3, resumed, resume=True)["frames"]["000002"]
-    assert again["resumed_at"] == 6 and again["rekeyed"] == third["rekeyed"]
-    assert ((straight / "frames" / "000002" / "gaussians.ply").read_bytes()
-            == (resumed / "frames" / "000002" / "gaussians.ply").read_bytes())
 
 
 def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, tmp_path,
@@ -572,7 +480,6 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     from core.pipeline import reconstruct
     from core.config import SequenceConfig
     from core.sequence.budget import median_deform_loss, refine_credit
-    from core.sequence.run import tracker_from_capture
 
     run = tmp_path / "key"
     reconstruct(capture3, run, preset="test", overrides=TINY_RUN, progress=False, frames="0:1")
@@ -584,9 +491,8 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
         kw = {"refine_adapt": 3.0, **kw}
         seq = SequenceConfig(num_nodes=64, deform_fraction=0.25, refine_fraction=0.25,
                              refine_min=0.5, refine_max=2.0, **kw)
-        return tracker_from_capture(capture, "000001", ply, 10 ** 6, cfg.train, seq,
-                                    reference_loss=reference, refine_credit=credit,
-                                    refine_reference=second)
+        return _track(capture, ply, cfg.train, seq, reference_loss=reference,
+                      refine_credit=credit, refine_reference=second)
 
     cases = {"no reference": (None, 100, 20), "no reference, no credit": (None, 0, 10),
              "far behind, no credit": (1e-9, 0, 10), "far behind, credit 3": (1e-9, 3, 13),
@@ -612,7 +518,7 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
         assert t.refine_steps == steps, second
     # A start race that scores more than start_views views pays the renders it took beyond
     # them out of the refine stage: a frame far behind with no credit refines that much less.
-    from core.sequence.frame import FrameTracker
+    from core.sequence import FrameTracker
 
     base = tracker(None, 0)
     shifted = (base.previous.means.detach() + 0.01, torch.ones(len(base.previous), dtype=bool))
@@ -646,7 +552,7 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     frames = {"000000": {"refine_steps": None, "refine_nominal": None},
               "000001": {"refine_steps": 8, "refine_nominal": 10},
               "000002": {"refine_steps": 11, "refine_nominal": 10},
-              "000003": {"rekeyed": {"loss_ratio": 1.7}, "refine_steps": None}}
+              "000003": {"refine_steps": None}}
     assert refine_credit(frames, 0, 10, 9) == 1  # saved 2, borrowed 1
     assert refine_credit(frames, 3, 10, 9) == 1 + 3  # and 3 frames can pay back 1 each
     assert refine_credit({"1": {"refine_steps": 14, "refine_nominal": 10}}, 3, 10, 9) == -1
@@ -657,7 +563,7 @@ def test_refine_steps_follow_how_the_frame_tracked_within_the_credit(capture3, t
     frames = {"000000": {"deform_loss": None, "refine_steps": None},
               "000001": {"deform_loss": 0.3, "refine_steps": 8},
               "000002": {"deform_loss": 0.1, "refine_steps": 9},
-              "000003": {"deform_loss": 0.9, "refine_steps": None, "rekeyed": {}},
+              "000003": {"deform_loss": 0.9, "refine_steps": None},
               "000004": {"deform_loss": 0.2, "refine_steps": 12}}
     assert median_deform_loss(frames) == pytest.approx(0.2)
     assert median_deform_loss({"000000": frames["000000"]}) is None

@@ -197,7 +197,7 @@ def test_not_a_capture_folder(tmp_path: Path, capsys) -> None:
 
 
 def test_validation_and_import_do_not_load_torch() -> None:
-    """The API process validates uploads and must stay torch-free (DESIGN.md section 2)."""
+    """The API process validates uploads and must stay torch-free (docs/design.md section 2)."""
     import subprocess
     import sys
 

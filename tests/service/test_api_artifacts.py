@@ -9,7 +9,7 @@ import zipfile
 
 import pytest
 
-from worker.artifacts import classify
+from core.rundir import classify
 
 BLOB = bytes(range(256)) * 4  # 1024 bytes
 RUN = {"frames/000000/gaussians.ply": BLOB, "frames/000001/gaussians.ply": BLOB[:100],

@@ -1,4 +1,4 @@
-"""The same app on the deployment stack (DESIGN.md section 4): PostgreSQL job store, Redis
+"""The same app on the deployment stack (docs/design.md section 4): PostgreSQL job store, Redis
 broker, S3-compatible artifact store (moto's server over HTTP). A committed capture is frozen
 into the bucket, a job's message lands in Redis, artifacts stream back from S3 with Range."""
 

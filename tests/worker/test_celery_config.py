@@ -1,4 +1,4 @@
-"""The Celery settings DESIGN.md section 4 asks for, on both brokers."""
+"""The Celery settings docs/design.md section 4 asks for, on both brokers."""
 
 from __future__ import annotations
 

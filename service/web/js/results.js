@@ -14,7 +14,7 @@ const state = { job: null, artifacts: [], frames: [], cameras: [], viewer: null,
 
 const url = (a) => `/v1/jobs/${state.job.id}/artifacts/${a.path.split('/').map(encodeURIComponent).join('/')}`;
 
-/** A .npy float array (DESIGN.md 3.3 depth) as {shape, data}. */
+/** A .npy float array (docs/design.md 3.3 depth) as {shape, data}. */
 export function parseNpy(buffer) {
   const bytes = new Uint8Array(buffer);
   if (bytes[0] !== 0x93 || String.fromCharCode(...bytes.subarray(1, 6)) !== 'NUMPY') throw new Error('not a .npy file');

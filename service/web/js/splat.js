@@ -1,4 +1,4 @@
-// An interactive viewer of a frame's Gaussian PLY (the standard 3DGS layout, DESIGN.md 3.3):
+// An interactive viewer of a frame's Gaussian PLY (the standard 3DGS layout, docs/design.md 3.3):
 // every Gaussian drawn as a screen-space ellipse from its projected 3D covariance, blended back
 // to front (WebGL2, one instanced quad per Gaussian, attributes read from a float texture).
 // Colour modes: appearance (SH degree 0), geometry-branch normals, visibility (AO).

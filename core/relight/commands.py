@@ -1,15 +1,13 @@
-"""`dgs relight RUN --envmap FILE --out DIR ...` and `dgs mesh RUN [--out DIR] ...`
-(DESIGN.md 3.2).
-
-Bad input ends with one line on stderr and exit status 2; no traceback. A progress bar (views
-for relight, frames for mesh) shows on a terminal.
-"""
+"""`dgs relight RUN --envmap FILE --out DIR ...`. Bad input ends with one line on stderr and exit
+status 2; no traceback. A progress bar over the views shows on a terminal."""
 
 from __future__ import annotations
 
 import argparse
 import sys
 import time
+
+from core.cli import fail
 
 __all__ = ["register"]
 
@@ -50,29 +48,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_relight)
 
-    m = sub.add_parser("mesh", help="meshes of a run's frames (TSDF of the geometry branch)")
-    m.add_argument("run", help="run directory (of dgs reconstruct)")
-    m.add_argument("--out", default=None, help="output folder (default RUN/meshes)")
-    m.add_argument("--frames", default=None, metavar="A:B",
-                   help="slice of the run's finished frames (default all)")
-    m.add_argument("--formats", default="ply", metavar="F,F",
-                   help="any of ply, obj, glb, comma-separated (default ply)")
-    m.add_argument("--resolution", type=int, default=512, metavar="N",
-                   help="voxels along the scene diagonal (default 512)")
-    m.add_argument("--depth", default="geometry", choices=("geometry", "appearance"),
-                   help="which branch's depth to fuse (appearance: the baseline)")
-    m.add_argument("--no-colors", action="store_true", help="no vertex colours")
-    m.add_argument("--device", default=None, help="torch device of the TSDF (default: cuda if "
-                                                  "available, else cpu)")
-    m.add_argument("--capture", default=None, help="capture folder (default: the run's own)")
-    m.add_argument("--no-progress", action="store_true", help="no progress bar")
-    m.set_defaults(func=_mesh)
-
-
-def _fail(command: str, message: str) -> int:
-    print(f"dgs {command}: {message}", file=sys.stderr)
-    return 2
-
 
 def _relight(args: argparse.Namespace) -> int:
     from core.relight import parse_light, relight_run
@@ -80,7 +55,7 @@ def _relight(args: argparse.Namespace) -> int:
     try:
         lights = [parse_light(s) for s in args.light]
     except ValueError as exc:
-        return _fail("relight", str(exc))
+        return fail("relight", exc)
     bar = None
 
     def on_progress(event) -> None:
@@ -103,52 +78,11 @@ def _relight(args: argparse.Namespace) -> int:
                              capture_dir=args.capture, capture_light=args.capture_light,
                              ao=not args.no_ao, fps=args.fps, on_progress=on_progress)
     except ValueError as exc:
-        return _fail("relight", str(exc).replace("\n", " "))
+        return fail("relight", str(exc).replace("\n", " "))
     finally:
         if bar is not None:
             bar.close()
     videos = f", {len(record['videos'])} video(s)" if record["videos"] else ""
     print(f"relit {record['views']} view(s) of {len(record['frames'])} frame(s){videos} into "
           f"{args.out} in {time.perf_counter() - start:.1f} s")
-    return 0
-
-
-def _mesh(args: argparse.Namespace) -> int:
-    from core.config import MeshConfig, validate
-    from core.mesh import mesh_run
-
-    try:
-        config = validate(MeshConfig, {
-            "resolution": args.resolution, "depth": args.depth, "colors": not args.no_colors,
-            "device": args.device,
-            "formats": [f.strip() for f in args.formats.split(",") if f.strip()]})
-    except ValueError as exc:
-        return _fail("mesh", str(exc))
-    bar = None
-    show = not args.no_progress and sys.stderr.isatty()
-
-    def on_start(frames: list[str]) -> None:
-        nonlocal bar
-        if show:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(frames), desc="mesh", unit="frame", dynamic_ncols=True)
-
-    def on_frame(frame: str, info: dict) -> None:
-        if bar is not None:
-            bar.set_postfix(frame=frame, faces=info.get("faces"), refresh=False)
-            bar.update(1)
-
-    start = time.perf_counter()
-    try:
-        result = mesh_run(args.run, args.out, frames=args.frames, config=config,
-                          capture_dir=args.capture, on_start=on_start, on_frame=on_frame)
-    except ValueError as exc:
-        return _fail("mesh", str(exc).replace("\n", " "))
-    finally:
-        if bar is not None:
-            bar.close()
-    faces = sum(f.get("faces", 0) for f in result["frames"].values())
-    print(f"meshed {len(result['frames'])} frame(s) ({faces} faces) into {result['out']} in "
-          f"{time.perf_counter() - start:.1f} s")
     return 0

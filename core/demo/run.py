@@ -1,25 +1,19 @@
-"""`dgs demo`: the main job on a small built-in capture (what `make demo` runs).
-
-synth (once) -> reconstruct (meshes included) -> evaluate (held-out views, relit views, meshes,
-the contact sheet). With the service extra installed, the service package takes this command
-over (`service.demo`: the same job through an embedded `dgs serve`, registered through the
-dgs.commands entry point so core never imports the service); here it runs in this process.
-`--raster` runs the earlier rasterizer-only demo (`core.demo_raster`) instead.
-"""
+"""The main job on a small built-in capture, in this process (`dgs demo --in-process`; what
+`make demo` runs through the service, `service.demo`): synth (once) -> reconstruct (meshes
+included) -> evaluate (held-out views, relit views, meshes, the contact sheet)."""
 
 from __future__ import annotations
 
-import argparse
 import shutil
 import time
 from dataclasses import asdict
 from pathlib import Path
 
-__all__ = ["DEMO_OVERRIDES", "DEMO_SYNTH", "demo_capture", "register", "report", "run_demo"]
+__all__ = ["DEMO_OVERRIDES", "DEMO_SYNTH", "demo_capture", "report", "run_demo"]
 
 # Between the `test` (500) and `fast` (7.5k) presets: 2500 steps take about two minutes on two
 # CPU cores for 14 training views of 128x128, long enough for the geometry branch to settle
-# (the paper preset's stage proportions). The mesh at DESIGN.md's 512 voxels per diagonal (the
+# (the paper preset's stage proportions). The mesh at the design's 512 voxels per diagonal (the
 # test preset's own 128 are for tiny test captures).
 DEMO_OVERRIDES = {"train": {"schedule": {
     "iterations": 2500, "stage2_start": 625, "stage3_start": 1875, "sh_interval": 75,
@@ -28,27 +22,6 @@ DEMO_OVERRIDES = {"train": {"schedule": {
     "densify": {"max_gaussians": 20000}}, "mesh": {"resolution": 512}}
 # The built-in capture (core.synth.SynthConfig fields).
 DEMO_SYNTH = {"frames": 1, "views": 16, "width": 128, "height": 128, "seed": 0, "priors": True}
-
-
-def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="run the main job on a small built-in capture")
-    p.add_argument("--out", default="demo", help="demo folder (default ./demo)")
-    p.add_argument("--raster", action="store_true",
-                   help="only the rasterizer demo (ground-truth splats, no training)")
-    p.add_argument("--in-process", action="store_true",
-                   help="run the job in this process, not through the HTTP service")
-    p.set_defaults(func=_run)
-
-
-def _run(args: argparse.Namespace) -> int:
-    if args.raster:
-        from core.demo_raster import run_raster_demo
-
-        return run_raster_demo(args.out)
-    if not args.in_process:
-        print("dgs demo: the service extra is not installed, so the job runs in this process "
-              "(pip install -e '.[service]' to run it through the HTTP service)", flush=True)
-    return run_demo(args.out)
 
 
 def _synth_config(capture_dir: Path) -> dict | None:
@@ -110,7 +83,7 @@ def report(capture, capture_dir: Path, run_dir: Path, metrics: dict, result: dic
 
 
 def run_demo(out: str = "demo") -> int:
-    from core.evaluate import evaluate_run
+    from core.evaluation import evaluate_run
     from core.pipeline import reconstruct
 
     root = Path(out)

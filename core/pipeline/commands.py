@@ -1,13 +1,14 @@
-"""`dgs reconstruct CAPTURE --out RUN ...` and `dgs eval RUN [--capture CAPTURE]`.
-
-Bad input ends with one line on stderr and exit status 2; no traceback.
-"""
+"""`dgs reconstruct CAPTURE --out RUN ...`. Bad input ends with one line on stderr and exit
+status 2; no traceback."""
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
+
+from core.cli import fail
+from core.config import PRESETS
+from core.pipeline.run import reconstruct
 
 __all__ = ["register"]
 
@@ -35,39 +36,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.set_defaults(func=_reconstruct)
 
-    e = sub.add_parser("eval", help="score a run's held-out views; writes RUN/eval.json")
-    e.add_argument("run", help="run directory")
-    e.add_argument("--capture", default=None, help="capture folder (default: the run's own)")
-    e.add_argument("--device", default="auto", metavar="DEVICE",
-                   help="auto | cpu | cuda | cuda:N: where the relit views are rendered "
-                        "(default auto)")
-    e.set_defaults(func=_eval)
-
-
-def _fail(command: str, message: str) -> int:
-    print(f"dgs {command}: {message}", file=sys.stderr)
-    return 2
-
-
-def _one_line(exc: Exception) -> str:
-    from core.data.capture import CaptureError
-
-    if isinstance(exc, CaptureError):
-        shown = "; ".join(str(p) for p in exc.problems[:3])
-        more = len(exc.problems) - 3
-        return (f"not a valid capture: {shown}" + (f" (+{more} more)" if more > 0 else "")
-                + " (see dgs capture validate)")
-    return str(exc).replace("\n", " ")
-
 
 def _reconstruct(args: argparse.Namespace) -> int:
-    from core.config import PRESETS
-
     if args.preset not in PRESETS:
-        return _fail("reconstruct", f"--preset: expected one of {', '.join(PRESETS)}, "
+        return fail("reconstruct", f"--preset: expected one of {', '.join(PRESETS)}, "
                                     f"got {args.preset!r}")
-    from core.pipeline import reconstruct
-
     start = time.perf_counter()
     try:
         metrics = reconstruct(args.capture, args.out, preset=args.preset, frames=args.frames,
@@ -76,32 +49,8 @@ def _reconstruct(args: argparse.Namespace) -> int:
                               overrides=None if args.downscale is None
                               else {"downscale": args.downscale})
     except ValueError as exc:  # CaptureError is a ValueError
-        return _fail("reconstruct", _one_line(exc))
+        return fail("reconstruct", exc)
     n = len(metrics["frames"])
     print(f"reconstructed {n} frame(s) into {args.out} in {time.perf_counter() - start:.0f} s; "
           f"next: dgs eval {args.out}")
-    return 0
-
-
-def _eval(args: argparse.Namespace) -> int:
-    from core.evaluate import evaluate_run
-
-    try:
-        result = evaluate_run(args.run, args.capture, device=args.device)
-    except ValueError as exc:
-        return _fail("eval", _one_line(exc))
-    cos = result["normal_cos"]
-    normal = "n/a" if cos is None else f"{cos:.3f} ({result['normal_deg']:.1f} deg, vs " \
-                                       f"{result['normal_reference']})"
-    print(f"{args.run}: {result['views']} held-out view(s): PSNR {result['psnr']:.2f} dB, "
-          f"SSIM {result['ssim']:.3f}, normal cosine {normal}")
-    if result.get("relight"):
-        r = result["relight"]
-        print(f"  relit under the capture's second light: PSNR {r['psnr']:.2f} dB, SSIM "
-              f"{r['ssim']:.3f} (without the AO term {r['psnr_no_ao']:.2f} dB)")
-    if result.get("mesh"):
-        m = result["mesh"]
-        print(f"  mesh: Chamfer {100 * m['chamfer_relative']:.2f}% of the diagonal, normal "
-              f"consistency {m['normal_consistency']:.3f}")
-    print(f"  wrote {args.run}/eval.json and {args.run}/{result['contact_sheet']}")
     return 0

@@ -1,4 +1,4 @@
-"""`dgs eval`: quality of a run on its held-out views (DESIGN.md 3.3 `eval.json`, section 5).
+"""`dgs eval`: quality of a run on its held-out views (docs/design.md 3.3 `eval.json`, section 5).
 
 - every view at the run's resolution (the capture reduced by RUN/config.json's `downscale`, the
   ground-truth normals area-averaged to it);
@@ -17,13 +17,15 @@
 from __future__ import annotations
 
 import json
-import math
 import os
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["evaluate_run", "normal_agreement", "rgb_scores"]
+from core.files import write_json
+from core.metrics import normal_agreement, rgb_scores
+
+__all__ = ["evaluate_run"]
 
 
 def _read_png(path: Path) -> np.ndarray:
@@ -32,19 +34,6 @@ def _read_png(path: Path) -> np.ndarray:
     if not path.is_file():
         raise ValueError(f"run_dir: {path} not found (the run has no render for this view)")
     return np.asarray(Image.open(path)).astype(np.float32) / 255.0
-
-
-def normal_agreement(pred_png: np.ndarray, reference: np.ndarray,
-                     foreground: np.ndarray) -> tuple[float, float] | None:
-    """(mean cosine, mean angle in degrees) between normals stored as (n+1)/2 (black: none) and
-    unit `reference` normals (H, W, 3) over `foreground` (H, W) pixels; None when no pixel."""
-    if not foreground.any():
-        return None
-    covered = pred_png.max(axis=-1) > 0
-    n = pred_png * 2.0 - 1.0
-    n = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-6)
-    cos = np.where(covered, np.clip((n * reference).sum(-1), -1.0, 1.0), 0.0)[foreground]
-    return float(cos.mean()), float(np.degrees(np.arccos(cos)).mean())
 
 
 def _reduce_normals(normal: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
@@ -61,30 +50,12 @@ def _reduce_normals(normal: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     return np.where(ok, mean / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
 
 
-def _psnr(mse: float) -> float:
-    return 100.0 if mse <= 1e-10 else -10.0 * math.log10(mse)
-
-
-def rgb_scores(rgb: np.ndarray, target: np.ndarray, foreground: np.ndarray) -> dict:
-    """{"psnr" over `foreground` (H, W) pixels, "psnr_full" over the image, "ssim" (11x11
-    Gaussian window) over the image} of images (H, W, 3) in 0..1."""
-    import torch
-
-    from core.losses import ssim
-
-    err = (rgb - target) ** 2
-    return {"psnr": _psnr(float(err[foreground].mean()) if foreground.any() else 0.0),
-            "psnr_full": _psnr(float(err.mean())),
-            "ssim": float(ssim(torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
-                               torch.from_numpy(np.ascontiguousarray(target, np.float32))))}
-
-
 def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np.ndarray | None,
                   background: np.ndarray, linear: bool) -> dict:
     image = sample.image.numpy()
     mask = None if sample.mask is None else sample.mask.numpy()
     if linear:
-        from core.synth.shading import linear_to_srgb  # renders are sRGB; compare like with like
+        from core.color import linear_to_srgb  # renders are sRGB; compare like with like
 
         image = linear_to_srgb(image).astype(np.float32)
     target = image if mask is None else image * mask + background * (1 - mask)
@@ -123,7 +94,6 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     `device` (auto, cpu, cuda, cuda:N) is where the relit views are rendered."""
     from core.data import CaptureDataset, load_capture
     from core.device import resolve_device
-    from core.pipeline import write_json
 
     torch_device = resolve_device(device)
     run = Path(run_dir)

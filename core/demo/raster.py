@@ -2,7 +2,7 @@
 disentangled rasterizer and compared with the ground truth of a held-out camera.
 
 No training: a quick check of `dgs synth` + validation and of `native.rasterize` with both
-branches (the main demo, `core.commands_demo`, reconstructs the capture).
+branches (the main demo, `core.demo.run`, reconstructs the capture).
 """
 
 from __future__ import annotations
@@ -11,6 +11,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
+from PIL import Image
+
+from core.data import check_capture, load_capture
+from core.synth.generate import SynthConfig, synthesize
+from core.synth.ply import read_ply
+from native import rasterize
 
 __all__ = ["run_raster_demo", "splats_from_mesh"]
 
@@ -18,8 +25,6 @@ __all__ = ["run_raster_demo", "splats_from_mesh"]
 def splats_from_mesh(vertices: np.ndarray, faces: np.ndarray):
     """One flat Gaussian per triangle: centre, disc scales, rotation taking +z to the normal,
     the face normal and a diffuse shade. Returns torch tensors (float32)."""
-    import torch
-
     v = vertices[faces]  # (T, 3, 3)
     centre = v.mean(axis=1)
     cross = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
@@ -43,20 +48,11 @@ def splats_from_mesh(vertices: np.ndarray, faces: np.ndarray):
 
 
 def _png(path: Path, img: np.ndarray) -> None:
-    from PIL import Image
-
     Image.fromarray((np.clip(img, 0, 1) * 255 + 0.5).astype(np.uint8)).save(path)
 
 
-def run_raster_demo(out: str = "demo") -> int:
-    import torch
-
-    from core.data import check_capture, load_capture
-    from core.synth.generate import SynthConfig, synthesize
-    from core.synth.ply import read_ply
-    from native import rasterize
-
-    root = Path(out)
+def _capture(root: Path):
+    """The demo's synthetic capture (made once), validated."""
     capture_dir = root / "capture"
     t0 = time.perf_counter()
     if not (capture_dir / "capture.json").exists():
@@ -67,12 +63,14 @@ def run_raster_demo(out: str = "demo") -> int:
     check_capture(capture_dir)
     print(f"      capture valid: {len(capture.cameras)} cameras, {len(capture.frames)} frame(s) "
           f"({time.perf_counter() - t0:.1f} s)", flush=True)
+    return capture
 
-    frame = capture.frames[0]
-    vertices, faces = read_ply(capture_dir / "gt" / "meshes" / f"{frame}.ply")
+
+def _splat(capture, frame: str, cam):
+    """The ground-truth surface splatted from `cam` with both branches."""
+    vertices, faces = read_ply(capture.root / "gt" / "meshes" / f"{frame}.ply")
     means, quats, scales, normals, colors = splats_from_mesh(vertices, faces)
     n = means.shape[0]
-    cam = capture.cameras[0]  # index 0: a held-out camera (every 8th)
     print(f"[2/3] building the native rasterizer (first run only) and rendering {n} Gaussians "
           f"from held-out camera {cam.id}", flush=True)
     geometry = torch.cat([normals, torch.ones(n, 1)], 1)  # normal + visibility
@@ -83,19 +81,22 @@ def run_raster_demo(out: str = "demo") -> int:
                   torch.as_tensor(cam.K, dtype=torch.float32), cam.width, cam.height,
                   beta=0.3, eps2d=0.1, antialiased=True)
     print(f"      rendered in {time.perf_counter() - t1:.2f} s (including any build)", flush=True)
+    return r
 
+
+def _sheet(capture, frame: str, cam, r, root: Path) -> tuple[float, float]:
+    """The renders and the contact sheet; (normal cosine, mean depth error) on the
+    foreground."""
+    gt = capture.root / "gt"
     alpha = r.alpha_g[..., 0].numpy()
     normal = r.geometry[..., :3].numpy() / np.maximum(alpha, 1e-6)[..., None]
     normal /= np.maximum(np.linalg.norm(normal, axis=-1, keepdims=True), 1e-9)
-    gt_normal = np.load(capture_dir / "gt" / "normals" / frame / f"{cam.id}.npy")
-    gt_depth = np.load(capture_dir / "gt" / "depth" / frame / f"{cam.id}.npy")
+    gt_normal = np.load(gt / "normals" / frame / f"{cam.id}.npy")
+    gt_depth = np.load(gt / "depth" / frame / f"{cam.id}.npy")
     fg = (gt_depth > 0) & (alpha > 0.5)
     cos = float((normal[fg] * gt_normal[fg]).sum(-1).mean()) if fg.any() else float("nan")
     depth = (r.depth[..., 0] / r.alpha_g[..., 0].clamp_min(1e-6)).numpy()
     err = float(np.abs(depth[fg] - gt_depth[fg]).mean()) if fg.any() else float("nan")
-
-    from PIL import Image
-
     renders = root / "renders"
     renders.mkdir(parents=True, exist_ok=True)
     rgb = r.color.numpy()
@@ -110,6 +111,16 @@ def run_raster_demo(out: str = "demo") -> int:
     _png(renders / f"{cam.id}_rgb.png", rgb)
     _png(renders / f"{cam.id}_normal.png", np.where(fg[..., None], (normal + 1) / 2, 0))
     _png(root / "raster_demo.png", sheet)
+    return cos, err
+
+
+def run_raster_demo(out: str = "demo") -> int:
+    """Synthesize (once), splat the ground truth from a held-out camera, write a contact
+    sheet and print how close the normals and depth are."""
+    root = Path(out)
+    capture = _capture(root)
+    frame, cam = capture.frames[0], capture.cameras[0]  # index 0: a held-out camera
+    cos, err = _sheet(capture, frame, cam, _splat(capture, frame, cam), root)
     print("[3/3] results", flush=True)
     print(f"      normal cosine vs ground truth (foreground): {cos:.4f}")
     print(f"      mean |depth error|: {err:.4f} m (scene ~2 m tall)")

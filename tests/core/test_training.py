@@ -18,7 +18,7 @@ from core.data import CaptureDataset, load_capture
 from core.model import GaussianModel
 from core.seeding import look_at_center, sample_points, scene_extent
 from core.synth import SynthConfig, synthesize
-from core.train import (
+from core.training import (
     CheckpointCallback,
     ProgressCallback,
     Trainer,
@@ -206,16 +206,16 @@ def test_random_background_makes_background_coloured_coverage_cost(views: list[V
     p = plan(0, cfg.schedule)
     background = views[0].mask[..., 0] == 0
     black = torch.zeros(3)
-    wall = trainer.render_view(0, p, black).rgb
+    wall = trainer.render_view(trainer.model, 0, p, black).rgb
     assert float((wall - trainer.target(0, black))[background].abs().max()) < 1e-3
-    colours = [trainer._step_background(0) for _ in range(2)]
+    colours = [trainer.step_background(0) for _ in range(2)]
     assert not torch.equal(colours[0], colours[1])  # a new colour every step
     bg = colours[0]
     target = trainer.target(0, bg)
     torch.testing.assert_close(target[background], bg.expand_as(target[background]))
-    error = (trainer.render_view(0, p, bg).rgb - target)[background].abs().mean(dim=0)
+    error = (trainer.render_view(trainer.model, 0, p, bg).rgb - target)[background].abs().mean(dim=0)
     torch.testing.assert_close(error, bg, atol=0.01, rtol=0)  # the wall shows black over bg
     unmasked = Trainer([View(views[0].camera, views[0].image)], cfg, ao_baker=FakeBaker())
-    assert torch.equal(unmasked._step_background(0), torch.zeros(3))
+    assert torch.equal(unmasked.step_background(0), torch.zeros(3))
     fixed = Trainer(views, replace(cfg, random_background=False), ao_baker=FakeBaker())
-    assert torch.equal(fixed._step_background(0), torch.zeros(3))
+    assert torch.equal(fixed.step_background(0), torch.zeros(3))

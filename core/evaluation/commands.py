@@ -1,0 +1,45 @@
+"""`dgs eval RUN [--capture CAPTURE]`: scores a run's held-out views into RUN/eval.json. Bad
+input ends with one line on stderr and exit status 2; no traceback."""
+
+from __future__ import annotations
+
+import argparse
+
+from core.cli import fail
+from core.evaluation.run import evaluate_run
+
+__all__ = ["register"]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    e = sub.add_parser("eval", help="score a run's held-out views; writes RUN/eval.json")
+    e.add_argument("run", help="run directory")
+    e.add_argument("--capture", default=None, help="capture folder (default: the run's own)")
+    e.add_argument("--device", default="auto", metavar="DEVICE",
+                   help="auto | cpu | cuda | cuda:N: where the relit views are rendered "
+                        "(default auto)")
+    e.set_defaults(func=_eval)
+
+
+
+
+def _eval(args: argparse.Namespace) -> int:
+    try:
+        result = evaluate_run(args.run, args.capture, device=args.device)
+    except ValueError as exc:
+        return fail("eval", exc)
+    cos = result["normal_cos"]
+    normal = "n/a" if cos is None else f"{cos:.3f} ({result['normal_deg']:.1f} deg, vs " \
+                                       f"{result['normal_reference']})"
+    print(f"{args.run}: {result['views']} held-out view(s): PSNR {result['psnr']:.2f} dB, "
+          f"SSIM {result['ssim']:.3f}, normal cosine {normal}")
+    if result.get("relight"):
+        r = result["relight"]
+        print(f"  relit under the capture's second light: PSNR {r['psnr']:.2f} dB, SSIM "
+              f"{r['ssim']:.3f} (without the AO term {r['psnr_no_ao']:.2f} dB)")
+    if result.get("mesh"):
+        m = result["mesh"]
+        print(f"  mesh: Chamfer {100 * m['chamfer_relative']:.2f}% of the diagonal, normal "
+              f"consistency {m['normal_consistency']:.3f}")
+    print(f"  wrote {args.run}/eval.json and {args.run}/{result['contact_sheet']}")
+    return 0

@@ -1,0 +1,102 @@
+"""What a running reconstruction tells its caller: `Progress` events (every step, checkpoint
+and frame), a cooperative stop (`Stopped`), and the per-step history metrics.json and the
+plots keep."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+from core.training import Callback, CheckpointCallback, FrameFitter, StepInfo
+
+__all__ = ["History", "Hooks", "Progress", "Stopped"]
+
+
+@dataclass(frozen=True)
+class Progress:
+    """One event of a running reconstruction, for `reconstruct(on_progress=...)`."""
+
+    kind: Literal["frame_start", "step", "checkpoint", "frame_done"]
+    """What happened: a frame starts (or resumes), a step ended, a checkpoint is complete on disk
+    (`path`), a frame's outputs are written."""
+    frame: str
+    """The frame's name."""
+    frame_index: int
+    """Its position among the selected frames (0-based)."""
+    frames: int
+    """How many frames the run has."""
+    step: int
+    """Steps of this frame done so far (after the step for kind 'step')."""
+    iterations: int
+    """Steps of this frame."""
+    stage: int
+    """Training stage of the last step (1, 2, 3; 0 before the first)."""
+    gaussians: int = 0
+    """Gaussians in the model."""
+    loss: float | None = None
+    """Total loss of the step (kind 'step')."""
+    path: str | None = None
+    """The checkpoint file (kind 'checkpoint') or the frame's folder (kind 'frame_done')."""
+    phase: Literal["key", "deform", "refine"] = "key"
+    """How the frame is made: static stages (a group's key frame), or the deform / refine stage
+    of a frame deformed from its predecessor."""
+
+
+class Stopped(Exception):
+    """`reconstruct` stopped because `should_stop()` said so; the frame's checkpoint was written
+    first, so `resume=True` continues from the step it stopped at."""
+
+    def __init__(self, frame: str, step: int):
+        super().__init__(f"stopped at step {step} of frame {frame} (checkpoint written)")
+        self.frame, self.step = frame, step
+
+
+class History(Callback):
+    """Per-step records for metrics.json and the plots (survives resume via the checkpoint)."""
+
+    def __init__(self) -> None:
+        self.records: list[dict] = []
+
+    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
+        self.records.append({"step": info.step, "stage": info.plan.stage,
+                             "gaussians": info.n_gaussians, "psnr": info.psnr,
+                             "seconds": info.seconds, **info.losses})
+
+
+class Hooks(Callback):
+    """Hands `Progress` events to the caller and stops (after a checkpoint) when asked to."""
+
+    def __init__(self, frame: str, index: int, frames: int,
+                 on_progress: Callable[[Progress], None] | None,
+                 should_stop: Callable[[], bool] | None):
+        self.frame, self.index, self.frames = frame, index, frames
+        self.on_progress, self.should_stop = on_progress, should_stop
+        self.saver: CheckpointCallback | None = None
+        self.trainer: FrameFitter | None = None
+        self.stage = 0
+        self.loss: float | None = None
+
+    def emit(self, kind: str, trainer: FrameFitter | None = None,
+             path: str | None = None) -> None:
+        trainer = trainer or self.trainer
+        if self.on_progress is None or trainer is None:
+            return
+        self.on_progress(Progress(
+            kind=kind, frame=self.frame, frame_index=self.index, frames=self.frames,
+            step=trainer.step, iterations=trainer.iterations, stage=self.stage,
+            gaussians=len(trainer.model), loss=self.loss if kind == "step" else None, path=path,
+            phase=trainer.phase))
+
+    def on_train_start(self, trainer: FrameFitter) -> None:
+        self.trainer = trainer
+        self.emit("frame_start", trainer)
+
+    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
+        self.stage, self.loss = info.plan.stage, info.losses["total"]
+        self.emit("step", trainer)
+        last = trainer.step >= trainer.iterations
+        if self.should_stop is not None and not last and self.should_stop():
+            if self.saver is not None:
+                self.saver.save(trainer)
+            raise Stopped(self.frame, trainer.step)

@@ -1,0 +1,101 @@
+"""One frame of a reconstruction, from its fitter to its outputs: a key frame's `Trainer` or a
+tracked frame's `FrameTracker`, normal priors, resume from the frame's checkpoint, training
+with the run's callbacks, then the PLY, the held-out renders, the mesh and its
+`FrameRecord`."""
+
+from __future__ import annotations
+
+import sys
+import time
+from dataclasses import dataclass
+
+from core.config import RunConfig
+from core.pipeline.events import History, Hooks
+from core.pipeline.outputs import mesh_frame, render_heldout, thin
+from core.pipeline.record import FrameRecord
+from core.priors import NormalEstimator, fill_priors
+from core.progress import LogLines, TerminalBar
+from core.rundir import RunDir
+from core.sequence import FrameRole, TrackedInputs, save_frame, tracker_for
+from core.training import Callback, CheckpointCallback, FrameFitter, Trainer
+
+__all__ = ["FrameJob", "fit_frame"]
+
+
+@dataclass
+class FrameJob:
+    """What fitting a frame needs from its run."""
+
+    capture: object
+    """The `core.data.Capture`."""
+    run: RunDir
+    cfg: RunConfig
+    estimator: NormalEstimator | None
+    display: str | None
+    """'bar' (a terminal), 'lines' (a log) or None (quiet)."""
+
+
+def _callbacks(job: FrameJob, frame: str, label: str, history: History,
+               hooks: Hooks) -> list[Callback]:
+    saver = CheckpointCallback(job.run.checkpoints, job.cfg.checkpoint_every,
+                               filename=f"{frame}.pt", extra=lambda: history.records,
+                               on_saved=lambda path: hooks.emit("checkpoint", path=str(path)))
+    hooks.saver = saver
+    callbacks: list[Callback] = [history, saver]
+    if job.display is not None:
+        callbacks.append(TerminalBar(label) if job.display == "bar" else LogLines(label))
+    return [*callbacks, hooks]  # hooks last: a stop sees the step's history and checkpoint
+
+
+def _fitter(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None,
+            callbacks: list[Callback]) -> FrameFitter:
+    cfg = job.cfg
+    if inputs is None:
+        return Trainer.from_capture(job.capture, role.frame, cfg.train, callbacks=callbacks,
+                                    downscale=cfg.downscale)
+    return tracker_for(job.capture, role.frame, job.run, inputs, cfg.train, cfg.sequence,
+                       downscale=cfg.downscale, callbacks=callbacks)
+
+
+def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, label: str,
+              hooks: Hooks) -> FrameRecord:
+    """Fit `role.frame` (resuming from its checkpoint), write its outputs, return its record."""
+    start = time.perf_counter()
+    history = History()
+    fitter = _fitter(job, role, inputs, _callbacks(job, role.frame, label, history, hooks))
+    priors = fill_priors(fitter.views, job.estimator)
+    checkpoint = job.run.checkpoint(role.frame)
+    resumed_at = 0
+    if checkpoint.is_file():
+        history.records = list(fitter.load_checkpoint(checkpoint) or [])
+        resumed_at = fitter.step
+    fitter.train()
+    tracked = inputs is not None
+    save_frame(job.run.ply(role.frame), fitter.model, fitter.ids if tracked else None)
+    render_heldout(job.capture, role.frame, fitter, job.run, job.cfg.downscale)
+    mesh = mesh_frame(job.run, job.capture, role.frame, job.cfg.mesh)
+    last = history.records[-1] if history.records else {}
+    record = FrameRecord(
+        iterations=fitter.iterations, renders=fitter.renders,
+        seconds=round(time.perf_counter() - start, 3), resumed_at=resumed_at,
+        gaussians=len(fitter.model), train_psnr=round(fitter.evaluate(), 4),
+        normal_prior=priors, stages="deform + refine" if tracked else "static (key frame)",
+        gop=role.gop, position=role.position,
+        next_track_id=fitter.group_next_id if tracked else len(fitter.model),
+        final_losses={k: v for k, v in last.items()
+                      if k not in ("step", "stage", "gaussians", "psnr", "seconds")},
+        notes=fitter.notes, history=thin(history.records), mesh=mesh)
+    if tracked:
+        record.previous, record.new_tracks = role.previous, fitter.state.born
+        record.start = {"from": fitter.start, "scores": dict(fitter.race.scores),
+                        "views": dict(fitter.race.views)}
+        record.deform_loss, record.refine_steps = fitter.deform_loss, fitter.refine_steps
+        record.refine_nominal, record.scoring_extra = (fitter.nominal_refine,
+                                                       fitter.scoring_extra)
+    return record
+
+
+def display_mode(progress: bool) -> str | None:
+    """A bar on a terminal; elsewhere (a log, nohup) a line every 30 s, so long runs never go
+    quiet."""
+    return None if not progress else "bar" if sys.stderr.isatty() else "lines"

@@ -1,0 +1,119 @@
+"""`reconstruct`: every selected frame of a capture into a run directory (docs/design.md 2.3,
+3.3). Every input is checked before anything is written; then, frame by frame in the order of
+the group-of-pictures plan (`core.sequence.GopPlan`), a key frame gets the static stages and a
+tracked frame is deformed from its predecessor and refined (`core.pipeline.frame.fit_frame`).
+After each frame metrics.json and sequence.json are rewritten and its checkpoint dropped, so
+an interrupted run resumes at the frame it was in, from that frame's last checkpoint."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable
+from dataclasses import asdict, fields, replace
+from pathlib import Path
+
+from core.config import RunConfig, load_config, parse_frames
+from core.data import check_capture
+from core.device import check_device_spec, resolve_device
+from core.pipeline.events import Hooks, Progress
+from core.pipeline.frame import FrameJob, display_mode, fit_frame
+from core.plots import plot_run
+from core.priors import load_estimator
+from core.rundir import RunDir
+from core.sequence import GopPlan
+
+__all__ = ["reconstruct"]
+
+SEQUENCE_NOTE = ("the first frame of each GoP is reconstructed with the full static stages, the "
+                 "others deformed from the previous frame and refined (see sequence.json)")
+INDEPENDENT_NOTE = ("sequence.enabled is off: every frame was reconstructed independently with the "
+                    "full static stages")
+
+
+def _config_record(capture_dir: Path, preset: str, chosen: list[str], cfg: RunConfig) -> dict:
+    return {"version": 1, "preset": preset, "capture": str(capture_dir.resolve()),
+            "frames": chosen, **asdict(cfg)}
+
+
+def _same_config(old: dict, new: dict) -> bool:
+    """Whether two config.json records describe the same run. The device is left out: a run
+    resumes on another machine (a checkpoint holds CPU tensors)."""
+    keys = [f.name for f in fields(RunConfig)]
+
+    def comparable(record: dict) -> dict:
+        data = json.loads(json.dumps({k: record.get(k) for k in keys}))
+        if isinstance(data.get("train"), dict):
+            data["train"].pop("device", None)
+        return data
+
+    return comparable(old) == comparable(new)
+
+
+def _resolve_run_device(cfg: RunConfig, device: str | None) -> RunConfig:
+    """`cfg` with `device` (when given) and then the device it stands for written into
+    train.device (`auto` becomes `cuda:0` or `cpu`), so that config.json says where the run
+    trained; ValueError (before anything is written) when CUDA is asked for and not usable."""
+    where = "device" if device is not None else "train.device"
+    spec = check_device_spec(device, where) if device is not None else cfg.train.device
+    resolved = resolve_device(spec, where)
+    return replace(cfg, train=replace(cfg.train, device=str(resolved)))
+
+
+def _start(run: RunDir, record: dict, resume: bool) -> None:
+    """Check the folder, and that a resumed run was made with the same configuration; then
+    write config.json."""
+    run.check_new_or_resumable(resume)
+    if run.config.is_file() and not _same_config(run.read_config(), record):
+        raise ValueError(f"resume: {run.config} records another configuration; resume with "
+                         "the same --preset and --config")
+    run.write("config.json", record)
+
+
+def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[str], *,
+                preset: str = "fast", frames: str | None = None,
+                config_file: str | os.PathLike[str] | None = None, resume: bool = False,
+                gop: int | None = None, overrides: dict | None = None,
+                progress: bool = True, on_progress: Callable[[Progress], None] | None = None,
+                should_stop: Callable[[], bool] | None = None, device: str | None = None,
+                model_files: dict[str, Path] | None = None) -> dict:
+    """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
+    `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
+    run: finished frames are skipped, an unfinished one restarts from its checkpoint. The
+    configuration is the preset, then `config_file`, then `overrides` (same shape), then `gop`
+    (frames per group of pictures); `device` (auto, cpu, cuda, cuda:N) overrides train.device
+    and config.json records the device it resolved to.
+
+    `progress` shows a bar on a terminal; `on_progress` receives `Progress` events (every step,
+    checkpoint and frame); `should_stop` is asked after every step and, when it returns True,
+    the frame's checkpoint is written and `Stopped` raised (a service's cooperative cancel).
+    `model_files` maps a model the configuration names (`normal_estimator`: a service's asset
+    id or allow-listed name) to the file to load; config.json keeps the name."""
+    capture_dir, run = Path(capture_dir), RunDir(run_dir)
+    cfg = _resolve_run_device(load_config(preset, config_file, overrides, gop=gop,
+                                          where="config"), device)
+    named = cfg.normal_estimator
+    estimator = load_estimator((model_files or {}).get(named, named), cfg.normal_estimator_space)
+    capture = check_capture(capture_dir)
+    chosen = parse_frames(frames, capture.frames)
+    _start(run, _config_record(capture_dir, preset, chosen, cfg), resume)
+    metrics = run.read_metrics()
+    metrics.update({"version": 1, "preset": preset, "gop": cfg.gop,
+                    "note": SEQUENCE_NOTE if cfg.sequence.enabled else INDEPENDENT_NOTE})
+    records = metrics.setdefault("frames", {})
+    plan = GopPlan(chosen, cfg.gop, cfg.sequence, cfg.train.schedule.iterations)
+    job = FrameJob(capture, run, cfg, estimator, display_mode(progress))
+    for i, role in enumerate(plan.roles):
+        if role.frame in records and run.ply(role.frame).is_file():
+            continue
+        hooks = Hooks(role.frame, i, len(chosen), on_progress, should_stop)
+        label = f"frame {role.frame} ({i + 1}/{len(chosen)})"
+        records[role.frame] = fit_frame(job, role, plan.inputs(i, records), label,
+                                        hooks).to_json()
+        run.write("metrics.json", metrics)
+        run.write("sequence.json", plan.record(records))
+        hooks.emit("frame_done", path=str(run.frame_dir(role.frame)))
+        # The frame is finished (PLY and metrics on disk): its training state is not needed.
+        run.checkpoint(role.frame).unlink(missing_ok=True)
+    plot_run(run.root)
+    return metrics

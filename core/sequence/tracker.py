@@ -1,0 +1,324 @@
+"""`FrameTracker`: a frame after its group's key frame, fitted on the shared loop
+(`core.training.FrameFitter`) by deforming the previous frame's Gaussians and then refining
+them (docs/design.md section 5.9).
+
+Steps [0, D) are the deform stage: the graph's node rotations and translations only, from the
+start the race chose (`core.sequence.starts`); each step averages the losses of `deform_views`
+training views, blurred at first, and adds a silhouette term. Its end loss (the mean image loss
+of its last sixth of steps) is the frame's `deform_loss`, which sets the refine budget
+(`core.sequence.budget`). Steps [D, D + R) are the refine stage: every attribute, temporal L1 to
+the deformed values, anisotropy, densification and pruning that keep track ids. Both stages
+render with the key frame's last-step plan (full SH degree, final beta, geometry branch on).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict, replace
+
+import torch
+from torch import Tensor
+
+from core.ao import GaussianAOBaker
+from core.config import SequenceConfig, TrainConfig
+from core.device import to_device
+from core.losses import (
+    coverage_l1,
+    depth_normal_consistency,
+    normal_prior_loss,
+    photometric_loss,
+    visibility_loss,
+)
+from core.model import GaussianModel
+from core.sequence.budget import refine_steps
+from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
+from core.sequence.graph import build_graph
+from core.sequence.refine import (
+    TemporalWeights,
+    TrackedState,
+    anchors_of,
+    anisotropy_loss,
+    prune_transparent,
+    relabel,
+    temporal_loss,
+)
+from core.sequence.starts import StartRace, candidate_starts, race_starts, view_order
+from core.stages import StagePlan, plan
+from core.strategy import DensifyStrategy
+from core.training import Callback, FrameFitter, View
+
+__all__ = ["FrameTracker"]
+
+
+class FrameTracker(FrameFitter):
+    """Deform + refine one frame from `previous` (the last frame's model, its track ids (N,)
+    and the group's next unused id). `earlier` (positions (N, 3) and known (N,) of
+    `previous`'s Gaussians one frame before, `core.sequence.motion.align_tracks`) adds starts
+    that continue the motion, `earliest` (two frames before) second-order ones.
+    `reference_loss` is the previous frame's deform loss (None after a key frame, which then
+    compares with `refine_reference`); `refine_credit` the refine steps it may run beyond the
+    nominal (negative: a debt to pay back), `core.sequence.budget.refine_credit`."""
+
+    def __init__(self, views: Sequence[View], previous: GaussianModel, ids: Tensor,
+                 next_id: int, config: TrainConfig, sequence: SequenceConfig = SequenceConfig(),
+                 *, callbacks: Sequence[Callback] = (), ao_baker=None,
+                 reference_loss: float | None = None,
+                 earlier: tuple[Tensor, Tensor] | None = None, refine_credit: int = 0,
+                 refine_reference: float | None = None,
+                 earliest: tuple[Tensor, Tensor] | None = None):
+        if tuple(ids.shape) != (len(previous),):
+            raise ValueError(f"ids: expected ({len(previous)},) track ids, got {tuple(ids.shape)}")
+        super().__init__(views, config, callbacks=callbacks)
+        self.seq = sequence
+        previous, ids = previous.to(self.device), ids.long().to(self.device)
+        earlier, earliest = to_device((earlier, earliest), self.device)
+        self.previous, self.prev_ids, self.next_id = previous, ids, int(next_id)
+        self.deform_steps, self.nominal_refine = sequence.steps(config.schedule.iterations)
+        self.refine_steps = self.nominal_refine
+        """The nominal until the refine stage starts, then `_refine_budget()`."""
+        self.reference_loss, self.refine_reference = reference_loss, refine_reference
+        self.refine_credit = int(refine_credit)
+        # The key frame's last-step plan, the geometry branch on whatever the schedule.
+        self.plan = replace(plan(config.schedule.iterations - 1, config.schedule),
+                            geometry_branch=True, tie_opacity=False)
+        if ao_baker is None and sequence.bake_ao and config.bake_ao:
+            ao_baker = GaussianAOBaker(config.ao)
+        self.ao_baker = ao_baker if sequence.bake_ao and config.bake_ao else None
+        self.graph = build_graph(previous.means.detach(), sequence.nodes(len(previous)),
+                                 node_neighbors=sequence.node_neighbors)
+        self.starts, self.race = self._race_starts(earlier, earliest)
+        """The candidate starts' node parameters by name, and the race that ordered them
+        (scores, views and renders per start)."""
+        self.start: str = self.race.order[0]
+        """The start the deform stage began from ("rest", "damped a", "second-order c")."""
+        self.deform_losses: list[float] = []
+        """Image loss of each deform step."""
+        self.deform_loss: float | None = None
+        """End loss of the deform stage (the next frame's reference), once it is over."""
+        q, t = self.starts[self.start]
+        self.node_q, self.node_t = torch.nn.Parameter(q), torch.nn.Parameter(t)
+        self.optimizer = torch.optim.Adam(
+            [{"params": [self.node_q], "lr": sequence.lr_rotation, "name": "node_q"},
+             {"params": [self.node_t], "lr": sequence.lr_translation * self.extent,
+              "name": "node_t"}], lr=0.0)
+        self.model = previous
+        self.state: TrackedState | None = None
+        self.strategy: DensifyStrategy | None = None
+
+    # -- the start -----------------------------------------------------------------------------
+    def _race_starts(self, earlier, earliest) -> tuple[dict, StartRace]:
+        """The candidate starts (`core.sequence.starts.candidate_starts`) and the race that
+        ordered them (`SequenceConfig.start_views`, `start_race`)."""
+        s = self.seq
+        starts = candidate_starts(self.graph, self.previous.means.detach(), earlier, earliest,
+                                  s.motion_candidates, s.second_order)
+        posed: dict[str, DeformedGaussians] = {}
+
+        def loss(name: str, index: int) -> float:
+            if name not in posed:
+                posed[name] = DeformedGaussians(self.previous, self.graph, *starts[name])
+            return self._start_loss(posed[name], index)
+
+        centres = torch.stack([c.center for c in self.cameras])
+        race = race_starts(list(starts), loss, view_order(centres.cpu()), s.start_views,
+                           s.start_race)
+        return starts, race
+
+    @torch.no_grad()
+    def _start_loss(self, posed: DeformedGaussians, index: int) -> float:
+        """The image loss (photometric + silhouette) the first deform step would see on view
+        `index` from the posed start, at its blur."""
+        sigma = self.seq.coarse_sigma
+        r = self.render_view(posed, index, self.plan)
+        silhouette = self._silhouette(r, index, sigma)
+        return float(self._photometric(r, index, self.background, sigma)) + (
+            0.0 if silhouette is None else float(silhouette))
+
+    # -- losses --------------------------------------------------------------------------------
+    def _photometric(self, r, index: int, background: Tensor, sigma: float) -> Tensor:
+        return photometric_loss(blur(r.rgb, sigma), blur(self.target(index, background), sigma),
+                                self.config.losses)
+
+    def _silhouette(self, r, index: int, sigma: float) -> Tensor | None:
+        """`deform_mask` x mean |blur(alpha_c) - blur(mask)|; None without a mask (or weight)."""
+        mask = self.views[index].mask
+        if self.seq.deform_mask <= 0 or mask is None:
+            return None
+        return self.seq.deform_mask * coverage_l1(blur(r.alpha_c, sigma), blur(mask, sigma))
+
+    def _image_terms(self, r, index: int, background: Tensor, sigma: float = 0.0) -> dict:
+        w, view, cam = self.config.losses, self.views[index], self.cameras[index]
+        terms = {"photometric": self._photometric(r, index, background, sigma)}
+        if view.normal is not None:
+            terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
+        terms["consistency"] = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K,
+                                                        cam.viewmat, w)
+        return terms
+
+    # -- the stages ----------------------------------------------------------------------------
+    def _deform_terms(self, index: int, bg: Tensor) -> tuple[dict, object]:
+        s, k = self.seq, self.step
+        decay = 0.1 ** (k / self.deform_steps)  # exponential, to a tenth by the stage's end
+        for group, base in zip(self.optimizer.param_groups,
+                               (s.lr_rotation, s.lr_translation * self.extent)):
+            group["lr"] = base * decay
+        posed = DeformedGaussians(self.previous, self.graph, self.node_q, self.node_t)
+        sigma = blur_sigma(k, self.deform_steps, s.coarse_sigma)
+        views = [(index, bg)] + [(i, self.step_background(i)) for i in
+                                 (self.next_view() for _ in range(s.deform_views - 1))]
+        terms: dict[str, Tensor] = {}
+        first = None  # the step's own view (index), which StepInfo's PSNR compares
+        for i, b in views:
+            r = self.render_view(posed, i, self.plan, b)
+            if first is None:
+                first = r
+            view_terms = self._image_terms(r, i, b, sigma)
+            silhouette = self._silhouette(r, i, sigma)
+            if silhouette is not None:
+                view_terms["silhouette"] = silhouette
+            for name, value in view_terms.items():
+                terms[name] = terms.get(name, 0.0) + value / len(views)
+        self.deform_losses.append(float(terms["photometric"].detach())
+                                  + float(terms.get("silhouette", torch.zeros(())).detach()))
+        terms.update(deform_losses(self.graph, self.node_q, self.node_t, arap=s.arap,
+                                   quat_norm=s.quat_norm))
+        return terms, first
+
+    def _refine_terms(self, index: int, bg: Tensor) -> tuple[dict, object]:
+        s, view = self.seq, self.views[index]
+        r = self.render_view(self.model, index, self.plan, bg)
+        terms = self._image_terms(r, index, bg)
+        if self.ao_targets is not None:
+            terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index], view.mask,
+                                                  self.config.losses)
+        if s.temporal:
+            weights = TemporalWeights(s.temporal_opacity_g, s.temporal_means, s.temporal_quats,
+                                      s.temporal_normals)
+            terms.update(temporal_loss(self.model, self.state.anchor, weights))
+        if s.anisotropy > 0:
+            terms["anisotropy"] = anisotropy_loss(self.model.scales, s.anisotropy,
+                                                  s.anisotropy_ratio)
+        return terms, r
+
+    def _end_deform(self) -> None:
+        tail = self.deform_losses[-max(1, self.deform_steps // 6):]
+        self.deform_loss = sum(tail) / max(len(tail), 1)
+
+    def _start_refine(self, bake: bool = True) -> None:
+        """The deformed Gaussians become the model; anchors, ids, optimizer, strategy start."""
+        s, cfg = self.seq, self.config
+        self.refine_steps = refine_steps(s, self.nominal_refine, self.deform_loss,
+                                         self.reference_loss or self.refine_reference,
+                                         self.refine_credit, self.scoring_extra)
+        with torch.no_grad():
+            self.model = DeformedGaussians(self.previous, self.graph, self.node_q,
+                                           self.node_t).to_model()
+        self.optimizer = self.model.make_optimizer(cfg.rates, self.extent)
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = cfg.rates.means * self.extent * s.means_lr_scale
+        cap = int(len(self.model) * (1 + s.max_growth))
+        if cfg.densify.max_gaussians is not None:
+            cap = min(cap, max(cfg.densify.max_gaussians, len(self.model)))
+        self.strategy = DensifyStrategy(replace(cfg.densify, max_gaussians=cap), self.extent)
+        z = torch.zeros(len(self.model), device=self.device)
+        # resets=1: the key frame's resets are behind it, so too-big Gaussians are pruned.
+        self.state = TrackedState(z.clone(), z.clone(), z.clone(), z.clone(), z.clone(),
+                                  rho=cfg.densify.rho, resets=1, ids=self.prev_ids.clone(),
+                                  anchor=anchors_of(self.model), next_id=self.next_id)
+        if bake and self.ao_baker is not None:
+            self.ao_targets = to_device(list(self.ao_baker(self.model, self.cameras,
+                                                           self.optimizer, self.plan.beta)),
+                                        self.device)
+
+    # -- FrameFitter ---------------------------------------------------------------------------
+    @property
+    def iterations(self) -> int:
+        return self.deform_steps + self.refine_steps
+
+    @property
+    def phase(self) -> str:
+        """'deform' or 'refine': the stage of the next step."""
+        return "deform" if self.step < self.deform_steps else "refine"
+
+    def before_step(self) -> None:
+        if self.step == self.deform_steps and self.state is None:
+            if self.deform_loss is None:
+                self._end_deform()
+            self._start_refine()
+
+    def step_terms(self, index: int, background: Tensor) -> tuple[dict, object, StagePlan]:
+        deforming = self.step < self.deform_steps
+        terms, r = (self._deform_terms if deforming else self._refine_terms)(index, background)
+        return terms, r, self.plan
+
+    def after_step(self, r, index: int, p: StagePlan) -> None:
+        if self.state is None:
+            return
+        cam = self.cameras[index]
+        self.strategy.update(self.state, r.raster, cam.width, cam.height)
+        k = self.step - self.deform_steps + 1  # refine steps done
+        if k % max(1, self.refine_steps // 4) == 0 and k < self.refine_steps:
+            self.strategy.densify(self.model, self.optimizer, self.state, self.generator)
+            relabel(self.state, self.model)
+            prune_transparent(self.model, self.optimizer, self.state,
+                              self.config.densify.transparent)
+
+    def current(self) -> tuple[object, StagePlan]:
+        model = self.model if self.state is not None else DeformedGaussians(
+            self.previous, self.graph, self.node_q, self.node_t)
+        return model, self.plan
+
+    def state_blob(self) -> dict:
+        """Node parameters and the deform losses; in the refine stage the model, its tracked
+        state and AO targets too (the graph is rebuilt from the previous frame,
+        deterministically)."""
+        blob = {"node_q": self.node_q.detach(), "node_t": self.node_t.detach(),
+                "deform": {"losses": list(self.deform_losses), "loss": self.deform_loss}}
+        if self.state is not None:
+            blob.update(params={k: v.detach() for k, v in self.model.params.items()},
+                        state=asdict(self.state), ao_targets=self.ao_targets)
+        return blob
+
+    def load_state_blob(self, blob: dict) -> None:
+        with torch.no_grad():
+            self.node_q.copy_(blob["node_q"])
+            self.node_t.copy_(blob["node_t"])
+        self.deform_losses = [float(x) for x in blob["deform"]["losses"]]
+        self.deform_loss = blob["deform"]["loss"]
+        if "params" in blob:
+            self._start_refine(bake=False)  # the targets come from the checkpoint
+            self.model = GaussianModel(blob["params"]).to(self.device)
+            self.optimizer = self.model.make_optimizer(self.config.rates, self.extent)
+            self.state = TrackedState(**to_device(blob["state"], self.device))
+            self.ao_targets = to_device(blob.get("ao_targets"), self.device)
+
+    # -- what the run records ------------------------------------------------------------------
+    def _scoring_renders(self) -> int:
+        return (self.race.renders + 1) // 2
+
+    @property
+    def scoring_extra(self) -> int:
+        """Scoring renders (as `renders` counts them) the start race took beyond scoring every
+        start on `start_views` views; the refine stage pays them back, so a close race costs
+        the run no more renders."""
+        starts = len(self.race.views)
+        base = starts * min(self.seq.start_views, len(self.views)) if starts > 1 else 0
+        return max(0, self._scoring_renders() - (base + 1) // 2)
+
+    @property
+    def renders(self) -> int:
+        """Images rendered and back-propagated in all: the frame's cost in key-frame steps. The
+        start's scoring renders (forward only: about 40% of a training render's time) count
+        half each, rounded up."""
+        return (self.deform_steps * self.seq.deform_views + self.refine_steps
+                + self._scoring_renders())
+
+    @property
+    def ids(self) -> Tensor:
+        """(N,) track ids of the current model's Gaussians."""
+        return self.prev_ids if self.state is None else self.state.ids
+
+    @property
+    def group_next_id(self) -> int:
+        return self.next_id if self.state is None else self.state.next_id

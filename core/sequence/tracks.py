@@ -1,0 +1,69 @@
+"""Frames with track ids: a frame's PLY keeps each Gaussian's track id, so that a group's frames
+stay in correspondence; and the tracker of a frame, built from the finished frames it starts
+from (`core.sequence.plan.TrackedInputs`)."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from core.config import SequenceConfig, TrainConfig
+from core.files import atomic_path
+from core.model import GaussianModel
+from core.plyio import read_track_ids, write_gaussian_ply
+from core.rundir import RunDir
+from core.sequence.motion import align_tracks
+from core.sequence.plan import TrackedInputs
+from core.sequence.tracker import FrameTracker
+from core.training import frame_views
+
+__all__ = ["load_frame", "save_frame", "tracker_for"]
+
+
+def save_frame(path: str | os.PathLike[str], model: GaussianModel,
+               ids: torch.Tensor | np.ndarray | None = None) -> None:
+    """The frame's PLY with its track ids (0..N-1 for a key frame: `ids` None), atomically."""
+    if ids is None:
+        ids = np.arange(len(model))
+    ids = ids.cpu().numpy() if isinstance(ids, torch.Tensor) else np.asarray(ids)
+    with atomic_path(path) as tmp:
+        write_gaussian_ply(tmp, {k: v.detach().cpu() for k, v in model.params.items()}, ids)
+
+
+def load_frame(path: str | os.PathLike[str]) -> tuple[GaussianModel, torch.Tensor]:
+    """(model, track ids) of a frame PLY; a PLY without ids (a key frame written by another
+    tool) gets 0..N-1."""
+    model = GaussianModel.load_ply(path)
+    ids = read_track_ids(path)
+    return model, torch.from_numpy(np.arange(len(model)) if ids is None else ids).long()
+
+
+def tracker_for(capture, frame: str, run: RunDir, inputs: TrackedInputs, train: TrainConfig,
+                sequence: SequenceConfig, *, downscale: float = 1.0, callbacks=(),
+                ao_baker=None) -> FrameTracker:
+    """A `FrameTracker` on the training cameras of `frame`, starting from the finished frames
+    `inputs` names in `run`."""
+    previous = run.ply(inputs.previous)
+    if not previous.is_file():
+        raise ValueError(f"previous frame: {inputs.previous} is not finished; the frame "
+                         f"before {frame!r} in its group must be finished first")
+    model, track = load_frame(previous)
+    earlier = earliest = None
+    if inputs.earlier is not None and (sequence.motion_candidates or sequence.second_order):
+        earlier = _aligned(run.ply(inputs.earlier), track)
+        if inputs.earliest is not None and sequence.second_order:
+            earliest = _aligned(run.ply(inputs.earliest), track)
+    return FrameTracker(frame_views(capture, frame, downscale), model, track, inputs.next_id,
+                        train, sequence, callbacks=callbacks, ao_baker=ao_baker,
+                        reference_loss=inputs.reference_loss, earlier=earlier,
+                        refine_credit=inputs.refine_credit,
+                        refine_reference=inputs.refine_reference, earliest=earliest)
+
+
+def _aligned(ply: Path, track: torch.Tensor):
+    """`align_tracks` of the frame PLY `ply` to the track ids `track`."""
+    before, before_ids = load_frame(ply)
+    return align_tracks(track, before_ids, before.means.detach())

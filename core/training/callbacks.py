@@ -1,0 +1,93 @@
+"""What runs around the step loop (in the manner of nerfstudio's engine/callbacks.py): the
+record of a step, the callback hooks, a progress printer and the checkpoint writer."""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, TextIO
+
+from core.stages import StagePlan
+
+if TYPE_CHECKING:
+    from core.training.loop import FrameFitter
+
+__all__ = ["Callback", "CheckpointCallback", "ProgressCallback", "StepInfo"]
+
+
+@dataclass
+class StepInfo:
+    """What a callback sees after each step."""
+
+    step: int
+    plan: StagePlan
+    losses: dict[str, float]
+    n_gaussians: int
+    seconds: float
+    psnr: float | None = None
+    """PSNR (dB) of this step's training render against its target, both on the configured
+    background (comparable between steps whatever the step's random background)."""
+
+
+class Callback:
+    """Hooks around a fitter's step loop; override what you need."""
+
+    def on_train_start(self, trainer: FrameFitter) -> None: ...
+
+    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None: ...
+
+    def on_train_end(self, trainer: FrameFitter) -> None: ...
+
+
+class ProgressCallback(Callback):
+    """Prints (or hands to `report`) a line every `every` steps."""
+
+    def __init__(self, every: int = 100, stream: TextIO | None = None,
+                 report: Callable[[StepInfo], None] | None = None):
+        if every < 1:
+            raise ValueError(f"every: expected >= 1, got {every}")
+        self.every, self.stream, self.report = every, stream, report
+
+    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
+        last = info.step == trainer.iterations - 1
+        if info.step % self.every and not last:
+            return
+        if self.report is not None:
+            self.report(info)
+            return
+        print(f"step {info.step + 1}/{trainer.iterations} stage {info.plan.stage} "
+              f"loss {info.losses['total']:.4f} gaussians {info.n_gaussians} "
+              f"{info.seconds:.1f}s", file=self.stream or sys.stdout)
+
+
+class CheckpointCallback(Callback):
+    """Writes `folder/<filename>` (atomically) every `every` steps and at the end; `extra`
+    (a callable returning plain data) is stored beside the training state; `on_saved(path)` runs
+    once the file is complete on disk (a service copies it off the machine there, so that a
+    crashed worker's successor can resume from it)."""
+
+    def __init__(self, folder: str | os.PathLike[str], every: int = 1000,
+                 filename: str = "checkpoint.pt", extra: Callable[[], object] | None = None,
+                 on_saved: Callable[[Path], None] | None = None):
+        if every < 1:
+            raise ValueError(f"every: expected >= 1, got {every}")
+        self.folder, self.every, self.filename, self.extra = Path(folder), every, filename, extra
+        self.on_saved = on_saved
+
+    def save(self, trainer: FrameFitter) -> Path:
+        """Write the checkpoint now; returns its path."""
+        path = self.folder / self.filename
+        trainer.save_checkpoint(path, extra=None if self.extra is None else self.extra())
+        if self.on_saved is not None:
+            self.on_saved(path)
+        return path
+
+    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
+        if (info.step + 1) % self.every == 0:
+            self.save(trainer)
+
+    def on_train_end(self, trainer: FrameFitter) -> None:
+        self.save(trainer)

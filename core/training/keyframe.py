@@ -1,0 +1,143 @@
+"""`Trainer`: a key frame reconstructed from scratch with the staged schedule (docs/design.md
+section 5.2): random initial points, then per step the stage's losses, densification and
+opacity resets; the geometry branch starts at stage 2 and ambient occlusion is baked at
+stage 3's first step by a hook (`AOBaker`, by default `core.ao.GaussianAOBaker` on the native
+ray tracer; with `bake_ao` off the visibility loss stays off and a note says so)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import asdict
+from typing import Protocol
+
+import torch
+from torch import Tensor
+
+from core.ao import GaussianAOBaker
+from core.config import TrainConfig
+from core.device import to_device
+from core.losses import (
+    depth_normal_consistency,
+    geometry_mask_loss,
+    normal_prior_loss,
+    photometric_loss,
+    visibility_loss,
+)
+from core.model import GaussianModel, means_lr
+from core.render import RenderCamera, seen_directions
+from core.seeding import sample_points
+from core.stages import StagePlan, plan
+from core.strategy import DensifyStrategy, StrategyState
+from core.training.callbacks import Callback
+from core.training.loop import FrameFitter
+from core.training.views import View, frame_views
+
+__all__ = ["AOBaker", "Trainer"]
+
+
+class AOBaker(Protocol):
+    """Bakes visibility: per-Gaussian values written into the model (through the optimizer, so
+    Adam's moments follow), per-view target maps (H, W, 1) returned."""
+
+    def __call__(self, model: GaussianModel, cameras: Sequence[RenderCamera],
+                 optimizer: torch.optim.Optimizer, beta: float) -> list[Tensor]: ...
+
+
+class Trainer(FrameFitter):
+    """Reconstructs one key frame from its training views (module docstring)."""
+
+    def __init__(self, views: Sequence[View], config: TrainConfig = TrainConfig(), *,
+                 model: GaussianModel | None = None, callbacks: Sequence[Callback] = (),
+                 ao_baker: AOBaker | None = None):
+        super().__init__(views, config, callbacks=callbacks)
+        if ao_baker is None and config.bake_ao:
+            ao_baker = GaussianAOBaker(config.ao)
+        self.ao_baker = ao_baker if config.bake_ao else None
+        self.model = model.to(self.device) if model is not None else self._initial_model()
+        self.optimizer = self.model.make_optimizer(config.rates, self.extent)
+        self.strategy = DensifyStrategy(config.densify, self.extent)
+        self.state = self.strategy.initialize_state(len(self.model), device=self.device)
+
+    @classmethod
+    def from_capture(cls, capture, frame: str, config: TrainConfig = TrainConfig(), *,
+                     downscale: float = 1.0, **kwargs) -> Trainer:
+        """A trainer on the training cameras of one frame of a `core.data.Capture`; `kwargs`
+        go to the constructor (model, callbacks, ao_baker)."""
+        return cls(frame_views(capture, frame, downscale), config, **kwargs)
+
+    def _initial_model(self) -> GaussianModel:
+        pts, cols = sample_points(
+            [v.camera for v in self.views], self.config.init_points,
+            images=[v.image.cpu().numpy() for v in self.views],
+            masks=[None if v.mask is None else v.mask.cpu().numpy() for v in self.views],
+            seed=self.config.seed)
+        return GaussianModel.from_points(pts.to(self.device), cols.to(self.device))
+
+    @property
+    def iterations(self) -> int:
+        return self.config.schedule.iterations
+
+    @property
+    def renders(self) -> int:
+        """Images rendered and back-propagated: one a step."""
+        return self.iterations
+
+    def current(self) -> tuple[GaussianModel, StagePlan]:
+        return self.model, plan(min(self.step, self.iterations - 1), self.config.schedule)
+
+    def before_step(self) -> None:
+        p = plan(self.step, self.config.schedule)
+        if p.start_geometry:
+            centers = torch.stack([c.center for c in self.cameras])
+            seen = seen_directions(self.model, self.cameras, eps2d=self.config.eps2d,
+                                   antialiased=self.config.antialiased)
+            self.model.init_geometry(centers, self.optimizer, seen)
+        if p.bake_ao:
+            if self.ao_baker is None:
+                self.notes.append(f"step {p.step}: AO baking skipped (bake_ao is off); "
+                                  "visibility loss off")
+            else:
+                targets = self.ao_baker(self.model, self.cameras, self.optimizer, p.beta)
+                self.ao_targets = to_device(list(targets), self.device)  # a baker's own device
+        lr = means_lr(self.config.rates, self.extent, p.step)
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = lr
+
+    def step_terms(self, index: int, background: Tensor) -> tuple[dict, object, StagePlan]:
+        p = plan(self.step, self.config.schedule)
+        r = self.render_view(self.model, index, p, background)
+        w, view, cam = self.config.losses, self.views[index], self.cameras[index]
+        terms = {"photometric": photometric_loss(r.rgb, self.target(index, background), w)}
+        if p.normal_prior and view.normal is not None:
+            terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
+        if p.geometry_branch and not p.tie_opacity and view.mask is not None \
+                and w.geometry_mask > 0:
+            terms["mask"] = geometry_mask_loss(r.alpha_g, view.mask, w)
+        if p.consistency:
+            terms["consistency"] = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K,
+                                                            cam.viewmat, w)
+        if p.visibility and self.ao_targets is not None:
+            terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index],
+                                                  view.mask, w)
+        return terms, r, p
+
+    def after_step(self, r, index: int, p: StagePlan) -> None:
+        cam = self.cameras[index]
+        self.strategy.update(self.state, r.raster, cam.width, cam.height)
+        if p.densify:
+            self.strategy.densify(self.model, self.optimizer, self.state, self.generator)
+        if p.reset_opacity:
+            self.strategy.prune_and_reset(self.model, self.optimizer, self.state, p.tie_opacity)
+
+    def state_blob(self) -> dict:
+        """Parameters, densification statistics and the baked AO targets (so a resumed
+        stage 3 keeps its visibility loss)."""
+        return {"params": {k: v.detach() for k, v in self.model.params.items()},
+                "strategy": asdict(self.state), "ao_targets": self.ao_targets}
+
+    def load_state_blob(self, blob: dict) -> None:
+        self.model = GaussianModel(blob["params"]).to(self.device)
+        self.optimizer = self.model.make_optimizer(self.config.rates, self.extent)
+        self.state = StrategyState(**to_device(blob["strategy"], self.device))
+        self.ao_targets = to_device(blob.get("ao_targets"), self.device)
