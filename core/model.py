@@ -20,6 +20,7 @@ from torch import Tensor
 
 from core.config import LearningRates
 from core.plyio import read_gaussian_ply, write_gaussian_ply
+from native.reference import quat_to_rotmat
 
 __all__ = [
     "PARAM_NAMES",
@@ -240,8 +241,6 @@ class GaussianModel:
     # -- geometry branch -------------------------------------------------------------------
     def shortest_axes(self) -> Tensor:
         """(N, 3) unit world direction of each Gaussian's smallest scale axis."""
-        from native.reference import quat_to_rotmat
-
         with torch.no_grad():
             R = quat_to_rotmat(self.params["quats"])
             axis = self.params["scales"].argmin(dim=1)

@@ -9,6 +9,9 @@ import json
 import os
 from pathlib import Path
 
+import matplotlib
+import matplotlib.pyplot as plt
+
 __all__ = ["PLOTS", "plot_run"]
 
 # file name -> (record key, y label, log scale)
@@ -32,10 +35,7 @@ def _smooth(values: list[float], width: int) -> list[float]:
 
 def plot_run(run_dir: str | os.PathLike[str]) -> list[Path]:
     """Draw the plots from RUN/metrics.json's per-frame histories; returns the files written."""
-    import matplotlib
-
     matplotlib.use("Agg", force=True)
-    import matplotlib.pyplot as plt
 
     run = Path(run_dir)
     metrics_path = run / "metrics.json"

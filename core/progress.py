@@ -9,6 +9,8 @@ import sys
 import time
 from typing import TextIO
 
+from tqdm import tqdm
+
 from core.training import Callback, StepInfo
 
 __all__ = ["LogLines", "TerminalBar", "format_seconds"]
@@ -31,8 +33,6 @@ class TerminalBar(Callback):
         self.label, self.bar = label, None
 
     def on_train_start(self, trainer) -> None:
-        from tqdm import tqdm
-
         self.bar = tqdm(total=trainer.iterations, initial=trainer.step,
                         desc=self.label, unit="it", dynamic_ncols=True, leave=True)
 

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import ast
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -175,3 +177,17 @@ def test_nothing_but_benchmarks_refers_to_the_shared_folder(folder):
     hits = [_rel(p) for p in files if p != Path(__file__) and _rel(p) != "docs/benchmarks.md"
             and pattern.search(p.read_text())]
     assert not hits, f"refer to docs/design.md (or benchmarks' optional data) instead: {hits}"
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["serve", "--help"], ["keys", "list"],
+                                  ["worker", "--help"]])
+def test_the_command_line_loads_torch_only_for_a_command_that_needs_it(argv):
+    code = (f"import sys, core.cli; core.cli.build_parser({argv!r}); "
+            "print('torch' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.stdout.strip() == "False", out.stderr
+    code = "import sys, core.cli; core.cli.build_parser(['mesh']); print('torch' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
+                         text=True, timeout=120)
+    assert out.stdout.strip() == "True", out.stderr  # the check can see torch

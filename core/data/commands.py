@@ -5,11 +5,17 @@ from __future__ import annotations
 import argparse
 import sys
 
+from core.cli import command_help
+from core.data.capture import CaptureError
+from core.data.importers import import_capture
+from core.data.schema import load_capture
+from core.data.validate import validate_capture
+
 __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("capture", help="import and validate captures")
+    p = sub.add_parser("capture", help=command_help("capture"))
     csub = p.add_subparsers(dest="capture_command", metavar="SUBCOMMAND")
     csub.required = True
 
@@ -35,9 +41,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _import(args: argparse.Namespace) -> int:
-    from core.data.capture import CaptureError
-    from core.data.importers import import_capture
-
     try:
         capture = import_capture(args.src, args.out, args.format, link=args.link)
     except CaptureError as exc:
@@ -51,14 +54,10 @@ def _import(args: argparse.Namespace) -> int:
 
 
 def _validate(args: argparse.Namespace) -> int:
-    from core.data.validate import validate_capture
-
     problems = validate_capture(args.capture)
     if problems:
         _print_problems(f"{args.capture} is not a valid capture", problems)
         return 1
-    from core.data.schema import load_capture
-
     capture = load_capture(args.capture)
     print(f"{args.capture}: valid ({len(capture.cameras)} cameras x {len(capture.frames)} frames)")
     return 0

@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import argparse
 
-from core.demo.raster import run_raster_demo
-from core.demo.run import run_demo
+from core.cli import command_help
+from core.demo import run_demo, run_raster_demo
 
 __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("demo", help="run the main job on a small built-in capture")
+    p = sub.add_parser("demo", help=command_help("demo"))
     p.add_argument("--out", default="demo", help="demo folder (default ./demo)")
     p.add_argument("--raster", action="store_true",
                    help="only the rasterizer demo (ground-truth splats, no training)")

@@ -4,10 +4,16 @@ included) -> evaluate (held-out views, relit views, meshes, the contact sheet)."
 
 from __future__ import annotations
 
+import json
 import shutil
 import time
 from dataclasses import asdict
 from pathlib import Path
+
+from core.data import check_capture
+from core.evaluation import evaluate_run
+from core.pipeline import reconstruct
+from core.synth import SynthConfig, synthesize
 
 __all__ = ["DEMO_OVERRIDES", "DEMO_SYNTH", "demo_capture", "report", "run_demo"]
 
@@ -26,8 +32,6 @@ DEMO_SYNTH = {"frames": 1, "views": 16, "width": 128, "height": 128, "seed": 0, 
 
 def _synth_config(capture_dir: Path) -> dict | None:
     """The `dgs synth` configuration recorded in a capture (None if another source)."""
-    import json
-
     record = json.loads((capture_dir / "capture.json").read_text()).get("synth") or {}
     return record.get("config")
 
@@ -35,9 +39,6 @@ def _synth_config(capture_dir: Path) -> dict | None:
 def demo_capture(capture_dir: Path, synth: dict | None = None, step: str = "[1/4]"):
     """The demo's synthetic capture in `capture_dir` (`synth`: SynthConfig fields, default
     DEMO_SYNTH), made unless an earlier demo made the same one; returns it checked."""
-    from core.data import check_capture
-    from core.synth import SynthConfig, synthesize
-
     t0 = time.perf_counter()
     config = SynthConfig(**(synth or DEMO_SYNTH))
     if (capture_dir / "capture.json").exists() and _synth_config(capture_dir) != asdict(config):
@@ -83,9 +84,6 @@ def report(capture, capture_dir: Path, run_dir: Path, metrics: dict, result: dic
 
 
 def run_demo(out: str = "demo") -> int:
-    from core.evaluation import evaluate_run
-    from core.pipeline import reconstruct
-
     root = Path(out)
     capture_dir, run_dir = root / "capture", root / "run"
     t0 = time.perf_counter()

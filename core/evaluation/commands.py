@@ -5,14 +5,14 @@ from __future__ import annotations
 
 import argparse
 
-from core.cli import fail
+from core.cli import command_help, fail
 from core.evaluation.run import evaluate_run
 
 __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    e = sub.add_parser("eval", help="score a run's held-out views; writes RUN/eval.json")
+    e = sub.add_parser("eval", help=command_help("eval"))
     e.add_argument("run", help="run directory")
     e.add_argument("--capture", default=None, help="capture folder (default: the run's own)")
     e.add_argument("--device", default="auto", metavar="DEVICE",

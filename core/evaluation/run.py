@@ -20,17 +20,25 @@ import json
 import os
 from pathlib import Path
 
+import cv2
 import numpy as np
+import trimesh
+from PIL import Image
 
+from core.color import linear_to_srgb
+from core.data import CaptureDataset, load_capture
+from core.device import resolve_device
 from core.files import write_json
+from core.mesh import mesh_distance
 from core.metrics import normal_agreement, rgb_scores
+from core.relight.metrics import relight_ground_truth, relit_heldout
+from core.relight.sheet import contact_sheet
+from core.sequence.metrics import temporal_metrics
 
 __all__ = ["evaluate_run"]
 
 
 def _read_png(path: Path) -> np.ndarray:
-    from PIL import Image
-
     if not path.is_file():
         raise ValueError(f"run_dir: {path} not found (the run has no render for this view)")
     return np.asarray(Image.open(path)).astype(np.float32) / 255.0
@@ -39,8 +47,6 @@ def _read_png(path: Path) -> np.ndarray:
 def _reduce_normals(normal: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
     """Unit normals (H, W, 3) area-averaged to `shape`; pixels less than half on the surface
     (or whose normals cancel) become 0, as background is in the ground truth."""
-    import cv2
-
     h, w = shape
     mean = cv2.resize(normal.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA)
     cover = cv2.resize((np.linalg.norm(normal, axis=-1) > 0.5).astype(np.float32), (w, h),
@@ -55,8 +61,6 @@ def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np
     image = sample.image.numpy()
     mask = None if sample.mask is None else sample.mask.numpy()
     if linear:
-        from core.color import linear_to_srgb  # renders are sRGB; compare like with like
-
         image = linear_to_srgb(image).astype(np.float32)
     target = image if mask is None else image * mask + background * (1 - mask)
     fg = np.ones(target.shape[:2], bool) if mask is None else mask[..., 0] > 0.5
@@ -92,9 +96,6 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     """Score the held-out renders of every finished frame of `run_dir`; writes RUN/eval.json and
     returns its content. `capture_dir` defaults to the capture recorded in RUN/config.json;
     `device` (auto, cpu, cuda, cuda:N) is where the relit views are rendered."""
-    from core.data import CaptureDataset, load_capture
-    from core.device import resolve_device
-
     torch_device = resolve_device(device)
     run = Path(run_dir)
     if not (run / "config.json").is_file():
@@ -134,7 +135,6 @@ def evaluate_run(run_dir: str | os.PathLike[str],
               "views": len(rows), "per_frame": per_frame}
     result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame,
                                       torch_device))
-    from core.sequence.metrics import temporal_metrics  # flicker, per-frame series (sequences)
 
     result["temporal"] = temporal_metrics(run, capture_dir, frames, held, per_frame)
     result["flicker"] = result["temporal"]["flicker"]
@@ -151,9 +151,6 @@ def _mesh_scores(run: Path, capture_dir: Path, frame: str) -> dict | None:
     pred, ref = run / "meshes" / f"{frame}.ply", capture_dir / "gt" / "meshes" / f"{frame}.ply"
     if not (pred.is_file() and ref.is_file()):
         return None
-    import trimesh
-
-    from core.mesh import mesh_distance
 
     return mesh_distance(trimesh.load(pred, force="mesh"), trimesh.load(ref, force="mesh"))
 
@@ -163,9 +160,6 @@ def _relight_and_meshes(run: Path, capture_dir: Path, frames: list[str], held: l
     """Relit held-out views against the second light's ground truth, meshes against the
     ground-truth meshes (added to each `per_frame` entry), and RUN/contact_sheet.png (the first
     and last frames' held-out views)."""
-    from core.relight.metrics import relight_ground_truth, relit_heldout
-    from core.relight.sheet import contact_sheet
-
     relit_rows, meshes, pictures = [], [], {}
     shown = list(dict.fromkeys([frames[0], frames[-1]]))
     for entry in per_frame:

@@ -21,10 +21,15 @@ import time
 
 import numpy as np
 import torch
+from scipy.spatial import cKDTree
 
+from core.color import linear_to_srgb
 from core.config import MeshConfig
+from core.mesh.surface import clean_mesh, extract_surface
 from core.mesh.tsdf import TSDFVolume
+from core.model import SH_C0, GaussianModel
 from core.render import RenderCamera, render, safe_divide
+from core.seeding import _common_radius, look_at_center
 
 __all__ = ["appearance_model", "mesh_model", "scene_box"]
 
@@ -32,8 +37,6 @@ __all__ = ["appearance_model", "mesh_model", "scene_box"]
 def appearance_model(model, beta: float):
     """A copy of `model` whose two opacities both equal the appearance opacity the final render
     uses at `beta` (render it at beta 0)."""
-    from core.model import GaussianModel
-
     with torch.no_grad():
         o = 0.5 * ((1 + beta) * model.opacity_c + (1 - beta) * model.opacity_g)
         logit = torch.logit(o.clamp(1e-6, 1 - 1e-6))
@@ -45,8 +48,6 @@ def appearance_model(model, beta: float):
 def scene_box(model, cameras, mode: str = "gaussians") -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi) of the scene, unpadded (see MeshConfig.box)."""
     if mode == "cameras":
-        from core.seeding import _common_radius, look_at_center
-
         c = look_at_center(cameras)
         r = _common_radius(cameras, c)
         return c - r, c + r
@@ -107,18 +108,12 @@ def vertex_colors(mesh, model, cameras, settings, *, voxel: float, alpha_thresho
     colors = acc / np.maximum(wsum, 1e-12)[:, None]
     unseen = wsum <= 1e-6
     if unseen.any():
-        from scipy.spatial import cKDTree
-
-        from core.model import SH_C0
-
         keep = model.opacity_c > 0.5
         means = (model.means[keep] if int(keep.sum()) else model.means).double().cpu().numpy()
         base = ((model.params["sh0"][:, 0] * SH_C0 + 0.5).clamp(0, 1)[keep] if int(keep.sum())
                 else (model.params["sh0"][:, 0] * SH_C0 + 0.5).clamp(0, 1)).cpu().numpy()
         colors[unseen] = base[cKDTree(means).query(verts[unseen])[1]]
     if linear_capture:
-        from core.color import linear_to_srgb
-
         colors = linear_to_srgb(colors)
     rgba = np.concatenate([colors, np.ones((len(verts), 1))], axis=1)
     return (np.clip(rgba, 0, 1) * 255 + 0.5).astype(np.uint8)
@@ -128,8 +123,6 @@ def mesh_model(model, cameras, settings, config: MeshConfig = MeshConfig(), *,
                linear_capture: bool = False):
     """(trimesh.Trimesh in the model's world coordinates, info dict) of one frame's model seen
     by the training `cameras` (core.data.Camera at the run's resolution)."""
-    from core.mesh.surface import clean_mesh, extract_surface
-
     if not cameras:
         raise ValueError("cameras: expected at least one training camera")
     device = config.device or ("cuda" if torch.cuda.is_available() else "cpu")

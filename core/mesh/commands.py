@@ -7,13 +7,17 @@ import argparse
 import sys
 import time
 
-from core.cli import fail
+from tqdm import tqdm
+
+from core.cli import command_help, fail
+from core.config import MeshConfig, validate
+from core.mesh import mesh_run
 
 __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    m = sub.add_parser("mesh", help="meshes of a run's frames (TSDF of the geometry branch)")
+    m = sub.add_parser("mesh", help=command_help("mesh"))
     m.add_argument("run", help="run directory (of dgs reconstruct)")
     m.add_argument("--out", default=None, help="output folder (default RUN/meshes)")
     m.add_argument("--frames", default=None, metavar="A:B",
@@ -35,9 +39,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _mesh(args: argparse.Namespace) -> int:
-    from core.config import MeshConfig, validate
-    from core.mesh import mesh_run
-
     try:
         config = validate(MeshConfig, {
             "resolution": args.resolution, "depth": args.depth, "colors": not args.no_colors,
@@ -51,8 +52,6 @@ def _mesh(args: argparse.Namespace) -> int:
     def on_start(frames: list[str]) -> None:
         nonlocal bar
         if show:
-            from tqdm import tqdm
-
             bar = tqdm(total=len(frames), desc="mesh", unit="frame", dynamic_ncols=True)
 
     def on_frame(frame: str, info: dict) -> None:

@@ -8,13 +8,13 @@ by area.
 from __future__ import annotations
 
 import numpy as np
+import trimesh
+from scipy.spatial import cKDTree
 
 __all__ = ["mesh_distance"]
 
 
 def _sample(mesh, count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    import trimesh
-
     pts, face = trimesh.sample.sample_surface(mesh, count, seed=seed)
     return np.asarray(pts), np.asarray(mesh.face_normals)[face]
 
@@ -23,8 +23,6 @@ def mesh_distance(pred, reference, *, samples: int = 100_000, seed: int = 0) -> 
     """{"chamfer", "chamfer_pred_to_ref", "chamfer_ref_to_pred", "chamfer_relative",
     "normal_consistency", "reference_diagonal"} of trimesh meshes `pred` and `reference`
     (same coordinates); chamfer_relative divides by the reference's bounding-box diagonal."""
-    from scipy.spatial import cKDTree
-
     for name, m in (("pred", pred), ("reference", reference)):
         if len(m.faces) == 0 or not float(m.area) > 0:
             raise ValueError(f"{name}: expected a mesh with faces of non-zero area")

@@ -20,7 +20,14 @@ from typing import Literal
 
 import numpy as np
 
-from core.config import MeshConfig
+from core.config import MeshConfig, parse_frames
+from core.data import load_capture
+from core.files import write_json
+from core.mesh.build import mesh_model
+from core.mesh.surface import export_mesh, transform_mesh
+from core.model import GaussianModel
+from core.relight.gbuffer import run_render
+from core.training import training_cameras
 
 __all__ = ["mesh_run", "source_from_world", "training_views"]
 
@@ -41,15 +48,11 @@ def source_from_world(capture) -> np.ndarray | None:
 
 def training_views(capture, downscale: float) -> list:
     """The training cameras (index % 8 != 0) at the run's resolution."""
-    from core.training import training_cameras
-
     return [c.scaled(max(1, round(c.width / downscale)), max(1, round(c.height / downscale)))
             for c in training_cameras(capture.cameras)]
 
 
 def _chosen(frames, finished: list[str]) -> list[str]:
-    from core.config import parse_frames
-
     if frames is None or isinstance(frames, str):
         return parse_frames(frames, finished)
     missing = [f for f in frames if f not in finished]
@@ -73,13 +76,6 @@ def mesh_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str] | 
     `dgs reconstruct` does: a frame with no surface yet must not fail the run).
     `on_start(frames)` is called once the inputs are checked, `on_frame(frame, info)` after each
     frame."""
-    from core.data import load_capture
-    from core.mesh.build import mesh_model
-    from core.mesh.surface import export_mesh, transform_mesh
-    from core.model import GaussianModel
-    from core.files import write_json
-    from core.relight.gbuffer import run_render
-
     if errors not in ("raise", "record"):
         raise ValueError(f"errors: expected 'raise' or 'record', got {errors!r}")
     run = Path(run_dir)

@@ -7,6 +7,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import trimesh
+from skimage.measure import marching_cubes
 
 from core.config import MESH_FORMATS
 from core.files import atomic_path
@@ -20,9 +22,6 @@ FORMATS = MESH_FORMATS
 def extract_surface(values: np.ndarray, lo: np.ndarray, voxel: float):
     """The zero level set of `values` (X, Y, Z) (negative inside) as a trimesh.Trimesh in world
     coordinates, closed: the grid is padded with one layer of +1 (outside) first."""
-    import trimesh
-    from skimage.measure import marching_cubes
-
     padded = np.pad(values.astype(np.float32), 1, mode="constant", constant_values=1.0)
     if padded.min() >= 0 or padded.max() <= 0:
         raise ValueError("tsdf: no surface in the volume (every voxel is on one side); check "
@@ -39,8 +38,6 @@ def clean_mesh(mesh, min_component: float = 0.05):
     """Drop degenerate and duplicate faces and unreferenced vertices, then every connected
     component with fewer than `min_component` x the faces of the largest (1.0 keeps only the
     largest)."""
-    import trimesh
-
     if not 0 < min_component <= 1:
         raise ValueError(f"min_component: expected a fraction in (0, 1], got {min_component}")
     mesh = mesh.copy()

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from core.cli import fail
+from core.cli import command_help, fail
 from core.config import PRESETS
 from core.pipeline.run import reconstruct
 
@@ -14,7 +14,7 @@ __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("reconstruct", help="reconstruct a capture into a run directory")
+    p = sub.add_parser("reconstruct", help=command_help("reconstruct"))
     p.add_argument("capture", help="capture folder (see `dgs capture validate`)")
     p.add_argument("--out", required=True, help="run directory (new or empty, or with --resume)")
     p.add_argument("--preset", default="fast", help="paper | fast | test (default fast)")

@@ -43,6 +43,7 @@ _LAZY = {"RelightParams", "RelightProgress", "RelightStopped", "relight_run"}
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
+        # lazy: the API process reads environment maps with this package and loads no torch
         from core.relight import run
 
         return getattr(run, name)

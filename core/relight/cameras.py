@@ -20,6 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from core.data.capture import Camera
+from core.relight.envmap import up_frame
+from core.synth.generate import look_at
 
 __all__ = ["load_camera_path", "orbit_cameras", "select_cameras"]
 
@@ -47,8 +49,6 @@ def select_cameras(cameras: Sequence[Camera], spec: str) -> list[Camera]:
 
 
 def _look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
-    from core.synth.generate import look_at
-
     return look_at(eye, target, up)
 
 
@@ -60,7 +60,6 @@ def orbit_cameras(cameras: Sequence[Camera], center: np.ndarray, up, n: int) -> 
         raise ValueError(f"orbit: expected a number of views >= 1, got {n!r}")
     if not cameras:
         raise ValueError("orbit: the capture has no camera to take the distance and lens from")
-    from core.relight.envmap import up_frame
 
     e1, e2, u = up_frame(up)
     offsets = np.stack([c.center for c in cameras]) - center

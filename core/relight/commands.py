@@ -7,13 +7,16 @@ import argparse
 import sys
 import time
 
-from core.cli import fail
+from tqdm import tqdm
+
+from core.cli import command_help, fail
+from core.relight import parse_light, relight_run
 
 __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("relight", help="relit renders of a run under an environment map")
+    p = sub.add_parser("relight", help=command_help("relight"))
     p.add_argument("run", help="run directory (of dgs reconstruct)")
     p.add_argument("--envmap", default=None, metavar="FILE",
                    help="equirectangular environment map, .exr or .hdr (width = 2 x height), "
@@ -50,8 +53,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _relight(args: argparse.Namespace) -> int:
-    from core.relight import parse_light, relight_run
-
     try:
         lights = [parse_light(s) for s in args.light]
     except ValueError as exc:
@@ -63,8 +64,6 @@ def _relight(args: argparse.Namespace) -> int:
         if args.no_progress or not sys.stderr.isatty():
             return
         if event.kind == "start":
-            from tqdm import tqdm
-
             bar = tqdm(total=event.total, desc="relight", unit="view", dynamic_ncols=True)
         elif event.kind == "view" and bar is not None:
             bar.set_postfix(frame=event.frame, refresh=False)

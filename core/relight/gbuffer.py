@@ -19,7 +19,9 @@ import torch
 from torch import Tensor
 
 from core.color import srgb_to_linear
+from core.config import Schedule
 from core.render import RenderCamera, render, safe_divide
+from core.stages import plan
 
 __all__ = ["GBuffer", "RunRender", "gbuffer", "pixel_points", "run_render"]
 
@@ -49,9 +51,6 @@ class RunRender:
 
 def run_render(run_dir, capture_dir=None) -> RunRender:
     """Read RUN/config.json; ValueError when `run_dir` is not a run directory."""
-    from core.config import Schedule
-    from core.stages import plan
-
     path = Path(run_dir) / "config.json"
     if not path.is_file():
         raise ValueError(f"run_dir: {Path(run_dir)} is not a run directory (no config.json)")

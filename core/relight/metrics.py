@@ -15,7 +15,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
+
+from core.data import CaptureDataset
+from core.data.images import read_image, write_png
+from core.metrics import rgb_scores
+from core.model import GaussianModel
+from core.relight.envmap import load_envmap
+from core.relight.output import to_uint8
+from core.relight.run import RelightParams, compose, prepare, view_gbuffer
 
 __all__ = ["SHEET_MAPS", "relight_ground_truth", "relit_heldout"]
 
@@ -39,8 +48,6 @@ def relight_ground_truth(capture_dir: Path) -> dict | None:
 
 def _reduce_straight(image: np.ndarray, coverage: np.ndarray, shape) -> np.ndarray:
     """Straight colour (H, W, 3) with its coverage (H, W) area-averaged to `shape` (h, w)."""
-    import cv2
-
     h, w = shape
     if image.shape[:2] == (h, w):
         return image
@@ -52,8 +59,6 @@ def _reduce_straight(image: np.ndarray, coverage: np.ndarray, shape) -> np.ndarr
 
 def _target(gt_png: Path, capture, frame: str, cam: str, sample, background) -> np.ndarray:
     """The ground-truth relit view at the run's resolution, composited like the capture."""
-    from core.data.images import read_image
-
     image = read_image(gt_png)[..., :3]
     mask_path = capture.mask_path(frame, cam)
     full_mask = read_image(mask_path)[..., 0] if mask_path is not None else np.ones(
@@ -76,14 +81,6 @@ def relit_heldout(run: Path, capture_dir: Path, frame: str, cameras: list[str],
     second light) when the capture has one. `capture_light` is what the albedo is divided by:
     "auto" for the ground truth's stage light (uniform without one), else as RelightParams.
     The model is rendered on `device` (a torch device)."""
-    from core.data import CaptureDataset
-    from core.data.images import write_png
-    from core.metrics import rgb_scores
-    from core.model import GaussianModel
-    from core.relight.envmap import load_envmap
-    from core.relight.output import to_uint8
-    from core.relight.run import RelightParams, compose, prepare, view_gbuffer
-
     truth = relight_ground_truth(capture_dir)
     params = RelightParams(envmap=str(truth["envmap"]) if truth else sheet_maps[0],
                            cameras=",".join(cameras), frames=None,

@@ -10,7 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import imageio_ffmpeg
 import numpy as np
+
+from core.data.images import write_exr, write_png
 
 __all__ = ["Mp4Writer", "read_mp4_info", "to_uint8", "write_views"]
 
@@ -21,8 +24,6 @@ def to_uint8(x: np.ndarray) -> np.ndarray:
 
 def write_views(stem: Path, srgb: np.ndarray, linear_rgba: np.ndarray) -> list[Path]:
     """stem.png (sRGB (H, W, 3) in 0..1) and stem.exr (linear premultiplied (H, W, 4))."""
-    from core.data.images import write_exr, write_png
-
     png, exr = stem.with_suffix(".png"), stem.with_suffix(".exr")
     write_png(png, to_uint8(srgb))
     write_exr(exr, linear_rgba.astype(np.float32))
@@ -33,8 +34,6 @@ class Mp4Writer:
     """Frames (H, W, 3) uint8 sRGB in, an H.264 yuv420p MP4 out; use as a context manager."""
 
     def __init__(self, path: Path, width: int, height: int, fps: float = 24.0, crf: int = 18):
-        import imageio_ffmpeg
-
         if not fps > 0:
             raise ValueError(f"fps: expected > 0, got {fps}")
         self.path = Path(path)
@@ -72,8 +71,6 @@ class Mp4Writer:
 
 def read_mp4_info(path: Path) -> dict:
     """{"frames", "width", "height", "codec", "pix_fmt"} of a video, by decoding it fully."""
-    import imageio_ffmpeg
-
     reader = imageio_ffmpeg.read_frames(str(path))
     meta = reader.__next__()
     count = sum(1 for _ in reader)

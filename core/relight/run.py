@@ -18,7 +18,19 @@ from typing import TYPE_CHECKING, Literal
 import numpy as np
 import torch
 
-from core.relight.lights import CaptureLight, LightSpec
+from core.color import linear_to_srgb
+from core.config import parse_frames
+from core.data import load_capture
+from core.data.images import read_image
+from core.files import write_json
+from core.model import GaussianModel
+from core.relight.cameras import load_camera_path, orbit_cameras, select_cameras
+from core.relight.envmap import load_envmap
+from core.relight.gbuffer import gbuffer, run_render
+from core.relight.lights import CaptureLight, LightSpec, load_capture_light
+from core.relight.output import Mp4Writer, to_uint8, write_views
+from core.relight.shade import shade
+from core.render import RenderCamera
 
 if TYPE_CHECKING:
     from core.data.capture import Capture
@@ -137,12 +149,6 @@ class Plan:
 
 def prepare(run: Path, params: RelightParams, capture_dir) -> Plan:
     """Check every input before anything is written."""
-    from core.data import load_capture
-    from core.config import parse_frames
-    from core.relight.envmap import load_envmap
-    from core.relight.gbuffer import run_render
-    from core.relight.lights import load_capture_light
-
     settings = run_render(run, capture_dir)
     capture = load_capture(settings.capture)
     env = None if params.envmap is None else load_envmap(params.envmap, capture.up,
@@ -153,15 +159,11 @@ def prepare(run: Path, params: RelightParams, capture_dir) -> Plan:
         raise ValueError(f"run_dir: {run} has no finished frame (no frames/<frame>/gaussians.ply)")
     frames = parse_frames(params.frames, finished)
     if params.camera_path is None and params.orbit is None:
-        from core.relight.cameras import select_cameras
-
         select_cameras(capture.cameras, params.cameras)
     first = capture.image_path(capture.frames[0], capture.cameras[0].id)
     plan = Plan(settings, capture, frames, env, cap_light,
                 first is not None and first.suffix.lower() == ".exr", fps=params.fps)
     if params.camera_path is not None:
-        from core.relight.cameras import load_camera_path
-
         plan.path_cams, fps = load_camera_path(params.camera_path)
         plan.fps = fps or params.fps
     return plan
@@ -176,8 +178,6 @@ def _subject_center(model) -> np.ndarray:
 
 
 def frame_cameras(plan: Plan, params: RelightParams, model) -> list:
-    from core.relight.cameras import orbit_cameras, select_cameras
-
     ds = plan.settings.downscale
     served = [c.scaled(max(1, round(c.width / ds)), max(1, round(c.height / ds)))
               for c in plan.capture.cameras]
@@ -192,9 +192,6 @@ def frame_cameras(plan: Plan, params: RelightParams, model) -> list:
 def view_gbuffer(model, camera, plan: Plan):
     """The G-buffer of `model` seen by `camera` (core.data.Camera) with the run's settings, on
     the model's device."""
-    from core.relight.gbuffer import gbuffer
-    from core.render import RenderCamera
-
     return gbuffer(model, RenderCamera.from_camera(camera, device=model.means.device),
                    plan.settings, linear_capture=plan.linear)
 
@@ -206,9 +203,6 @@ def compose(g, plan: Plan, env_sh9, lights=(), *, ao: bool = True,
     scales the result so that its mean luminance over the covered pixels is that of the
     reconstruction under the capture's own light (a camera's auto exposure: pictures under maps
     much brighter or darker than the stage stay readable)."""
-    from core.color import linear_to_srgb
-    from core.relight.shade import shade
-
     s = shade(g, env_sh9, plan.capture_light, lights, ao=ao)
     linear = s.linear
     if match_exposure:
@@ -256,10 +250,6 @@ def relight_run(run_dir, out_dir, *, envmap=None, rotation_deg: float = 0.0, exp
 def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
                on_progress=None, should_stop=None) -> dict:
     """`relight_run` with the parameters as one `RelightParams`."""
-    from core.model import GaussianModel
-    from core.files import write_json
-    from core.relight.output import Mp4Writer, to_uint8, write_views
-
     start = time.perf_counter()
     run, out = Path(run_dir), Path(out_dir)
     plan = prepare(run, params, capture_dir)
@@ -302,8 +292,6 @@ def run_params(run_dir, out_dir, params: RelightParams, *, capture_dir=None,
 
 
 def _views_per_frame(plan: Plan, params: RelightParams) -> int:
-    from core.relight.cameras import select_cameras
-
     if plan.path_cams is not None:
         return len(plan.path_cams)
     if params.orbit is not None:
@@ -315,10 +303,6 @@ def _camera_videos(out: Path, plan: Plan, params: RelightParams, emit, done: int
                    total: int) -> list[str]:
     """OUT/videos/<camera>.mp4: each capture camera's view over the relit frames (the performance
     under the new light), encoded from the PNGs written."""
-    from core.data.images import read_image
-    from core.relight.cameras import select_cameras
-    from core.relight.output import Mp4Writer, to_uint8
-
     names = []
     for cam in select_cameras(plan.capture.cameras, params.cameras):
         path = out / "videos" / f"{cam.id}.mp4"

@@ -9,8 +9,10 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 from core.files import atomic_path
+from core.relight.output import to_uint8
 
 __all__ = ["contact_sheet"]
 
@@ -18,14 +20,10 @@ LABEL_HEIGHT = 16
 
 
 def _resize(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    from PIL import Image
-
     return np.asarray(Image.fromarray(image).convert("RGB").resize(size, Image.NEAREST))
 
 
 def _png(path: Path, size: tuple[int, int]) -> np.ndarray:
-    from PIL import Image
-
     if not path.is_file():
         return np.zeros((size[1], size[0], 3), np.uint8)
     return _resize(np.asarray(Image.open(path).convert("RGB")), size)
@@ -48,8 +46,6 @@ TILE_MAX = 512
 def _capture_tile(capture_dir: Path, frame: str, cam: str, size: tuple[int, int]) -> np.ndarray:
     """The captured view as the camera saw it: straight colour times its coverage mask (on the
     black of the synthetic studio)."""
-    from PIL import Image
-
     image = _png(_captured(capture_dir, frame, cam), size).astype(np.float32)
     mask = capture_dir / "masks" / frame / f"{cam}.png"
     if mask.is_file():
@@ -74,10 +70,6 @@ def contact_sheet(capture_dir: Path, run_dir: Path, views: list[tuple[str, str]]
     maps a column name to an sRGB picture (H, W, 3) in 0..1 (the same names in every row).
     Tiles are the rendered view's size (else the captured image's) times `scale` (nearest
     neighbour), at most TILE_MAX pixels on the longer side; captured images may be .png or .jpg."""
-    from PIL import Image, ImageDraw
-
-    from core.relight.output import to_uint8
-
     if not views:
         raise ValueError("views: expected at least one (frame, camera) to show")
     rows, names = [], None

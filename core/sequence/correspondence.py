@@ -19,16 +19,17 @@ import json
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from core.sequence.tracks import load_frame
+from core.synth.figure import vertex_normals
+from core.synth.ply import read_ply
 
 __all__ = ["track_errors"]
 
 
 def _frames_of(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(V, 3, 3) orthonormal frames [tangent, bitangent, normal] as columns per vertex."""
-    from core.synth.figure import vertex_normals
-
     n = vertex_normals(vertices, faces)
     neighbour = np.zeros(len(vertices), dtype=np.int64)
     neighbour[faces[:, 0]] = faces[:, 1]  # a fixed neighbour per vertex (the same every frame)
@@ -41,8 +42,6 @@ def _frames_of(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 
 def _mesh(gt: Path, frame: str) -> tuple[np.ndarray, np.ndarray] | None:
-    from core.synth.ply import read_ply
-
     path = gt / "meshes" / f"{frame}.ply"
     return read_ply(path) if path.is_file() else None
 
@@ -72,8 +71,6 @@ def track_errors(run_dir, capture_dir) -> dict | None:
         if diagonal is None:
             diagonal = float(np.linalg.norm(vertices.max(0) - vertices.min(0)))
         if r["role"] == "key":
-            from scipy.spatial import cKDTree
-
             opacity = model.opacity_c.detach().double().cpu().numpy()
             opaque = opacity >= 0.05
             _, nearest = cKDTree(vertices).query(means[opaque])

@@ -19,7 +19,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
+from PIL import Image
 
 from core.sequence.correspondence import track_errors
 
@@ -27,8 +29,6 @@ __all__ = ["temporal_metrics"]
 
 
 def _png(path: Path) -> np.ndarray | None:
-    from PIL import Image
-
     if not path.is_file():
         return None
     return np.asarray(Image.open(path)).astype(np.float32) / 255.0
@@ -37,7 +37,6 @@ def _png(path: Path) -> np.ndarray | None:
 def _resize(a: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     if a.shape[:2] == shape:
         return a
-    import cv2
 
     return cv2.resize(a, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
 

@@ -7,11 +7,14 @@ import argparse
 import sys
 import time
 
+from core.cli import command_help
+from core.synth.generate import SynthConfig, synthesize
+
 __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("synth", help="generate a synthetic capture with ground truth")
+    p = sub.add_parser("synth", help=command_help("synth"))
     p.add_argument("out", help="new (or empty) output folder")
     p.add_argument("--frames", type=int, default=3, help="number of frames (default 3)")
     p.add_argument("--views", type=int, default=16, help="number of cameras (default 16)")
@@ -31,8 +34,6 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _run(args: argparse.Namespace) -> int:
-    from core.synth.generate import SynthConfig, synthesize
-
     config = SynthConfig(
         frames=args.frames,
         views=args.views,

@@ -31,15 +31,23 @@ import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from core.color import linear_to_srgb
 from core.data.capture import Camera, Capture, save_capture
 from core.data.images import write_exr, write_png
 from core.synth.figure import Figure, FigureMesh
+from core.synth.gltf import GltfCharacter
 from core.synth.ply import write_ply
 from core.synth.raster import interpolate, rasterize_perspective
-from core.synth.shading import LIGHTS, albedo_at, irradiance, sh9_basis, vertex_visibility
+from core.synth.shading import (
+    LIGHTS,
+    albedo_at,
+    irradiance,
+    sh9_basis,
+    vertex_visibility,
+)
 
 __all__ = ["SynthConfig", "dome_cameras", "look_at", "synthesize"]
 
@@ -173,8 +181,6 @@ def _render_view(
 
 def degrade_normals(normal: np.ndarray, mask: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     """Stand-in monocular prior: blur (edge-aware to the mask), a per-view tilt bias, noise."""
-    import cv2
-
     m = mask.astype(np.float32)
     sigma = 1.2
     blurred = cv2.GaussianBlur((normal * m[:, :, None]).astype(np.float32), (0, 0), sigma)
@@ -258,7 +264,6 @@ def _subject(config: SynthConfig, figure: Figure, palette: np.ndarray):
             return albedo_at(interpolate(frags, mesh.faces, mesh.rest)[frags.mask], part, palette)
 
         return (lambda i: figure.pose(float(i))), figure_albedo
-    from core.synth.gltf import GltfCharacter
 
     character = GltfCharacter(config.subject)
 

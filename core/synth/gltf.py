@@ -22,7 +22,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
+from core.color import srgb_to_linear
 from core.data.importers.colmap import qvec_to_rotation
 from core.synth.figure import FigureMesh
 
@@ -206,10 +208,6 @@ class GltfCharacter:
 
     def _base_colour(self, material: int | None) -> np.ndarray:
         """(H, W, 3) linear albedo of a material (a 1 x 1 map of its factor without a texture)."""
-        from PIL import Image
-
-        from core.color import srgb_to_linear
-
         pbr = {} if material is None else self._doc["materials"][material].get(
             "pbrMetallicRoughness", {})
         factor = np.asarray(pbr.get("baseColorFactor", [1, 1, 1, 1]), np.float64)[:3]
