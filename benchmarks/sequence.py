@@ -34,6 +34,9 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 VARIANTS = ("sequential", "independent", "no-temporal", "no-anisotropy")
+# The group-boundary study (issue 22): the refine budget drawn on the whole run instead of
+# each group, and key frames trained longer (key_steps x the schedule).
+STUDY = ("run-budget", "key-1.5", "key-2")
 
 
 def _schedule(iterations: int) -> dict:
@@ -53,6 +56,10 @@ def overrides(variant: str, iterations: int, total: int | None, frames: int, gop
         per_frame = max(3, round(total / frames))
         base["train"]["schedule"] = _schedule(per_frame)
         base["sequence"] = {"enabled": False}
+    elif variant == "run-budget":
+        base.setdefault("sequence", {})["refine_scope"] = "run"
+    elif variant.startswith("key-"):
+        base.setdefault("sequence", {})["key_steps"] = float(variant[4:])
     elif variant == "no-temporal":
         base.setdefault("sequence", {})["temporal"] = False
     elif variant == "no-anisotropy":
@@ -71,6 +78,7 @@ def summarize(run: Path) -> dict:
     return {"psnr": ev["psnr"], "normal_cos": ev["normal_cos"], "flicker": t["flicker"],
             "flicker_normal": t["flicker_normal"], "flicker_ao": t["flicker_ao"],
             "largest_drop_db": t["largest_psnr_drop_in_group"],
+            "boundaries": t.get("boundaries"),
             "track_error": t.get("track_error"), "track_error_mm": t.get("track_error_mm"),
             "gaussians_per_frame": seq["gaussians"]["mean"],
             "seconds_per_frame": round(seq["timings"]["seconds_total"] / len(metrics), 2),
@@ -157,7 +165,7 @@ def main(argv: list[str] | None = None) -> int:
     print("| variant | PSNR | normal cos | flicker (normal / AO) | largest drop in GoP (dB) | "
           "track error (% diag., mm) | Gaussians / frame | s / frame (key / other) | renders |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
-    for v in VARIANTS:
+    for v in (*VARIANTS, *STUDY):
         r = results.get(v)
         if r:
             drop = r["largest_drop_db"]
@@ -167,6 +175,16 @@ def main(argv: list[str] | None = None) -> int:
                   f"{drop if drop is None else round(drop, 2)} | "
                   f"{_track(r)} | {r['gaussians_per_frame']:.0f} | {r['seconds_per_frame']:.1f} "
                   f"({r['seconds_key']} / {r['seconds_other']}) | {renders} |")
+    print("\n| variant | groups' boundaries | largest drop into a key frame (dB) | "
+          "largest drop inside (dB) | flicker at boundaries / inside |")
+    print("| --- | --- | --- | --- | --- |")
+    for v in (*VARIANTS, *STUDY):
+        b = (results.get(v) or {}).get("boundaries")
+        if b and b["count"]:
+            r = results[v]
+            print(f"| {v} | {b['count']} | {b['largest_psnr_drop']:.2f} | "
+                  f"{r['largest_drop_db']:.2f} | {b['flicker']:.4f} / {b['flicker_inside']:.4f}"
+                  f" ({b['flicker_ratio']:.2f}x) |")
     return 0
 
 

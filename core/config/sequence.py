@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import math
-from typing import Annotated
+from typing import Annotated, Literal
 
 from pydantic import Field
 
@@ -25,6 +25,9 @@ class SequenceConfig:
 
     enabled: bool = True
     """Deform + refine the frames after each group's first; off: every frame is a key frame."""
+    key_steps: Annotated[float, Field(ge=0.1, le=10)] = 1.0
+    """A group's key frame trains this many times the schedule's iterations (every step
+    count of the schedule scaled); tracked frames' steps stay fractions of the nominal."""
     deform_fraction: Share = 0.2
     """Deform-stage steps per frame, as a fraction of a key frame's iterations."""
     refine_fraction: Share = 0.28
@@ -71,7 +74,11 @@ class SequenceConfig:
     refine_borrow: Annotated[int, Field(ge=0, le=1000)] = 1
     """Most tracked frames ahead a run may borrow refine steps against; 0: spend only savings."""
     refine_second: Annotated[float, Field(ge=0, le=10)] = 2.0
-    """Refine steps the run's first second-frame asks, as a multiple of the nominal."""
+    """Refine steps a second frame without a reference asks, as a multiple of the nominal."""
+    refine_scope: Literal["group", "run"] = "group"
+    """What a frame's refine budget draws on: its own group's frames (groups independent, so
+    they run in parallel to the same result) or the whole run's (each group waits for the
+    one before)."""
     temporal: bool = True
     """Refine stage: temporal L1 to the deformed values."""
     temporal_opacity_g: Weight = 0.01

@@ -222,6 +222,16 @@ class TrainConfig:
         """The fully resolved configuration as JSON-compatible data."""
         return dataclasses.asdict(self)
 
+    def stretched(self, factor: float) -> TrainConfig:
+        """This configuration with `factor` times the steps: the schedule scaled, the position
+        decay over the same share of the run."""
+        if factor == 1.0:
+            return self
+        iterations = max(3, round(self.schedule.iterations * factor))
+        decay = max(1, round(self.rates.means_decay_steps * factor))
+        return replace(self, schedule=self.schedule.scaled(iterations),
+                       rates=replace(self.rates, means_decay_steps=decay))
+
 
 def train_config(preset: str) -> TrainConfig:
     """Named presets: `paper` (30k steps), `fast` (7.5k) and `test` (500, tiny captures)."""

@@ -51,7 +51,9 @@ def _fitter(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None,
             callbacks: list[Callback]) -> FrameFitter:
     cfg = job.cfg
     if inputs is None:
-        return Trainer.from_capture(job.capture, role.frame, cfg.train, callbacks=callbacks,
+        train = cfg.train.stretched(cfg.sequence.key_steps) if cfg.sequence.enabled \
+            else cfg.train
+        return Trainer.from_capture(job.capture, role.frame, train, callbacks=callbacks,
                                     downscale=cfg.downscale)
     return tracker_for(job.capture, role.frame, job.run, inputs, cfg.train, cfg.sequence,
                        downscale=cfg.downscale, callbacks=callbacks)

@@ -10,7 +10,8 @@ for the normal map (unit normals decoded from the PNG, components averaged; unco
 count as the zero vector) and the AO map (0..1). A method whose renders follow the true motion
 and nothing else scores 0; `change` and `gt_change` (mean |R_t - R_{t-1}|, mean |G_t - G_{t-1}|)
 are reported beside it. The largest PSNR drop between consecutive frames of one group
-(RUN/sequence.json) is reported too, and where the ground truth has correspondences, how far
+(RUN/sequence.json) is reported too, and at the groups' boundaries the largest drop into a key
+frame and the boundary pairs' flicker against the in-group pairs', and where the ground truth has correspondences, how far
 tracked Gaussians drift from the points they were born on (`core.sequence.correspondence`).
 """
 
@@ -83,17 +84,38 @@ def _mean(rows: list[dict], key: str) -> float | None:
     return float(np.mean(vals)) if vals else None
 
 
-def _largest_drop(run: Path, per_frame: list[dict]) -> float | None:
-    """Largest PSNR decrease between consecutive frames of one group (sequence.json)."""
+def _groups(run: Path) -> dict[str, int]:
+    """Each frame's group (sequence.json; {} without one)."""
     path = run / "sequence.json"
     if not path.is_file():
-        return None
-    group = {r["frame"]: r["gop"] for r in json.loads(path.read_text())["frames"]}
+        return {}
+    return {r["frame"]: r["gop"] for r in json.loads(path.read_text())["frames"]}
+
+
+def _largest_drop(group: dict[str, int], per_frame: list[dict], across: bool) -> float | None:
+    """Largest PSNR decrease between consecutive frames of one group, or (`across`) between a
+    group's last frame and the next group's key frame."""
     psnr = {r["frame"]: r.get("psnr") for r in per_frame}
     order = [r["frame"] for r in per_frame]
     drops = [psnr[a] - psnr[b] for a, b in zip(order, order[1:])
-             if a in group and group.get(a) == group.get(b) and None not in (psnr[a], psnr[b])]
+             if a in group and b in group and (group[a] != group[b]) == across
+             and None not in (psnr[a], psnr[b])]
     return float(max(drops)) if drops else None
+
+
+def _boundaries(group: dict[str, int], pairs: list[dict], per_frame: list[dict]) -> dict:
+    """How the group boundaries compare with the inside of the groups: the largest PSNR drop
+    into a key frame, and the flicker of boundary pairs against in-group pairs."""
+    def flicker(rows: list[dict]) -> float | None:
+        both = [v for v in (_mean(rows, "normal"), _mean(rows, "ao")) if v is not None]
+        return float(np.mean(both)) if both else None
+
+    edge = [p for p in pairs if group.get(p["frames"][0]) != group.get(p["frames"][1])]
+    inside = [p for p in pairs if group.get(p["frames"][0]) == group.get(p["frames"][1])]
+    at, within = flicker(edge), flicker(inside)
+    return {"count": len(edge), "largest_psnr_drop": _largest_drop(group, per_frame, True),
+            "flicker": at, "flicker_inside": within,
+            "flicker_ratio": None if at is None or not within else at / within}
 
 
 def temporal_metrics(run_dir, capture_dir, frames: list[str], cameras: list[str],
@@ -113,6 +135,7 @@ def temporal_metrics(run_dir, capture_dir, frames: list[str], cameras: list[str]
                     rows.append(r)
         if rows:
             pairs.append({"frames": [a, b], **{k: _mean(rows, k) for k in rows[0]}})
+    group = _groups(run)
     fn, fa = _mean(pairs, "normal"), _mean(pairs, "ao")
     both = [v for v in (fn, fa) if v is not None]
     return {
@@ -123,7 +146,8 @@ def temporal_metrics(run_dir, capture_dir, frames: list[str], cameras: list[str]
         "ao_change": _mean(pairs, "ao_change"), "ao_gt_change": _mean(pairs, "ao_gt_change"),
         "psnr_per_frame": [r.get("psnr") for r in per_frame],
         "normal_cos_per_frame": [r.get("normal_cos") for r in per_frame],
-        "largest_psnr_drop_in_group": _largest_drop(run, per_frame),
+        "largest_psnr_drop_in_group": _largest_drop(group, per_frame, False),
+        "boundaries": _boundaries(group, pairs, per_frame) if group else None,
         **(track_errors(run, capture_dir) or {"track_error": None}),
         "pairs": pairs,
     }

@@ -103,15 +103,21 @@ class GopPlan:
             return None
         seq, before = self.sequence, records[role.previous]
         reference = before.get("deform_loss")
-        ahead = min(seq.refine_borrow, sum(not r.key for r in self.roles[index + 1:]))
+        later = [r for r in self.roles[index + 1:] if not r.key]
+        if seq.refine_scope == "group":
+            # Groups are independent: each spends only what its own frames saved or can pay
+            # back, so groups run in parallel to the same result as one after another.
+            records = {r.frame: records[r.frame] for r in self.roles
+                       if r.gop == role.gop and r.frame in records}
+            later = [r for r in later if r.gop == role.gop]
         earlier = before.get("previous")
         return TrackedInputs(
             previous=role.previous, earlier=earlier,
             earliest=None if earlier is None else records[earlier].get("previous"),
             next_id=before["next_track_id"], reference_loss=reference,
             refine_reference=None if reference is not None else median_deform_loss(records),
-            refine_credit=refine_credit(records, ahead, self.nominal,
-                                        seq.refine_floor(self.nominal)))
+            refine_credit=refine_credit(records, min(seq.refine_borrow, len(later)),
+                                        self.nominal, seq.refine_floor(self.nominal)))
 
     def record(self, records: dict[str, dict]) -> dict:
         """The content of RUN/sequence.json from the finished frames' records."""
