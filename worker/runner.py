@@ -24,6 +24,7 @@ from worker.blobs import BlobStore, open_store
 from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
+from worker.redact import SERVER, redact
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
 
@@ -91,6 +92,9 @@ class Runner:
 
     def __init__(self, settings: WorkerSettings, store: JobStore | None = None,
                  blobs: BlobStore | None = None):
+        from core.data.headers import set_default_max_pixels
+
+        set_default_max_pixels(settings.max_image_pixels)  # every image core decodes here
         self.settings = settings
         self.store = store or JobStore(settings.database)
         self.blobs = blobs or open_store(settings.storage, endpoint_url=settings.s3_endpoint_url,
@@ -160,21 +164,37 @@ class Runner:
         from billiard.exceptions import SoftTimeLimitExceeded
         from pydantic import ValidationError
 
+        roots = self._client_roots(job, link)
         if isinstance(exc, SoftTimeLimitExceeded):
             error = {"code": "time_limit", "retryable": True,
                      "message": f"the job reached its time limit; {retry_note}"}
         elif isinstance(exc, (ValueError, ValidationError)):  # CaptureError is a ValueError
             error = {"code": "invalid_input", "retryable": False,
-                     "message": str(exc).replace("\n", " ")[:2000]}
+                     "message": redact(str(exc).replace("\n", " "), roots)[:2000]}
         else:
             error = {"code": "internal", "retryable": True,
-                     "message": f"{type(exc).__name__}: {exc}"[:2000]}
+                     "message": redact(f"{type(exc).__name__}: {exc}", roots)[:2000]}
             for line in traceback.format_exc().splitlines():
-                link.log(line)
+                link.log(redact(line, roots))
         link.log(f"failed: {error['message']}")
         link.close()
         self.store.finish(job.id, link.owner, "failed", error, error["message"][:512])
         return Outcome("failed")
+
+    def _client_roots(self, job: Job, link: JobLink) -> list[tuple[Path | None, str]]:
+        """How the folders of this machine that a failure may name are shown to the client
+        (worker.redact): files of the capture relative to it, the job's own folders
+        relative to them, anything else of the data or scratch folder as <server>."""
+        s, scratch = self.settings, self.settings.scratch
+        jobs = scratch / "jobs" / job.id
+        roots: list[tuple[Path | None, str]] = [
+            (jobs / "run", ""), (jobs / f"relight-{link.owner.token}" / "envmap", ""),
+            (jobs / f"relight-{link.owner.token}", ""), (jobs, ""),
+            (scratch, SERVER), (s.data_dir, SERVER)]
+        if job.capture_id is not None:
+            roots += [(self.blobs.local_path(f"captures/{job.capture_id}"), ""),
+                      (scratch / "captures" / job.capture_id, "")]
+        return roots
 
     # -- inputs -------------------------------------------------------------------------------
     def capture(self, job: Job, link: JobLink) -> Path:

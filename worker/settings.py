@@ -14,6 +14,8 @@ from pathlib import Path
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from core.data.headers import DEFAULT_MAX_PIXELS
+
 __all__ = ["WorkerSettings", "get_settings"]
 
 
@@ -75,6 +77,10 @@ class WorkerSettings(BaseSettings):
     far shorter than a reconstruction; a long sequence's orbit may want more."""
     hard_limit_margin_seconds: float = Field(600.0, gt=0)
     """The hard limit (process killed) is the soft limit plus this margin."""
+    max_image_pixels: int = Field(DEFAULT_MAX_PIXELS, ge=1)
+    """Largest image (width x height) the API and the workers decode: capture images, masks,
+    normal maps and environment maps. Checked from the file's header before any decoding, so
+    a 20000 x 20000 PNG is refused in microseconds (the default passes a 16384 x 8192 map)."""
     retention_days: float | None = None
     """Default lifetime of captures, jobs and assets (expires_at); None keeps them until
     deleted. Expiry is shown on every object and logged when it happens."""

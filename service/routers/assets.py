@@ -79,10 +79,10 @@ async def upload_asset(request: Request, services: ServicesDep, tenant: TenantDe
 def _store_asset(services: Services, tenant: str, kind: str, filename: str, suffix: str,
                  tmp: Path, size: int, sha: str, expires_at) -> Asset:
     try:
-        info = inspect_envmap(tmp, suffix)
+        info = inspect_envmap(tmp, filename, services.settings.max_image_pixels)
     except EnvmapError as exc:
-        raise ApiError(422, f"{filename}: {exc}", code="invalid_asset",
-                       details=[{"path": filename, "message": str(exc)}]) from None
+        raise ApiError(422, str(exc), code="invalid_asset",
+                       details=[{"path": filename, "message": exc.problem}]) from None
     asset = Asset(id=new_id("ast"), tenant=tenant, kind=kind, filename=filename, size=size,
                   sha256=sha, content_type=CONTENT_TYPES[suffix],
                   meta={"width": info.width, "height": info.height, "channels": info.channels},
