@@ -25,6 +25,7 @@ from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
 from worker.redact import SERVER, redact
+from worker.scratch import job_folder, mark
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
 
@@ -35,9 +36,11 @@ __all__ = ["Execution", "JobStopped", "Outcome", "Runner"]
 class Outcome:
     status: str
     """What happened: succeeded, failed, cancelled, released (back in the queue: this worker
-    is shutting down), lost (lease taken away), leased, terminal, missing, exhausted."""
-    retry_in: float | None = None
-    """Seconds after which the task should try again (another worker holds the lease)."""
+    is shutting down), lost (lease taken away), or, for a message that found nothing to do,
+    leased (another live worker runs the job), terminal (it has ended), missing (deleted),
+    exhausted (the redelivery cap was reached: the job failed)."""
+    note: str = ""
+    """Why nothing was done, for the worker's log."""
 
 
 def sha256_of(path: Path) -> str:
@@ -46,6 +49,15 @@ def sha256_of(path: Path) -> str:
         for chunk in iter(lambda: f.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+_DROPPED = {
+    "leased": "it is running on {job.lease_owner} (lease renewed, {left:.0f} s left); this "
+              "duplicate message is dropped",
+    "terminal": "it has ended ({job.state}); this duplicate message is dropped",
+    "missing": "it was deleted; its message is dropped",
+    "exhausted": "its worker was lost {job.attempts} times; it failed (worker_lost)",
+}
 
 
 class JobStopped(Exception):
@@ -103,19 +115,26 @@ class Runner:
         """Artifact paths already published, with the (size, mtime) their file had."""
 
     def run(self, job_id: str) -> Outcome:
+        """Claim and run the job. A message for a job that another live worker runs, that has
+        ended or was deleted (a duplicate delivery: a sweeper re-sent it, the broker delivered
+        it twice) finds nothing to do and is dropped: if the running worker dies, its lease
+        expires and a sweeper sends the job again."""
         s = self.settings
         owner = Owner.current()
         claim = self.store.claim(job_id, owner, s.lease_seconds, s.max_attempts)
-        if claim.status == "leased":
-            return Outcome("leased", retry_in=max(1.0, min(claim.retry_in + 1.0, s.lease_seconds)))
         if claim.status != "claimed":
-            return Outcome(claim.status)
+            return Outcome(claim.status, _DROPPED[claim.status].format(
+                job=claim.job, left=claim.retry_in))
+        mark(s.scratch, job_id, owner)
         link = JobLink(self.store, claim.job, owner, s).start()
         try:
             with _stop_on_sigterm(link):
-                return self._execute(claim.job, link)
+                outcome = self._execute(claim.job, link)
         finally:
             link.close()
+        if outcome.status in ("succeeded", "failed", "cancelled"):
+            shutil.rmtree(job_folder(s.scratch, job_id), ignore_errors=True)
+        return outcome
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
         from worker.reconstruct_job import ReconstructJob

@@ -67,9 +67,14 @@ class WorkerSettings(BaseSettings):
     cancel_grace_seconds: float = Field(5.0, gt=0)
     """After a cancel, how long a worker waits for the job to stop between two steps before it
     ends its own process."""
+    lost_message_seconds: float = Field(120.0, gt=0)
+    """How often the sweepers look into the broker (Redis or the embedded one) for queued jobs
+    whose message is gone (lost with a worker that died holding it, or with Redis's data), and
+    send those again. A message delivered to a worker this long ago whose job is still queued
+    counts as gone too. Jobs that merely wait behind others are never sent twice."""
     requeue_after_seconds: float = Field(6 * 3600.0, gt=0)
-    """A queued job never picked up for this long is sent to the broker again (a message lost
-    with a worker that died holding it)."""
+    """Only for a broker the sweepers cannot look into (neither Redis nor the embedded one): a
+    queued job last sent this long ago is sent again."""
     reconstruct_soft_limit_seconds: float = Field(48 * 3600.0, gt=0)
     """Soft time limit of a reconstruction job (it fails cleanly, checkpoint kept)."""
     relight_soft_limit_seconds: float = Field(2 * 3600.0, gt=0)

@@ -113,18 +113,33 @@ def _png(path: Path) -> tuple[int, int]:
 
 
 def _jpeg(path: Path) -> tuple[int, int]:
-    from PIL import JpegImagePlugin
-
+    # ITU T.81 B.1.1: after SOI, marker segments (0xFF, code, big-endian length that counts
+    # itself) up to the frame header SOFn, whose data is precision, height, width.
     with open(path, "rb") as f:
         if f.read(2) != b"\xff\xd8":
             raise HeaderError("is not a JPEG file (wrong magic bytes)")
-        f.seek(0)
-        try:
-            # The plugin's constructor parses markers up to the frame header and decodes
-            # nothing (Image.open would add PIL's own pixel limit, which the setting replaces).
-            return JpegImagePlugin.JpegImageFile(f).size
-        except (OSError, SyntaxError, ValueError, struct.error) as exc:
-            raise HeaderError(f"has a truncated or corrupt JPEG header ({exc})") from None
+        while True:
+            head = f.read(2)
+            while len(head) == 2 and head[0] == 0xFF and head[1] == 0xFF:  # fill bytes
+                head = head[1:] + f.read(1)
+            if len(head) < 2 or head[0] != 0xFF:
+                raise HeaderError("has a truncated or corrupt JPEG header (no frame header)")
+            code = head[1]
+            if code == 0x01 or 0xD0 <= code <= 0xD7:  # markers without a segment
+                continue
+            if code in (0xD9, 0xDA):
+                raise HeaderError("is not a valid JPEG file (no frame header before its data)")
+            size = f.read(2)
+            if len(size) < 2 or struct.unpack(">H", size)[0] < 2:
+                raise HeaderError("has a truncated or corrupt JPEG header")
+            body = struct.unpack(">H", size)[0] - 2
+            if 0xC0 <= code <= 0xCF and code not in (0xC4, 0xC8, 0xCC):  # SOFn
+                frame = f.read(5)
+                if len(frame) < 5:
+                    raise HeaderError("has a truncated JPEG frame header")
+                height, width = struct.unpack(">HH", frame[1:5])
+                return width, height
+            f.seek(body, 1)
 
 
 def _exr(path: Path) -> tuple[int, int]:
@@ -177,7 +192,8 @@ def read_other_header(path: Path) -> tuple[int, int]:
         raise HeaderError(f"unsupported file type {path.suffix or '(none)'!r}")
     kind = getattr(importlib.import_module(f"PIL.{where[0]}"), where[1])
     try:
-        # The plugin's constructor parses the header only (see _jpeg for why not Image.open).
+        # The plugin's constructor parses the header only and decodes nothing (Image.open
+        # would add PIL's own pixel limit, which the setting replaces).
         with open(path, "rb") as f, kind(f) as im:
             width, height = im.size
     except FileNotFoundError:

@@ -52,8 +52,8 @@ def worker_factory(tmp_path: Path) -> Callable[[dict[str, str]], WorkerProcess]:
     """Makes real worker processes; stops them after the test."""
     started: list[WorkerProcess] = []
 
-    def make(env: dict[str, str]) -> WorkerProcess:
-        w = WorkerProcess(env, tmp_path / "worker.log")
+    def make(env: dict[str, str], *args: str) -> WorkerProcess:
+        w = WorkerProcess(env, tmp_path / "worker.log", args)
         started.append(w)
         return w
 
