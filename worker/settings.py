@@ -70,8 +70,9 @@ class WorkerSettings(BaseSettings):
     lost_message_seconds: float = Field(120.0, gt=0)
     """How often the sweepers look into the broker (Redis or the embedded one) for queued jobs
     whose message is gone (lost with a worker that died holding it, or with Redis's data), and
-    send those again. A message delivered to a worker this long ago whose job is still queued
-    counts as gone too. Jobs that merely wait behind others are never sent twice."""
+    send those again. A message delivered to a worker this long ago (and at least a lease ago)
+    whose job is still queued counts as gone too. Jobs that merely wait behind others are never
+    sent twice."""
     requeue_after_seconds: float = Field(6 * 3600.0, gt=0)
     """Only for a broker the sweepers cannot look into (neither Redis nor the embedded one): a
     queued job last sent this long ago is sent again."""

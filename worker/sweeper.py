@@ -60,11 +60,14 @@ class Sweeper:
         s = self.settings
         held, requeue_after = None, s.requeue_after_seconds
         due = time.monotonic() >= self._next_check
+        # A worker claims a job the moment it takes its message; one that has not after a
+        # lease (it is presumed dead by then anyway) or a check interval lost it.
+        grace = max(s.lost_message_seconds, s.lease_seconds)
         if self.held is not None:
             requeue_after = None
             if due:
                 try:
-                    held = self.held(s.lost_message_seconds)
+                    held = self.held(grace)
                 except Exception as exc:  # the broker is briefly away: at the next pass
                     log.warning("could not look into the broker (%s: %s); trying again in "
                                 "%.0f s", type(exc).__name__, exc, self.interval)
@@ -72,7 +75,7 @@ class Sweeper:
                 else:
                     if held is None:  # this broker cannot be inspected: the age rule
                         requeue_after = s.requeue_after_seconds
-        sent = self.store.redispatch_stranded(self.send, held=held, grace=s.lost_message_seconds,
+        sent = self.store.redispatch_stranded(self.send, held=held, grace=grace,
                                               requeue_after=requeue_after,
                                               min_gap=s.lease_seconds)
         for job_id, why in sent.items():

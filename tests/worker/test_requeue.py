@@ -85,7 +85,7 @@ def test_the_broker_says_which_queued_jobs_it_still_holds(stack):
     assert inspector.held_jobs(grace=1e-3) == {waiting}  # taken's worker never claimed it
     _sent_hours_ago(store, taken, waiting, lost)
     sent: list[str] = []
-    fast = settings.model_copy(update={"lost_message_seconds": 1e-3})
+    fast = settings.model_copy(update={"lost_message_seconds": 1e-3, "lease_seconds": 1e-3})
     result = Sweeper(fast, sent.append, store=store, held=inspector.held_jobs).sweep()
     assert sorted(sent) == sorted([taken, lost]) == sorted(result["redispatched"])
     assert store.get(waiting).dispatches == 1  # waited ten hours, its message is there: kept
@@ -137,7 +137,9 @@ def test_lost_messages_are_sent_again_and_duplicates_dropped_quietly(stack, tiny
         assert store.get(job_id).state == "succeeded"
         assert store.get(job_id).attempts == 1  # never run twice
         assert not (settings.scratch / "jobs" / job_id).exists()
-    assert store.get(waiting).dispatches == 1 and store.get(lost).dispatches == 2
+    # waiting was never sent twice; lost at least once more (again if a busy worker held its
+    # new message unclaimed for a lease: harmless, the duplicate is dropped)
+    assert store.get(waiting).dispatches == 1 and store.get(lost).dispatches >= 2
     worker.stop()
     log = worker.log.read_text(errors="replace")
     assert f"job {lost}: sent to the queue again: it is queued, but its message is no " \
