@@ -74,3 +74,9 @@ def bad_variants(fmt: str, good: bytes) -> dict[str, tuple[bytes, str]]:
         "no pixels": (zero, "no pixels" if fmt != "exr" else "corrupt OpenEXR header"),
         "huge": (huge, f"is {HUGE[0]}x{HUGE[1]}"),
     }
+
+
+def bmp_header(width: int, height: int) -> bytes:
+    """BITMAPFILEHEADER and BITMAPINFOHEADER of a 24-bit BMP, no pixels."""
+    info = struct.pack("<IiiHHIIiiII", 40, width, height, 1, 24, 0, 0, 2835, 2835, 0, 0)
+    return b"BM" + struct.pack("<IHHI", 14 + 40, 0, 0, 54) + info

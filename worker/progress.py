@@ -4,10 +4,10 @@ latest progress and log lines every `heartbeat_seconds`, and watches for a cance
 The training loop only updates in-memory state (`update`, `log`) and asks `should_stop()` after
 each step, so it never waits on the database. Updates between two heartbeats are coalesced into
 one progress event, except milestones (a frame's start and end, any change of frame): each of
-those becomes an event of its own, however fast the frames go. A cancel (or a lost lease) sets the stop flag;
-the loop then stops at its next step. If it has not stopped `cancel_grace_seconds` later (a
-long native call), the heartbeat thread records the cancel and ends its own process: the
-worker is freed within seconds either way.
+those becomes an event of its own, however fast the frames go. A cancel (or a lost lease) sets
+the stop flag; the loop then stops at its next step. If it has not stopped
+`cancel_grace_seconds` later (a long native call), the heartbeat thread records the cancel and
+ends its own process: the worker is freed within seconds either way.
 """
 
 from __future__ import annotations

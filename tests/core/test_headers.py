@@ -74,3 +74,35 @@ def test_extension_and_content_must_agree(tmp_path):
         verify_image(path)
     with pytest.raises(ImageReadError, match="unsupported file type '.gif'"):
         read_image(tmp_path / "x.gif")
+
+
+def test_images_that_importers_convert_are_checked_from_their_header(synth_capture, tmp_path):
+    """BMP/TIFF/WebP/PPM sources are converted to PNG on import: their header is read first,
+    so a huge one is refused before OpenCV would decode it."""
+    import json
+
+    from bad_inputs import bmp_header
+
+    from core.data import CaptureError, import_capture, load_capture
+    from core.data.headers import HeaderError, read_other_header
+    from core.data.importers.transforms import export_transforms
+
+    path = tmp_path / "huge.bmp"
+    path.write_bytes(bmp_header(*HUGE))
+    assert read_other_header(path) == HUGE
+    path.write_bytes(bmp_header(*HUGE)[:20])
+    with pytest.raises(HeaderError, match="truncated or corrupt BMP header"):
+        read_other_header(path)
+    src = tmp_path / "src"
+    export_transforms(load_capture(synth_capture), src)
+    doc = json.loads((src / "transforms.json").read_text())
+    first = doc["frames"][0]
+    image = src / first["file_path"]
+    image.unlink()
+    first["file_path"] = str(Path(first["file_path"]).with_suffix(".bmp"))
+    (src / first["file_path"]).write_bytes(bmp_header(*HUGE))
+    (src / "transforms.json").write_text(json.dumps(doc))
+    with pytest.raises(CaptureError) as err:
+        import_capture(src, tmp_path / "out", "transforms", max_pixels=1000)
+    problem = err.value.problems[0]
+    assert problem.path.endswith(".bmp") and f"is {HUGE[0]}x{HUGE[1]}" in problem.message

@@ -140,8 +140,12 @@ def test_lost_messages_are_sent_again_and_duplicates_dropped_quietly(stack, tiny
     # waiting was never sent twice; lost at least once more (again if a busy worker held its
     # new message unclaimed for a lease: harmless, the duplicate is dropped)
     assert store.get(waiting).dispatches == 1 and store.get(lost).dispatches >= 2
-    worker.stop()
-    log = worker.log.read_text(errors="replace")
+
+    def settled() -> str | None:  # every message the worker received has been answered
+        text = worker.log.read_text(errors="replace")
+        return text if text.count("] received") == text.count("] succeeded in") else None
+
+    log = wait_for(settled, 120, "the worker to finish its tasks")
     assert f"job {lost}: sent to the queue again: it is queued, but its message is no " \
            "longer in the broker" in log
     assert f"job {running}: " in log and "this duplicate message is dropped" in log
