@@ -81,11 +81,13 @@ class BrokerInspector:
                                                        withscores=True) if at >= since}
             delivered = [client.hget(channel.unacked_key, tag) for tag in recent]
         jobs = _ids(waiting)
-        for raw in delivered:
+        for raw in delivered:  # [message, exchange, routing key]; the hash serves every queue
             try:
-                jobs |= _ids([json.loads(raw)[0]]) if raw else set()
-            except (ValueError, IndexError):
+                message, _, routing_key = json.loads(raw) if raw else (None, None, None)
+            except (ValueError, TypeError):
                 continue
+            if routing_key == queue:
+                jobs |= _ids([message])
         return jobs
 
     def _sqla(self, url: str, grace: float) -> set[str]:
