@@ -40,6 +40,7 @@ __all__ = [
     "has_active_key",
     "list_keys",
     "revoke_key",
+    "tenant_holdings",
     "tenant_of",
 ]
 
@@ -67,6 +68,19 @@ def create_key(url: str, tenant: str, name: str = "") -> tuple[ApiKey, str]:
         row = ApiKey(id=key_id, tenant=tenant, name=name, secret_sha256=_digest(secret))
         s.add(row)
     return row, f"dgs_{key_id}_{secret}"
+
+
+def tenant_holdings(url: str, tenant: str) -> dict[str, int]:
+    """How many captures, jobs and assets `tenant` has (those of "local" were made before any
+    key existed and are reached only by a key of tenant "local")."""
+    from sqlalchemy import func
+
+    from worker.models import Asset, Capture, Job
+
+    with session_scope(url, write=False) as s:
+        return {table.__tablename__: s.scalar(select(func.count()).select_from(table)
+                                              .where(table.tenant == tenant))
+                for table in (Capture, Job, Asset)}
 
 
 def list_keys(url: str) -> list[ApiKey]:

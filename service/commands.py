@@ -96,13 +96,21 @@ def _database(args: argparse.Namespace) -> str:
 
 
 def _create(args: argparse.Namespace) -> int:
-    from service.auth import create_key
+    from service.auth import LOCAL_TENANT, create_key, tenant_holdings
 
+    url = _database(args)
     try:
-        row, key = create_key(_database(args), args.tenant, args.name)
+        row, key = create_key(url, args.tenant, args.name)
     except ValueError as exc:
         print(f"dgs keys create: {exc}", file=sys.stderr)
         return 2
+    local = {k: n for k, n in tenant_holdings(url, LOCAL_TENANT).items() if n}
+    if local and row.tenant != LOCAL_TENANT:
+        what = ", ".join(f"{n} {kind[:-1]}(s)" for kind, n in local.items())
+        print(f"dgs keys create: note: {what} were made before any key existed (tenant "
+              f"{LOCAL_TENANT!r}); from now on every request needs a key, and this key (tenant "
+              f"{row.tenant!r}) does not reach them. A key made with --tenant {LOCAL_TENANT} "
+              "does.", file=sys.stderr)
     print(f"created key {row.id} for tenant {row.tenant}. Store it now; it is not shown "
           f"again:\n{key}")
     return 0

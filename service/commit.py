@@ -24,6 +24,7 @@ from service.deps import Services
 from service.errors import ApiError
 from service.staging import file_states
 from worker.models import Capture, Upload, utcnow
+from worker.redact import SERVER, redact
 from worker.store import Owner
 
 __all__ = ["Committer", "begin_commit", "missing_files", "recover_commits", "run_commit"]
@@ -103,16 +104,6 @@ def recover_commits(services: Services) -> list[str]:
     return out
 
 
-def _relative(path: str, roots: list[Path]) -> str:
-    for root in roots:
-        prefix = str(root) + os.sep
-        if path.startswith(prefix):
-            return path[len(prefix):].replace(os.sep, "/")
-        if path == str(root):
-            return "."
-    return path
-
-
 def _resolve_format(fmt: str, src: Path) -> str:
     from core.data import detect_format
 
@@ -160,17 +151,22 @@ def run_commit(services: Services, capture_id: str) -> None:
     out = services.staging.capture_dir(capture_id) / "canonical"
     with services.store.session(write=False) as s:
         fmt = s.scalar(select(Capture.format).where(Capture.id == capture_id))
+    limit = services.settings.max_image_pixels
+    # Problems name the client's files (manifest paths), whether they are in the received
+    # folder or the imported copy; nothing else of the server.
+    roots = [(src, ""), (out, ""), (services.settings.data_dir, SERVER),
+             (services.settings.scratch, SERVER)]
     try:
         fmt = _resolve_format(fmt, src)
         if fmt == "canonical":
-            capture, root = check_capture(src), src
+            capture, root = check_capture(src, max_pixels=limit), src
         else:
             shutil.rmtree(out, ignore_errors=True)
-            capture, root = import_capture(src, out, fmt, link=True), out
+            capture, root = import_capture(src, out, fmt, link=True, max_pixels=limit), out
         summary = summarize(capture, fmt)
         freeze(services, root, capture_id)
     except CaptureError as exc:
-        details = [{"path": _relative(p.path, [src, out]), "message": p.message}
+        details = [{"path": redact(p.path, roots), "message": redact(p.message, roots)}
                    for p in exc.problems]
         first = f"{details[0]['path']}: {details[0]['message']}" if details else "invalid"
         more = f" (and {len(details) - 1} more)" if len(details) > 1 else ""
@@ -181,7 +177,8 @@ def run_commit(services: Services, capture_id: str) -> None:
     except Exception as exc:  # disk full, store unreachable: the client may commit again
         log.exception("capture %s: commit failed", capture_id)
         _fail(services, capture_id, {"code": "internal", "retryable": True, "details": [],
-                                     "message": f"commit failed: {type(exc).__name__}: {exc}"})
+                                     "message": redact(f"commit failed: {type(exc).__name__}: "
+                                                       f"{exc}", roots)})
         return
     with services.store.session() as s:
         s.execute(update(Capture).where(Capture.id == capture_id).values(

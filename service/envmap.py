@@ -1,22 +1,25 @@
 """Environment maps clients upload for relighting: a readable OpenEXR or Radiance HDR image,
-equirectangular (width = 2 x height), every pixel finite. Anything else is refused with what is
-wrong, before it is stored."""
+equirectangular (width = 2 x height), RGB radiance that is finite, not negative and not all
+zero: what a render job would refuse later (core.relight.envmap) is refused here, before it is
+stored. The header is read first (core.data.headers), so an empty, truncated, wrong-format or
+too large file is refused before any decoding."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 __all__ = ["CONTENT_TYPES", "EnvmapError", "EnvmapInfo", "inspect_envmap"]
 
 CONTENT_TYPES = {".exr": "image/x-exr", ".hdr": "image/vnd.radiance"}
-HDR_MAGIC = (b"#?RADIANCE", b"#?RGBE")
 
 
 class EnvmapError(ValueError):
-    """The file is not a usable environment map; the message says why."""
+    """The file `name` is not a usable environment map; `problem` says why (no server path)."""
+
+    def __init__(self, name: str, problem: str):
+        super().__init__(f"{name}: {problem}")
+        self.name, self.problem = name, problem
 
 
 @dataclass(frozen=True)
@@ -26,40 +29,22 @@ class EnvmapInfo:
     channels: int
 
 
-def _read_exr(path: Path) -> np.ndarray:
-    from core.data.images import ImageReadError, read_image
+def inspect_envmap(path: Path, name: str, max_pixels: int) -> EnvmapInfo:
+    """Decode the whole image at `path`, known to the client as `name`, and check it
+    (EnvmapError naming `name` otherwise)."""
+    from core.data.images import ImageReadError
+    from core.relight.envmap import check_radiance, read_envmap
 
-    try:
-        return read_image(path)
-    except ImageReadError as exc:
-        raise EnvmapError(f"not a readable OpenEXR file ({exc.message})") from None
-
-
-def _read_hdr(path: Path) -> np.ndarray:
-    import cv2
-
-    with open(path, "rb") as f:
-        head = f.read(16)
-    if not head.startswith(HDR_MAGIC):
-        raise EnvmapError("not a Radiance HDR file (it must start with '#?RADIANCE')")
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise EnvmapError("the Radiance HDR file cannot be decoded (truncated or corrupt?)")
-    return image.reshape(image.shape[0], image.shape[1], -1)
-
-
-def inspect_envmap(path: Path, suffix: str) -> EnvmapInfo:
-    """Decode the whole image and check it (EnvmapError otherwise)."""
+    suffix = Path(name).suffix.lower()
     if suffix not in CONTENT_TYPES:
-        raise EnvmapError(f"unsupported file type {suffix!r}; send .exr or .hdr")
-    image = _read_exr(path) if suffix == ".exr" else _read_hdr(path)
+        raise EnvmapError(name, f"unsupported file type {suffix!r}; send .exr or .hdr")
+    try:
+        image = read_envmap(path, max_pixels)
+    except ImageReadError as exc:
+        raise EnvmapError(name, exc.message) from None
+    try:
+        check_radiance(image, name)
+    except ValueError as exc:  # "envmap: <name>: <problem>"
+        raise EnvmapError(name, str(exc).split(f"{name}: ", 1)[-1]) from None
     height, width, channels = image.shape
-    if channels < 3:
-        raise EnvmapError(f"has {channels} channel(s); an environment map needs RGB")
-    if width != 2 * height:
-        raise EnvmapError(f"is {width}x{height}; an equirectangular map is twice as wide as "
-                          "it is high")
-    bad = int(np.count_nonzero(~np.isfinite(image[..., :3])))
-    if bad:
-        raise EnvmapError(f"has {bad} non-finite values (NaN or infinity)")
     return EnvmapInfo(int(width), int(height), int(channels))

@@ -5,6 +5,7 @@ FastAPI's validation errors, Starlette's 404/405 and any unhandled exception (50
 from __future__ import annotations
 
 import logging
+import sys
 from typing import Any
 
 from fastapi import FastAPI, Request
@@ -91,8 +92,26 @@ async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
     return _respond(request, exc)
 
 
+def _body_problem(cause: BaseException) -> str:
+    """Why FastAPI could not parse a JSON body (it answers only "There was an error parsing
+    the body" and keeps the reason as the exception's cause)."""
+    if isinstance(cause, UnicodeDecodeError):
+        return (f"body: not UTF-8 text (byte {cause.start} is {cause.object[cause.start]:#04x});"
+                " send JSON encoded as UTF-8")
+    if isinstance(cause, RecursionError):
+        return "body: the JSON is nested too deeply to parse"
+    if isinstance(cause, ValueError) and "integer string conversion" in str(cause):
+        return f"body: a JSON number has more than {sys.get_int_max_str_digits()} digits"
+    return f"body: not valid JSON ({cause})"
+
+
 async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
     message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
+    if exc.status_code == 400 and exc.__cause__ is not None and \
+            message == "There was an error parsing the body":
+        problem = _body_problem(exc.__cause__)
+        return _respond(request, ApiError(422, problem, details=[
+            {"path": "body", "message": problem.removeprefix("body: ")}]))
     if exc.status_code == 404 and message == "Not Found":
         message = f"no such endpoint: {request.method} {request.url.path}"
     headers = dict(exc.headers or {})
@@ -118,9 +137,16 @@ def _where(loc: tuple[Any, ...] | list[Any]) -> str:
     return ".".join(str(part) for part in loc)
 
 
+def _detail(error: dict[str, Any]) -> dict[str, str]:
+    if error.get("type") == "json_invalid":  # loc is ("body", character offset)
+        where = error.get("loc", ("body", "?"))[-1]
+        reason = (error.get("ctx") or {}).get("error", "JSON decode error")
+        return {"path": "body", "message": f"not valid JSON at character {where}: {reason}"}
+    return {"path": _where(error.get("loc", ())), "message": error.get("msg", "invalid")}
+
+
 async def _validation_error(request: Request, exc: RequestValidationError) -> JSONResponse:
-    details = [{"path": _where(e.get("loc", ())), "message": e.get("msg", "invalid")}
-               for e in exc.errors()]
+    details = [_detail(e) for e in exc.errors()]
     first = details[0] if details else {"path": "", "message": "invalid request"}
     more = f" (and {len(details) - 1} more)" if len(details) > 1 else ""
     return _respond(request, ApiError(422, f"{first['path']}: {first['message']}{more}",

@@ -255,6 +255,8 @@ class LimitsOut(BaseModel):
     max_archive_members: int
     max_asset_bytes: int
     max_json_bytes: int
+    max_image_pixels: int = Field(description="Largest image (width x height) accepted in a "
+                                              "capture or as an environment map.")
 
 
 class TusOut(BaseModel):

@@ -46,11 +46,10 @@ def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
         return 2
     app = create_app(settings)
     services = app.state.services
-    from worker.supervise import EmbeddedWorker, job_sender
-    from worker.sweeper import Sweeper
+    from worker.supervise import EmbeddedWorker, make_sweeper
 
-    sweeper = Sweeper(settings, job_sender(services.celery, settings), store=services.store,
-                      blobs=services.blobs).start()
+    sweeper = make_sweeper(services.celery, settings, store=services.store,
+                           blobs=services.blobs).start()
     embedded = None
     if worker and settings.embedded_broker:
         embedded = EmbeddedWorker(settings, env=worker_env(settings)).start()

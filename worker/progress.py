@@ -2,10 +2,12 @@
 latest progress and log lines every `heartbeat_seconds`, and watches for a cancel.
 
 The training loop only updates in-memory state (`update`, `log`) and asks `should_stop()` after
-each step, so it never waits on the database. A cancel (or a lost lease) sets the stop flag;
-the loop then stops at its next step. If it has not stopped `cancel_grace_seconds` later (a
-long native call), the heartbeat thread records the cancel and ends its own process: the
-worker is freed within seconds either way.
+each step, so it never waits on the database. Updates between two heartbeats are coalesced into
+one progress event, except milestones (a frame's start and end, any change of frame): each of
+those becomes an event of its own, however fast the frames go. A cancel (or a lost lease) sets
+the stop flag; the loop then stops at its next step. If it has not stopped
+`cancel_grace_seconds` later (a long native call), the heartbeat thread records the cancel and
+ends its own process: the worker is freed within seconds either way.
 """
 
 from __future__ import annotations
@@ -37,6 +39,9 @@ class JobLink:
         self._lock = threading.Lock()
         self._logs: list[str] = []
         self._pending: dict[str, Any] | None = None
+        self._milestones: list[dict[str, Any]] = []
+        """Progress states each written as an event of its own at the next heartbeat."""
+        self._frame = job.frame
         self._fraction = job.fraction
         self._start = (time.monotonic(), job.fraction)
         self._cancel_seen: float | None = None
@@ -54,10 +59,13 @@ class JobLink:
         with self._lock:
             self._logs.append(f"{stamp} {line}")
 
-    def update(self, *, fraction: float, **fields: Any) -> None:
+    def update(self, *, fraction: float, milestone: bool = False, **fields: Any) -> None:
         """New progress (stage, frame, frames, iteration, iterations, message): kept in memory,
-        written by the next heartbeat. The fraction never goes back; the ETA extrapolates the
-        rate of this run (a resumed job measures its own speed, not the lost worker's)."""
+        written by the next heartbeat. A `milestone`, and any update that changes the frame, is
+        never merged with later updates: it becomes an event of its own (a client watching for
+        frame 2 sees frame 2 even when it took less than a heartbeat). The fraction never goes
+        back; the ETA extrapolates the rate of this run (a resumed job measures its own speed,
+        not the lost worker's)."""
         now = time.monotonic()
         with self._lock:
             self._fraction = max(self._fraction, min(float(fraction), 1.0))
@@ -68,6 +76,10 @@ class JobLink:
                 eta = round((now - t0) / done * (1.0 - self._fraction), 1)
             self._pending = {**(self._pending or {}), **fields, "fraction": self._fraction,
                              "eta_s": eta}
+            if milestone or fields.get("frame", self._frame) != self._frame:
+                self._milestones.append(self._pending)
+                self._pending = None
+            self._frame = fields.get("frame", self._frame)
 
     def should_stop(self) -> bool:
         return self.stop.is_set()
@@ -84,12 +96,13 @@ class JobLink:
         with self._lock:
             logs, self._logs = self._logs, []
             progress, self._pending = self._pending, None
+            milestones, self._milestones = self._milestones, []
         if logs:
             self.store.append_logs(self.job_id, logs)
         if self.lost:
             return False, False
         return self.store.heartbeat(self.job_id, self.owner, self.settings.lease_seconds,
-                                    progress)
+                                    progress, milestones=milestones)
 
     def _run(self) -> None:
         while not self._done.wait(self.settings.heartbeat_seconds):

@@ -121,7 +121,8 @@ class ReconstructJob:
                      if event.phase != "key" else STAGES.get(event.stage, ""))
             link.update(fraction=fraction, stage=stage, frame=event.frame_index + 1,
                         frames=event.frames, iteration=event.step, iterations=event.iterations,
-                        message=f"frame {event.frame} ({event.gaussians} Gaussians)")
+                        message=f"frame {event.frame} ({event.gaussians} Gaussians)",
+                        milestone=event.kind in ("frame_start", "frame_done"))
             if event.kind == "frame_start":
                 link.log(f"frame {event.frame} ({event.frame_index + 1}/{event.frames}) from "
                          f"step {event.step}")

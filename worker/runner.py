@@ -8,6 +8,7 @@ publishing a folder's files as typed artifacts under jobs/<id>/artifacts/.
 
 from __future__ import annotations
 
+import shutil
 import signal
 import threading
 import traceback
@@ -22,6 +23,8 @@ from worker.blobs import BlobStore, open_store
 from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
+from worker.redact import SERVER, redact
+from worker.scratch import job_folder, mark
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
 
@@ -32,9 +35,20 @@ __all__ = ["Execution", "JobStopped", "Outcome", "Runner"]
 class Outcome:
     status: str
     """What happened: succeeded, failed, cancelled, released (back in the queue: this worker
-    is shutting down), lost (lease taken away), leased, terminal, missing, exhausted."""
-    retry_in: float | None = None
-    """Seconds after which the task should try again (another worker holds the lease)."""
+    is shutting down), lost (lease taken away), or, for a message that found nothing to do,
+    leased (another live worker runs the job), terminal (it has ended), missing (deleted),
+    exhausted (the redelivery cap was reached: the job failed)."""
+    note: str = ""
+    """Why nothing was done, for the worker's log."""
+
+
+_DROPPED = {
+    "leased": "it is running on {job.lease_owner} (lease renewed, {left:.0f} s left); this "
+              "duplicate message is dropped",
+    "terminal": "it has ended ({job.state}); this duplicate message is dropped",
+    "missing": "it was deleted; its message is dropped",
+    "exhausted": "its worker was lost {job.attempts} times; it failed (worker_lost)",
+}
 
 
 class JobStopped(Exception):
@@ -81,6 +95,9 @@ class Runner:
 
     def __init__(self, settings: WorkerSettings, store: JobStore | None = None,
                  blobs: BlobStore | None = None):
+        from core.data.headers import set_default_max_pixels
+
+        set_default_max_pixels(settings.max_image_pixels)  # every image core decodes here
         self.settings = settings
         self.store = store or JobStore(settings.database)
         self.blobs = blobs or open_store(settings.storage, endpoint_url=settings.s3_endpoint_url,
@@ -89,19 +106,26 @@ class Runner:
         """Artifact paths already published, with the (size, mtime) their file had."""
 
     def run(self, job_id: str) -> Outcome:
+        """Claim and run the job. A message for a job that another live worker runs, that has
+        ended or was deleted (a duplicate delivery: a sweeper re-sent it, the broker delivered
+        it twice) finds nothing to do and is dropped: if the running worker dies, its lease
+        expires and a sweeper sends the job again."""
         s = self.settings
         owner = Owner.current()
         claim = self.store.claim(job_id, owner, s.lease_seconds, s.max_attempts)
-        if claim.status == "leased":
-            return Outcome("leased", retry_in=max(1.0, min(claim.retry_in + 1.0, s.lease_seconds)))
         if claim.status != "claimed":
-            return Outcome(claim.status)
+            return Outcome(claim.status, _DROPPED[claim.status].format(
+                job=claim.job, left=claim.retry_in))
+        mark(s.scratch, job_id, owner)
         link = JobLink(self.store, claim.job, owner, s).start()
         try:
             with _stop_on_sigterm(link):
-                return self._execute(claim.job, link)
+                outcome = self._execute(claim.job, link)
         finally:
             link.close()
+        if outcome.status in ("succeeded", "failed", "cancelled"):
+            shutil.rmtree(job_folder(s.scratch, job_id), ignore_errors=True)
+        return outcome
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
         from worker.reconstruct_job import ReconstructJob
@@ -150,21 +174,37 @@ class Runner:
         from billiard.exceptions import SoftTimeLimitExceeded
         from pydantic import ValidationError
 
+        roots = self._client_roots(job, link)
         if isinstance(exc, SoftTimeLimitExceeded):
             error = {"code": "time_limit", "retryable": True,
                      "message": f"the job reached its time limit; {retry_note}"}
         elif isinstance(exc, (ValueError, ValidationError)):  # CaptureError is a ValueError
             error = {"code": "invalid_input", "retryable": False,
-                     "message": str(exc).replace("\n", " ")[:2000]}
+                     "message": redact(str(exc).replace("\n", " "), roots)[:2000]}
         else:
             error = {"code": "internal", "retryable": True,
-                     "message": f"{type(exc).__name__}: {exc}"[:2000]}
+                     "message": redact(f"{type(exc).__name__}: {exc}", roots)[:2000]}
             for line in traceback.format_exc().splitlines():
-                link.log(line)
+                link.log(redact(line, roots))
         link.log(f"failed: {error['message']}")
         link.close()
         self.store.finish(job.id, link.owner, "failed", error, error["message"][:512])
         return Outcome("failed")
+
+    def _client_roots(self, job: Job, link: JobLink) -> list[tuple[Path | None, str]]:
+        """How the folders of this machine that a failure may name are shown to the client
+        (worker.redact): files of the capture relative to it, the job's own folders
+        relative to them, anything else of the data or scratch folder as <server>."""
+        s, scratch = self.settings, self.settings.scratch
+        jobs = scratch / "jobs" / job.id
+        roots: list[tuple[Path | None, str]] = [
+            (jobs / "run", ""), (jobs / f"relight-{link.owner.token}" / "envmap", ""),
+            (jobs / f"relight-{link.owner.token}", ""), (jobs, ""),
+            (scratch, SERVER), (s.data_dir, SERVER)]
+        if job.capture_id is not None:
+            roots += [(self.blobs.local_path(f"captures/{job.capture_id}"), ""),
+                      (scratch / "captures" / job.capture_id, "")]
+        return roots
 
     # -- inputs -------------------------------------------------------------------------------
     def capture(self, job: Job, link: JobLink) -> Path:

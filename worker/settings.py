@@ -15,6 +15,8 @@ from pathlib import Path
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from core.data.headers import DEFAULT_MAX_PIXELS
+
 # A model the operator offers by name (not an asset id, which starts with "ast_").
 MODEL_NAME = r"^(?!ast_)[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 
@@ -69,9 +71,15 @@ class WorkerSettings(BaseSettings):
     cancel_grace_seconds: float = Field(5.0, gt=0)
     """After a cancel, how long a worker waits for the job to stop between two steps before it
     ends its own process."""
+    lost_message_seconds: float = Field(120.0, gt=0)
+    """How often the sweepers look into the broker (Redis or the embedded one) for queued jobs
+    whose message is gone (lost with a worker that died holding it, or with Redis's data), and
+    send those again. A message delivered to a worker this long ago (and at least a lease ago)
+    whose job is still queued counts as gone too. Jobs that merely wait behind others are never
+    sent twice."""
     requeue_after_seconds: float = Field(6 * 3600.0, gt=0)
-    """A queued job never picked up for this long is sent to the broker again (a message lost
-    with a worker that died holding it)."""
+    """Only for a broker the sweepers cannot look into (neither Redis nor the embedded one): a
+    queued job last sent this long ago is sent again."""
     reconstruct_soft_limit_seconds: float = Field(48 * 3600.0, gt=0)
     """Soft time limit of a reconstruction job (it fails cleanly, checkpoint kept)."""
     relight_soft_limit_seconds: float = Field(2 * 3600.0, gt=0)
@@ -79,6 +87,10 @@ class WorkerSettings(BaseSettings):
     far shorter than a reconstruction; a long sequence's orbit may want more."""
     hard_limit_margin_seconds: float = Field(600.0, gt=0)
     """The hard limit (process killed) is the soft limit plus this margin."""
+    max_image_pixels: int = Field(DEFAULT_MAX_PIXELS, ge=1)
+    """Largest image (width x height) the API and the workers decode: capture images, masks,
+    normal maps and environment maps. Checked from the file's header before any decoding, so
+    a 20000 x 20000 PNG is refused in microseconds (the default passes a 16384 x 8192 map)."""
     retention_days: float | None = None
     """Default lifetime of captures, jobs and assets (expires_at); None keeps them until
     deleted. Expiry is shown on every object and logged when it happens."""

@@ -95,9 +95,9 @@ class Claim:
     """The outcome of `JobStore.claim`."""
 
     status: Literal["claimed", "leased", "terminal", "missing", "exhausted"]
-    """claimed: run it; leased: another live worker holds it (try again in `retry_in`);
-    terminal: it finished or was cancelled meanwhile; missing: deleted; exhausted: the
-    redelivery cap was reached (the job is now failed)."""
+    """claimed: run it; leased: another live worker holds it (for `retry_in` more seconds,
+    and longer while it renews); terminal: it finished or was cancelled meanwhile; missing:
+    deleted; exhausted: the redelivery cap was reached (the job is now failed)."""
     job: Job | None = None
     retry_in: float = 0.0
 
@@ -258,21 +258,25 @@ class JobStore:
             return Claim("claimed", job)
 
     def heartbeat(self, job_id: str, owner: Owner, lease_seconds: float,
-                  progress: dict[str, Any] | None = None) -> tuple[bool, bool]:
-        """Renew the lease and write `progress` (fraction never decreases; an event is appended
-        when progress is given). Returns (still the owner, cancel requested)."""
+                  progress: dict[str, Any] | None = None, *,
+                  milestones: Sequence[dict[str, Any]] = ()) -> tuple[bool, bool]:
+        """Renew the lease and write each of `milestones`, then `progress` (fraction never
+        decreases; each appends an event, in that order). Returns (still the owner, cancel
+        requested)."""
         with self.session() as s:
             job = s.get(Job, job_id, with_for_update=True)
             if job is None or job.lease_owner != str(owner) or job.state != "running":
                 return False, bool(job is None or job.cancel_requested)
             job.lease_expires_at = utcnow() + dt.timedelta(seconds=lease_seconds)
-            if progress:
-                fraction = float(progress.get("fraction", job.fraction))
+            for state in [*milestones, progress]:
+                if not state:
+                    continue
+                fraction = float(state.get("fraction", job.fraction))
                 for key in ("stage", "frame", "frames", "iteration", "iterations", "message"):
-                    if key in progress:
-                        setattr(job, key, progress[key])
+                    if key in state:
+                        setattr(job, key, state[key])
                 job.fraction = min(1.0, max(job.fraction, fraction))
-                job.eta_s = progress.get("eta_s", job.eta_s)
+                job.eta_s = state.get("eta_s", job.eta_s)
                 self._event(s, job.id, "progress", progress_of(job))
             return True, job.cancel_requested
 
@@ -358,29 +362,44 @@ class JobStore:
                                   .order_by(JobLog.seq).limit(limit)))
 
     # -- housekeeping ------------------------------------------------------------------------
-    def stranded(self, *, requeue_after: float) -> list[str]:
-        """Jobs whose worker is gone: running with an expired lease, or queued and never
-        dispatched (released by a worker that shut down) or last dispatched more than
-        `requeue_after` seconds ago."""
+    def stranded(self, *, held: set[str] | None = None, grace: float = 0.0,
+                 requeue_after: float | None = None) -> dict[str, str]:
+        """Jobs that no worker has and no message will bring to one, with why: running with
+        an expired lease; queued and never sent (released by a worker that shut down, or the
+        broker was away when it was made); with `held` (the jobs the broker holds a message
+        for, worker.broker), queued, sent more than `grace` seconds ago and not held; with
+        `requeue_after` (for a broker that cannot be inspected), queued and last sent longer
+        ago than that."""
         now = utcnow()
+        out: dict[str, str] = {}
         with self.session(write=False) as s:
-            running = select(Job.id).where(
-                Job.state == "running",
-                (Job.lease_owner.is_(None)) | (Job.lease_expires_at < now))
-            queued = select(Job.id).where(
-                Job.state == "queued", Job.lease_owner.is_(None),
-                (Job.dispatched_at.is_(None))
-                | (Job.dispatched_at < now - dt.timedelta(seconds=requeue_after)))
-            return list(s.scalars(running)) + list(s.scalars(queued))
+            for job_id, owner in s.execute(select(Job.id, Job.lease_owner).where(
+                    Job.state == "running",
+                    (Job.lease_owner.is_(None)) | (Job.lease_expires_at < now))):
+                out[job_id] = f"its worker ({owner}) stopped renewing its lease"
+            for job_id, sent in s.execute(select(Job.id, Job.dispatched_at).where(
+                    Job.state == "queued", Job.lease_owner.is_(None))):
+                if sent is None:
+                    out[job_id] = ("it was never sent to the broker (released by a worker that "
+                                   "shut down, or the broker was away)")
+                elif held is not None and job_id not in held and \
+                        sent < now - dt.timedelta(seconds=grace):
+                    out[job_id] = "it is queued, but its message is no longer in the broker"
+                elif requeue_after is not None and \
+                        sent < now - dt.timedelta(seconds=requeue_after):
+                    out[job_id] = (f"it has been queued for more than {requeue_after:.0f} s "
+                                   "(this broker cannot be inspected)")
+        return out
 
-    def redispatch_stranded(self, send: Callable[[str], None], *, requeue_after: float,
-                            min_gap: float) -> list[str]:
-        """Send every stranded job to the broker again (at most once per `min_gap` seconds per
-        job, whoever else sweeps); returns the ids sent."""
-        sent = []
+    def redispatch_stranded(self, send: Callable[[str], None], *, min_gap: float,
+                            **stranded: Any) -> dict[str, str]:
+        """Send every stranded job (`stranded(**stranded)`) to the broker again, at most once
+        per `min_gap` seconds per job whoever else sweeps; returns {job id: why} of those
+        sent."""
+        sent = {}
         before = utcnow() - dt.timedelta(seconds=min_gap)
-        for job_id in self.stranded(requeue_after=requeue_after):
+        for job_id, why in self.stranded(**stranded).items():
             if self.mark_dispatched(job_id, before=before):
                 send(job_id)
-                sent.append(job_id)
+                sent[job_id] = why
         return sent

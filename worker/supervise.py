@@ -19,10 +19,20 @@ from celery import Celery
 from worker.celery_app import dispatch
 from worker.settings import WorkerSettings, get_settings
 from worker.store import JobStore
+from worker.sweeper import Sweeper
 
-__all__ = ["EmbeddedWorker", "job_sender", "run_worker"]
+__all__ = ["EmbeddedWorker", "job_sender", "make_sweeper", "run_worker"]
 
 log = logging.getLogger("dgs.worker")
+
+
+def make_sweeper(app: Celery, settings: WorkerSettings, **kwargs) -> Sweeper:
+    """The sweeper of a process: it sends jobs with `app` and looks into its broker for the
+    messages of queued jobs (worker.broker)."""
+    from worker.broker import BrokerInspector
+
+    return Sweeper(settings, job_sender(app, settings),
+                   held=BrokerInspector(app, settings).held_jobs, **kwargs)
 
 
 def job_sender(app: Celery, settings: WorkerSettings) -> Callable[[str], None]:
@@ -48,9 +58,7 @@ def run_worker(*, concurrency: int = 1, loglevel: str = "INFO", hostname: str | 
     from worker.app import app
 
     if sweeper:
-        from worker.sweeper import Sweeper
-
-        _RUNNING["sweeper"] = Sweeper(settings, job_sender(app, settings)).start()
+        _RUNNING["sweeper"] = make_sweeper(app, settings).start()
     from celery.signals import worker_shutting_down
 
     worker_shutting_down.connect(_drain, weak=False)

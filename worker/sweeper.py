@@ -1,12 +1,16 @@
-"""Housekeeping that keeps the queue honest: re-send jobs whose worker was lost, and delete what
-has expired (explicit `expires_at` only; every deletion is logged).
+"""Housekeeping that keeps the queue honest: re-send jobs that no message will bring to a worker,
+delete what has expired (explicit `expires_at` only; every deletion is logged), and remove the
+scratch folders of jobs this machine's workers no longer run.
 
 A worker killed outright (SIGKILL of the whole worker, a machine gone) may take its broker
 message with it: the SQLite transport hides a delivered message until it is acknowledged, Redis
 until its visibility timeout (days). The job store knows better: a running job whose lease has
-expired has no worker. The sweeper sends such jobs to the broker again; the lease makes a
-duplicate message harmless. Any number of sweepers may run (API processes, workers):
-`JobStore.mark_dispatched` lets one of them send.
+expired has no worker, and is sent again at once (every `interval`, a quarter lease). A queued
+job is sent again only when its message is really gone: every `lost_message_seconds` the
+sweeper asks the broker which jobs it still holds a message for (worker.broker); one that merely
+waits behind others is never sent twice. The lease makes any duplicate harmless (the worker
+that receives it drops it, worker.runner). Any number of sweepers may run (API processes,
+workers): `JobStore.mark_dispatched` lets one of them send.
 """
 
 from __future__ import annotations
@@ -14,42 +18,73 @@ from __future__ import annotations
 import logging
 import shutil
 import threading
+import time
 from collections.abc import Callable
 
 from sqlalchemy import select, update
 
 from worker.blobs import BlobStore, open_store
 from worker.models import Asset, Capture, Job, utcnow
+from worker.scratch import clean_job_folders
 from worker.settings import WorkerSettings
 from worker.store import ACTIVE, TERMINAL, JobStore
 
 __all__ = ["Sweeper"]
 
 log = logging.getLogger("dgs.sweeper")
+HeldJobs = Callable[[float], "set[str] | None"]
 
 
 class Sweeper:
-    """`sweep()` once, or `start()` a daemon thread that sweeps every `interval` seconds."""
+    """`sweep()` once, or `start()` a daemon thread that sweeps every `interval` seconds.
+
+    `held(grace)` answers the jobs the broker holds a message for (worker.broker's
+    `BrokerInspector.held_jobs`), or None for a broker that cannot be inspected; without it,
+    queued jobs are sent again after `requeue_after_seconds`."""
 
     def __init__(self, settings: WorkerSettings, send: Callable[[str], None], *,
                  store: JobStore | None = None, blobs: BlobStore | None = None,
-                 interval: float | None = None):
-        self.settings, self.send = settings, send
+                 interval: float | None = None, held: HeldJobs | None = None):
+        self.settings, self.send, self.held = settings, send, held
         self.store = store or JobStore(settings.database)
         self.blobs = blobs or open_store(settings.storage, endpoint_url=settings.s3_endpoint_url,
                                          region=settings.s3_region)
         self.interval = interval if interval is not None else max(settings.lease_seconds / 4, 1.0)
+        self._next_check = 0.0
+        """When (time.monotonic) the broker is looked into next."""
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     def sweep(self) -> dict[str, list[str]]:
-        """One pass: re-sent job ids and expired objects."""
+        """One pass: re-sent job ids, expired objects, removed scratch folders."""
         s = self.settings
-        sent = self.store.redispatch_stranded(self.send, requeue_after=s.requeue_after_seconds,
+        held, requeue_after = None, s.requeue_after_seconds
+        due = time.monotonic() >= self._next_check
+        # A worker claims a job the moment it takes its message; one that has not after a
+        # lease (it is presumed dead by then anyway) or a check interval lost it.
+        grace = max(s.lost_message_seconds, s.lease_seconds)
+        if self.held is not None:
+            requeue_after = None
+            if due:
+                try:
+                    held = self.held(grace)
+                except Exception as exc:  # the broker is briefly away: at the next pass
+                    log.warning("could not look into the broker (%s: %s); trying again in "
+                                "%.0f s", type(exc).__name__, exc, self.interval)
+                    due = False
+                else:
+                    if held is None:  # this broker cannot be inspected: the age rule
+                        requeue_after = s.requeue_after_seconds
+        sent = self.store.redispatch_stranded(self.send, held=held, grace=grace,
+                                              requeue_after=requeue_after,
                                               min_gap=s.lease_seconds)
-        for job_id in sent:
-            log.warning("job %s: its worker is gone; sent to the queue again", job_id)
-        return {"redispatched": sent, **self.expire()}
+        for job_id, why in sent.items():
+            log.warning("job %s: sent to the queue again: %s", job_id, why)
+        cleaned = []
+        if due:
+            self._next_check = time.monotonic() + s.lost_message_seconds
+            cleaned = clean_job_folders(self.store, s.scratch)
+        return {"redispatched": list(sent), "scratch": cleaned, **self.expire()}
 
     def expire(self) -> dict[str, list[str]]:
         """Delete jobs (finished ones no active job renders from), captures (no active job on
@@ -105,8 +140,12 @@ class Sweeper:
             self._thread.join(timeout=10)
 
     def _loop(self) -> None:
-        while not self._stop.wait(self.interval):
+        """A pass at once (what a worker killed before this start left: scratch folders,
+        jobs to send), then every `interval`."""
+        while True:
             try:
                 self.sweep()
-            except Exception:  # the database or broker is briefly away: try at the next pass
+            except Exception:  # the database is briefly away: try at the next pass
                 log.exception("sweep failed; retrying in %.0f s", self.interval)
+            if self._stop.wait(self.interval):
+                return

@@ -2,20 +2,25 @@
 
 from __future__ import annotations
 
+import logging
+
 from worker.app import app
 from worker.celery_app import TASK_NAME
 from worker.settings import get_settings
 
 __all__ = ["run_job"]
 
+log = logging.getLogger("dgs.worker")
 
-@app.task(name=TASK_NAME, bind=True, acks_late=True, reject_on_worker_lost=True)
-def run_job(self, job_id: str) -> str:
-    """Run job `job_id` to its end (idempotent: a job finished, cancelled or run by another
-    worker is left alone). A job leased by a live worker is tried again when the lease ends."""
+
+@app.task(name=TASK_NAME, acks_late=True, reject_on_worker_lost=True)
+def run_job(job_id: str) -> str:
+    """Run job `job_id` to its end (idempotent: a message for a job that has ended, was
+    deleted or runs on another live worker finds nothing to do, says so in the log and is
+    acknowledged; no retry, no traceback)."""
     from worker.runner import Runner
 
     outcome = Runner(get_settings()).run(job_id)
-    if outcome.retry_in is not None:
-        raise self.retry(countdown=outcome.retry_in, max_retries=None)
+    if outcome.note:
+        log.info("job %s: %s", job_id, outcome.note)
     return outcome.status

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from core.cli import command_help
@@ -56,14 +57,16 @@ def _import(args: argparse.Namespace) -> int:
 def _validate(args: argparse.Namespace) -> int:
     problems = validate_capture(args.capture)
     if problems:
-        _print_problems(f"{args.capture} is not a valid capture", problems)
+        _print_problems(f"{args.capture} is not a valid capture", problems, args.capture)
         return 1
     capture = load_capture(args.capture)
     print(f"{args.capture}: valid ({len(capture.cameras)} cameras x {len(capture.frames)} frames)")
     return 0
 
 
-def _print_problems(title: str, problems: list) -> None:
+def _print_problems(title: str, problems: list, root: str = "") -> None:
+    """Each problem with its file; validation names files inside the capture relatively, so
+    they are shown under `root`."""
     print(f"dgs: {title}: {len(problems)} problem(s)", file=sys.stderr)
     for p in problems:
-        print(f"  {p.path}: {p.message}", file=sys.stderr)
+        print(f"  {os.path.join(root, p.path)}: {p.message}", file=sys.stderr)

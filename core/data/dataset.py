@@ -29,6 +29,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -120,7 +121,7 @@ class CaptureDataset(torch.utils.data.Dataset):
         self.frames = list(frames) if frames is not None else list(capture.frames)
         missing = [f for f in self.frames if f not in capture.frames]
         if missing:
-            raise ValueError(f"frames: not in capture {capture.root}: {missing}")
+            raise ValueError(f"frames: not in the capture: {missing}")
         ids = list(cameras) if cameras is not None else [c.id for c in capture.cameras]
         self.cameras = [capture.camera(i) for i in ids]
         self.downscale = float(downscale)
@@ -176,14 +177,13 @@ class CaptureDataset(torch.utils.data.Dataset):
         view = self.capture.view(frame, cam.id)
         if view.image is None:
             raise ImageReadError(
-                self.capture.root / "images" / frame / f"{cam.id}.png",
-                "missing image (run dgs capture validate)",
+                f"images/{frame}/{cam.id}.png", "missing image (run dgs capture validate)"
             )
-        raw = read_image(view.image)
+        raw = self._read(view.image)
         image = _to_rgb(raw)
         mask = None
         if view.mask is not None:
-            mask = read_image(view.mask)[:, :, :1]
+            mask = self._read(view.mask)[:, :, :1]
         elif raw.shape[2] in (2, 4):
             mask = raw[:, :, -1:].copy()
         normal = self._read_normal(view.normal, cam) if view.normal is not None else None
@@ -196,10 +196,23 @@ class CaptureDataset(torch.utils.data.Dataset):
             normal = np.where(norm > 0.1, normal / np.maximum(norm, 1e-6), 0.0).astype(np.float32)
         return image, mask, normal
 
+    def _name(self, path: Path) -> str:
+        """How the capture's author knows a file of it: relative to the capture folder."""
+        root = Path(self.capture.root)
+        return path.relative_to(root).as_posix() if path.is_relative_to(root) else str(path)
+
+    def _read(self, path: Path) -> np.ndarray:
+        try:
+            return read_image(path)
+        except ImageReadError as exc:
+            raise exc.named(self._name(path)) from None
+
     def _read_normal(self, path: Any, cam: Camera) -> np.ndarray:
-        raw = read_image(path)
+        raw = self._read(path)
         if raw.shape[2] < 3:
-            raise ImageReadError(path, f"normal map needs 3 channels, got {raw.shape[2]}")
+            raise ImageReadError(
+                self._name(path), f"normal map needs 3 channels, got {raw.shape[2]}"
+            )
         n = raw[:, :, :3]
         if path.suffix.lower() != ".exr":
             n = n * 2.0 - 1.0

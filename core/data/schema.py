@@ -29,9 +29,23 @@ __all__ = [
     "load_capture",
     "parse_camera",
     "parse_capture_json",
+    "read_json",
 ]
 
 _ROTATION_TOL = 1e-4
+
+
+def read_json(path: Path) -> Any:
+    """The JSON document in ``path``; ValueError saying what is wrong (never naming the path:
+    callers name the file) when it cannot be read, is not UTF-8, not JSON, or nested too deeply
+    for the parser."""
+    try:
+        return json.loads(Path(path).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+        raise ValueError(f"cannot parse JSON: {text}") from None
+    except RecursionError:
+        raise ValueError("cannot parse JSON: nested too deeply") from None
 
 
 def load_capture(root: str | os.PathLike[str]) -> Capture:
@@ -43,9 +57,9 @@ def load_capture(root: str | os.PathLike[str]) -> Capture:
             [Problem(str(path), "capture.json not found (is this a capture folder?)")]
         )
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise CaptureError([Problem(str(path), f"cannot parse capture.json: {exc}")]) from None
+        data = read_json(path)
+    except ValueError as exc:
+        raise CaptureError([Problem(str(path), f"capture.json: {exc}")]) from None
     capture, problems = parse_capture_json(data, root)
     if problems or capture is None:
         raise CaptureError(problems)

@@ -4,11 +4,13 @@ Checks capture.json (schema, intrinsics, rotations, duplicate ids) and then ever
 ``images/``, ``masks/`` and ``normals/``: presence, decodability, size against the camera, file
 type, and that nothing is a symlink or resolves outside the capture folder. ``gt/`` and
 ``source/`` (ground truth and verbatim import sources) are not capture content and are skipped.
+
+Problems name files relative to the capture folder (``images/000000/cam03.png``), the way the
+capture's author knows them, never by where it happens to be on this machine.
 """
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -23,7 +25,7 @@ from core.data.capture import (
     valid_name,
 )
 from core.data.images import ImageReadError, verify_image
-from core.data.schema import parse_capture_json
+from core.data.schema import parse_capture_json, read_json
 
 __all__ = ["check_capture", "validate_capture"]
 
@@ -35,22 +37,36 @@ _CONTENT_DIRS: dict[str, tuple[str, ...]] = {
 _MASK_MODES = {"1", "L", "LA", "I;16", "I", "RGB", "RGBA", "P"}
 
 
-def check_capture(root: str | os.PathLike[str]) -> Capture:
-    """Validate and load; raises :class:`CaptureError` listing every problem found."""
-    capture, problems = _validate(Path(root))
+def check_capture(root: str | os.PathLike[str], *, max_pixels: int | None = None) -> Capture:
+    """Validate and load; raises :class:`CaptureError` listing every problem found. Images of
+    more than ``max_pixels`` pixels (default: core.data.headers' process default) are refused
+    from their header, before they are decoded."""
+    capture, problems = _validate(Path(root), max_pixels)
     if problems or capture is None:
         raise CaptureError(problems)
     return capture
 
 
-def validate_capture(root: str | os.PathLike[str]) -> list[Problem]:
+def validate_capture(
+    root: str | os.PathLike[str], *, max_pixels: int | None = None
+) -> list[Problem]:
     """Every problem with the capture at ``root`` (empty when it is valid). Reads only."""
-    return _validate(Path(root))[1]
+    return _validate(Path(root), max_pixels)[1]
 
 
-def _validate(root: Path) -> tuple[Capture | None, list[Problem]]:
+def _validate(root: Path, max_pixels: int | None) -> tuple[Capture | None, list[Problem]]:
     if not root.is_dir():
         return None, [Problem(str(root), "capture folder not found or not a folder")]
+    capture, problems = _collect(root, max_pixels)
+    prefix = str(root) + os.sep
+    return capture, [
+        Problem(p.path[len(prefix):].replace(os.sep, "/"), p.message)
+        if p.path.startswith(prefix) else p
+        for p in problems
+    ]
+
+
+def _collect(root: Path, max_pixels: int | None) -> tuple[Capture | None, list[Problem]]:
     capture, problems, data = _check_json(root)
     # Cameras whose entry is broken still own their files: check those too (without a size).
     sizes: dict[str, tuple[int, int] | None] = {}
@@ -69,7 +85,7 @@ def _validate(root: Path) -> tuple[Capture | None, list[Problem]]:
         return capture, problems
     for frame in dict.fromkeys(capture.frames):
         for cam_id, size in sizes.items():
-            problems += _check_view(root, frame, cam_id, size)
+            problems += _check_view(root, frame, cam_id, size, max_pixels)
     return capture, problems
 
 
@@ -80,9 +96,9 @@ def _check_json(root: Path) -> tuple[Capture | None, list[Problem], dict]:
     if not path.is_file():
         return None, [Problem(str(path), "capture.json not found (is this a capture folder?)")], {}
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        return None, [Problem(str(path), f"cannot parse capture.json: {exc}")], {}
+        data = read_json(path)
+    except ValueError as exc:
+        return None, [Problem(str(path), f"capture.json: {exc}")], {}
     capture, problems = parse_capture_json(data, root)
     # parse_capture_json names the file relatively; make it point at this capture.
     problems = [Problem(str(path), p.message) for p in problems]
@@ -156,7 +172,9 @@ def _check_entry(
     return []
 
 
-def _check_view(root: Path, frame: str, cam: str, size: tuple[int, int] | None) -> list[Problem]:
+def _check_view(
+    root: Path, frame: str, cam: str, size: tuple[int, int] | None, max_pixels: int | None
+) -> list[Problem]:
     problems: list[Problem] = []
     for sub, exts in _CONTENT_DIRS.items():
         found = [root / sub / frame / f"{cam}{e}" for e in exts]
@@ -180,13 +198,15 @@ def _check_view(root: Path, frame: str, cam: str, size: tuple[int, int] | None) 
         path = found[0]
         if path.is_symlink() or not path.resolve().is_relative_to(root.resolve()):
             continue  # already reported by the tree scan; never read through a link
-        problems += _check_file(path, sub, cam, size)
+        problems += _check_file(path, sub, cam, size, max_pixels)
     return problems
 
 
-def _check_file(path: Path, sub: str, cam: str, size: tuple[int, int] | None) -> list[Problem]:
+def _check_file(
+    path: Path, sub: str, cam: str, size: tuple[int, int] | None, max_pixels: int | None
+) -> list[Problem]:
     try:
-        w, h, mode = verify_image(path)
+        w, h, mode = verify_image(path, max_pixels)
     except ImageReadError as exc:
         return [Problem(str(path), exc.message)]
     problems: list[Problem] = []

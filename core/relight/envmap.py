@@ -24,10 +24,12 @@ import numpy as np
 __all__ = [
     "A_HAT",
     "EnvMap",
+    "check_radiance",
     "equirect_directions",
     "irradiance_sh9",
     "load_envmap",
     "project_sh9",
+    "read_envmap",
     "sh9_basis",
     "up_frame",
 ]
@@ -120,31 +122,25 @@ class EnvMap:
     """(9, 3) radiance SH coefficients in world coordinates."""
 
 
-def _read(path: Path) -> np.ndarray:
+def read_envmap(path: Path, max_pixels: int | None = None) -> np.ndarray:
+    """Decode an .exr or .hdr map (RGB order), header checked first (core.data.images);
+    ImageReadError otherwise, its message without the path."""
     from core.data.images import ImageReadError, read_image
 
-    ext = path.suffix.lower()
-    if not path.is_file():
-        raise ValueError(f"envmap: {path} not found")
-    if ext == ".exr":
-        try:
-            return read_image(path)
-        except ImageReadError as exc:
-            raise ValueError(f"envmap: {path}: not a readable OpenEXR file ({exc.message})") \
-                from None
-    if ext == ".hdr":
-        import cv2
+    path = Path(path)
+    if path.suffix.lower() not in (".exr", ".hdr"):
+        raise ImageReadError(path, f"unsupported file type {path.suffix!r} (expected .exr or "
+                                   ".hdr)")
+    return read_image(path, max_pixels)
 
-        with open(path, "rb") as fh:
-            magic = fh.read(10)
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED) if magic.startswith(
-            (b"#?RADIANCE", b"#?RGBE")) else None
-        if image is None:
-            raise ValueError(f"envmap: {path}: not a readable Radiance HDR file (it must start "
-                             "with '#?RADIANCE' and decode completely)")
-        image = image.reshape(image.shape[0], image.shape[1], -1).astype(np.float32)
-        return image[..., [2, 1, 0]] if image.shape[2] >= 3 else image  # OpenCV reads BGR
-    raise ValueError(f"envmap: {path}: unsupported file type {ext!r} (expected .exr or .hdr)")
+
+def _read(path: Path) -> np.ndarray:
+    from core.data.images import ImageReadError
+
+    try:
+        return read_envmap(path)
+    except ImageReadError as exc:
+        raise ValueError(f"envmap: {path}: {exc.message}") from None
 
 
 def check_radiance(image: np.ndarray, where: str) -> np.ndarray:

@@ -58,12 +58,13 @@ def _suffix(filename: str, kind: str) -> str:
     return suffix
 
 
-def _inspect(tmp: Path, kind: str, suffix: str) -> tuple[dict, str]:
-    """(metadata, content type) of an uploaded file of `kind`; ValueError saying what is
-    wrong with it."""
+def _inspect(services: Services, tmp: Path, kind: str, filename: str,
+             suffix: str) -> tuple[dict, str]:
+    """(metadata, content type) of an uploaded file of `kind`; EnvmapError or ModelFileError
+    saying what is wrong with it."""
     if kind == MODEL_KIND:
         return inspect_model(tmp, suffix), MODEL_CONTENT_TYPES[suffix]
-    info = inspect_envmap(tmp, suffix)
+    info = inspect_envmap(tmp, filename, services.settings.max_image_pixels)
     return ({"width": info.width, "height": info.height, "channels": info.channels},
             CONTENT_TYPES[suffix])
 
@@ -95,8 +96,11 @@ async def upload_asset(request: Request, services: ServicesDep, tenant: TenantDe
 def _store_asset(services: Services, tenant: str, kind: str, filename: str, suffix: str,
                  tmp: Path, size: int, sha: str, expires_at) -> Asset:
     try:
-        meta, content_type = _inspect(tmp, kind, suffix)
-    except (EnvmapError, ModelFileError) as exc:
+        meta, content_type = _inspect(services, tmp, kind, filename, suffix)
+    except EnvmapError as exc:
+        raise ApiError(422, str(exc), code="invalid_asset",
+                       details=[{"path": filename, "message": exc.problem}]) from None
+    except ModelFileError as exc:
         raise ApiError(422, f"{filename}: {exc}", code="invalid_asset",
                        details=[{"path": filename, "message": str(exc)}]) from None
     asset = Asset(id=new_id("ast"), tenant=tenant, kind=kind, filename=filename, size=size,

@@ -118,6 +118,22 @@ async def tus_patch(upload_id: str, request: Request, services: ServicesDep, ten
     return Response(status_code=204, headers=tus_headers(Upload_Offset=new_offset))
 
 
+async def _refuse_past_end(request: Request, upload: Upload) -> None:
+    """413 when a PATCH at the end of a complete upload carries bytes: they would pass
+    Upload-Length, and dropping them silently would tell the client they were kept."""
+    declared = request.headers.get("content-length")
+    extra = declared is not None and declared.isdigit() and int(declared) > 0
+    if not extra and declared is None:  # chunked: look at what arrives
+        async for chunk in request.stream():
+            if chunk:
+                extra = True
+                break
+    if extra:
+        raise ApiError(413, f"upload {upload.id} is complete ({upload.length} bytes); the "
+                            "body's bytes would pass Upload-Length and were refused",
+                       headers=tus_headers(Upload_Offset=upload.length))
+
+
 def _check_patch(request: Request, upload: Upload, offset: int) -> None:
     if upload.state == "corrupt":
         raise ApiError(409, f"upload {upload.id} failed its checksum; create a new upload")
@@ -139,7 +155,8 @@ async def _receive(request: Request, services: Services, upload: Upload, offset:
     """Write the body at `offset`; returns the new offset. Raises ApiError 460 for a bad
     checksum (the body is dropped) and completes the upload at its last byte."""
     if upload.state in ("received", "duplicate") and offset == upload.length:
-        return upload.length  # a repeated last PATCH whose answer was lost
+        await _refuse_past_end(request, upload)
+        return upload.length  # a client resuming (HEAD, then PATCH) after the last byte
     _check_patch(request, upload, offset)
     await run(require_uploading, services, upload.capture_id, tenant)
     part = services.staging.part(upload.capture_id, upload.id)
@@ -152,10 +169,11 @@ async def _receive(request: Request, services: Services, upload: Upload, offset:
         if checksum is not None:
             await run(writer.flush)
             if check.digest() != checksum[1]:
+                received = writer.received  # before the rewind drops them
                 await run(writer.rewind, offset)
                 services.hashes.keep(upload.id, offset, start_sha)
                 raise ApiError(460, f"Upload-Checksum: the {checksum[0]} of the "
-                                    f"{writer.received} bytes sent does not match; they were "
+                                    f"{received} bytes sent does not match; they were "
                                     "dropped, send them again", retryable=True)
         new_offset = await run(writer.sync)
     except ClientDisconnect:

@@ -195,8 +195,8 @@ def test_bad_environment_maps(tmp_path: Path):
     good = np.ones((8, 16, 3), np.float32)
     cases = {
         "not found": (tmp_path / "missing.exr", "not found"),
-        "garbage exr": (tmp_path / "junk.exr", "not a readable OpenEXR"),
-        "garbage hdr": (tmp_path / "junk.hdr", "not a readable Radiance HDR"),
+        "garbage exr": (tmp_path / "junk.exr", "corrupt OpenEXR header"),
+        "garbage hdr": (tmp_path / "junk.hdr", "truncated Radiance HDR header"),
         "png": (tmp_path / "map.png", "unsupported file type"),
         "square": (_write(tmp_path, "sq.exr", np.ones((8, 8, 3), np.float32)),
                    "twice as wide"),

@@ -47,7 +47,7 @@ def test_unreadable_images(capture_copy: Path) -> None:
     data = (capture_copy / "images/000000/cam02.png").read_bytes()
     (capture_copy / "images/000000/cam02.png").write_bytes(data[: len(data) // 2])  # truncated
     problems = validate_capture(capture_copy)
-    _only(problems, "cannot decode", "images/000000/cam01.png")
+    _only(problems, "not a PNG file", "images/000000/cam01.png")
     _only(problems, "cannot decode", "images/000000/cam02.png")
 
 
@@ -185,7 +185,7 @@ def test_cli_validate_exit_codes(synth_capture: Path, capture_copy: Path, capsys
     (capture_copy / "images/000001/cam02.png").write_bytes(b"broken")
     assert main(["capture", "validate", str(capture_copy)]) != 0
     err = capsys.readouterr().err
-    assert str(capture_copy / "images/000001/cam02.png") in err and "cannot decode" in err
+    assert str(capture_copy / "images/000001/cam02.png") in err and "not a PNG file" in err
 
 
 def test_not_a_capture_folder(tmp_path: Path, capsys) -> None:

@@ -17,7 +17,27 @@ from fastapi.testclient import TestClient  # noqa: E402
 from service.app import create_app
 from service.auth import create_key
 from service.settings import ServiceSettings
+from leak_scan import LeakScan  # noqa: E402
 from service_harness import capture_files, make_settings, manifest_of, upload_file  # noqa: E402
+
+
+@pytest.fixture(scope="session", autouse=True)
+def leak_scan(tmp_path_factory: pytest.TempPathFactory) -> LeakScan:
+    """Every response of the session is scanned for the server's folders (leak_scan.py)."""
+    with LeakScan(str(tmp_path_factory.getbasetemp())).installed() as scan:
+        yield scan
+
+
+@pytest.fixture(autouse=True)
+def no_server_paths(leak_scan: LeakScan):
+    """Fails a test whose responses showed a client a data or scratch folder."""
+    before = len(leak_scan.leaks)
+    yield
+    leaks = leak_scan.leaks[before:]
+    if leaks:
+        pytest.fail("responses name server folders:\n" + "\n".join(
+            f"  {x.method} {x.url} -> {x.status}: {x.text}" for x in leaks), pytrace=False)
+
 
 @pytest.fixture(params=["sqlite"])
 def database_url(request, tmp_path: Path) -> str | None:

@@ -155,3 +155,27 @@ def test_keys_command(tmp_path, capsys, monkeypatch):
     row = [line for line in capsys.readouterr().out.splitlines() if key_id in line][0]
     assert row.rstrip().endswith("Z")  # the revoked column holds a time
 
+
+
+def test_a_new_key_notes_the_data_of_tenant_local(tmp_path, capsys, monkeypatch):
+    """Data made before any key existed belongs to tenant "local": a key of another tenant
+    does not reach it, and `dgs keys create` says so (a key of tenant local does)."""
+    monkeypatch.setenv("DGS_DATA_DIR", str(tmp_path / "data"))
+    for name in ("DGS_DATABASE_URL", "DGS_BROKER_URL", "DGS_STORAGE_URL"):
+        monkeypatch.delenv(name, raising=False)
+    assert main(["keys", "create", "--tenant", "first"]) == 0
+    assert "note" not in capsys.readouterr().err  # nothing of tenant local yet
+    from worker.models import Capture
+    from worker.settings import WorkerSettings
+    from worker.store import JobStore
+
+    store = JobStore(WorkerSettings().database)
+    with store.session() as s:
+        s.add(Capture(id="cap_old", tenant="local", format="canonical", state="ready"))
+    store.create("local", "reconstruct", {}, capture_id="cap_old")
+    assert main(["keys", "create", "--tenant", "studio"]) == 0
+    out = capsys.readouterr()
+    assert "1 capture(s), 1 job(s) were made before any key existed (tenant 'local')" in out.err
+    assert "--tenant local" in out.err and out.out.strip().splitlines()[-1].startswith("dgs_")
+    assert main(["keys", "create", "--tenant", "local"]) == 0
+    assert "note" not in capsys.readouterr().err

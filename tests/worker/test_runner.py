@@ -58,12 +58,15 @@ def test_bad_parameters_and_missing_capture_fail_clearly(setup, tiny_capture: Pa
     assert runner.run("job_missing").status == "missing"
 
 
-def test_a_job_leased_elsewhere_is_tried_later(setup):
+def test_a_duplicate_message_of_a_running_job_is_dropped(setup):
     settings, store, blobs = setup
     job = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=None)
-    store.claim(job.id, Owner.current(), 5, 3)
+    holder = Owner.current()
+    store.claim(job.id, holder, 5, 3)
     outcome = Runner(settings, store, blobs).run(job.id)
-    assert outcome.status == "leased" and 1.0 <= outcome.retry_in <= 5.0
+    assert outcome.status == "leased" and str(holder) in outcome.note
+    assert "duplicate message is dropped" in outcome.note
+    assert store.get(job.id).lease_owner == str(holder) and store.get(job.id).attempts == 1
 
 
 def test_a_worker_that_lost_its_lease_stops_without_writing(setup, tiny_capture: Path):

@@ -175,9 +175,24 @@ def test_stranded_jobs_are_sent_once(store: JobStore):
     assert sorted(store.redispatch_stranded(sent.append, requeue_after=3600, min_gap=60)) == \
         sorted([running, queued])
     # A second sweeper right after sends nothing (the first one just dispatched them).
-    assert store.redispatch_stranded(sent.append, requeue_after=3600, min_gap=60) == []
+    assert store.redispatch_stranded(sent.append, requeue_after=3600, min_gap=60) == {}
     assert sorted(sent) == sorted([running, queued])
     assert store.get(running).dispatches == 1
+
+
+def test_a_queued_job_is_sent_again_only_when_its_message_is_gone(store: JobStore):
+    waiting, lost, fresh, never = (_job(store) for _ in range(4))
+    with store.session() as s:
+        s.execute(update(Job).where(Job.id.in_([waiting, lost])).values(
+            dispatched_at=utcnow() - dt.timedelta(hours=10)))
+        s.execute(update(Job).where(Job.id == fresh).values(dispatched_at=utcnow()))
+    held = {waiting}  # the broker still holds waiting's message; lost's and fresh's are gone
+    why = store.stranded(held=held, grace=120)
+    assert set(why) == {lost, never}  # fresh was sent 0 s ago: its worker may be claiming it
+    assert "no longer in the broker" in why[lost] and "never sent" in why[never]
+    assert set(store.stranded()) == {never}  # a pass that does not look into the broker
+    aged = store.stranded(requeue_after=3600)  # a broker that cannot be inspected
+    assert set(aged) == {waiting, lost, never} and "cannot be inspected" in aged[waiting]
 
 
 def test_naive_datetimes_are_refused(store: JobStore):
@@ -201,7 +216,7 @@ def test_release_puts_the_job_back_for_another_worker(store: JobStore):
         "queued", None, None, 0)
     assert "step 7" in back.message
     sent: list[str] = []
-    assert store.redispatch_stranded(sent.append, requeue_after=3600, min_gap=60) == [job]
+    assert list(store.redispatch_stranded(sent.append, min_gap=60)) == [job]
     assert store.claim(job, Owner.current(), 30, 3).job.attempts == 1
 
 

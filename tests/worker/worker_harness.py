@@ -42,14 +42,15 @@ def add_capture(store: JobStore, blobs, capture: Path, capture_id: str = "cap_ti
 class WorkerProcess:
     """A real `dgs worker` (Celery, prefork, one task per child) with its own environment."""
 
-    def __init__(self, env: dict[str, str], log: Path):
-        self.env, self.log = env, log
+    def __init__(self, env: dict[str, str], log: Path, args: tuple[str, ...] = ()):
+        self.env, self.log, self.args = env, log, args
         self.proc: subprocess.Popen | None = None
 
     def start(self, timeout: float = 60.0) -> WorkerProcess:
         start = self.log.stat().st_size if self.log.exists() else 0
         with open(self.log, "ab") as out:
-            self.proc = subprocess.Popen([sys.executable, "-m", "core.cli", "worker"], cwd=ROOT,
+            self.proc = subprocess.Popen([sys.executable, "-m", "core.cli", "worker",
+                                          *self.args], cwd=ROOT,
                                          env=self.env, stdout=out, stderr=subprocess.STDOUT,
                                          start_new_session=True)
         deadline = time.monotonic() + timeout

@@ -70,6 +70,8 @@ def import_capture(
     fmt: str = "auto",
     *,
     link: bool = False,
+    max_pixels: int | None = None,
 ) -> Capture:
-    """Import ``src`` into a new canonical capture at ``out`` and return it (validated)."""
-    return write_canonical(read_source(src, fmt), out, link=link)
+    """Import ``src`` into a new canonical capture at ``out`` and return it (validated; images
+    of more than ``max_pixels`` pixels are refused, see :func:`core.data.check_capture`)."""
+    return write_canonical(read_source(src, fmt), out, link=link, max_pixels=max_pixels)

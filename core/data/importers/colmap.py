@@ -192,6 +192,8 @@ def read_colmap(src: str | Path) -> ImportedCapture:
     cams, images, ext = _read_model(model)
     problems: list[Problem] = []
     posed = _pose_images(model, ext, cams, images, problems)
+    if not posed and not problems:
+        problems.append(Problem(str(model / f"images{ext}"), "lists no images"))
     if problems:
         raise CaptureError(problems)
     grouping = _group_frames(posed)

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from core.data.capture import Camera, Capture, CaptureError, Problem, save_capture, valid_name
+from core.data.headers import HeaderError, ImageHeader, check_pixels, read_other_header
 from core.data.validate import validate_capture
 
 __all__ = [
@@ -115,14 +116,20 @@ def _check_sources(imported: ImportedCapture) -> list[Problem]:
     return problems
 
 
-def _place(src: Path, dst_stem: Path, link: bool) -> Path:
-    """Copy (or hard-link) one file into the capture; converts exotic types losslessly to PNG."""
+def _place(src: Path, dst_stem: Path, link: bool, max_pixels: int | None) -> Path:
+    """Copy (or hard-link) one file into the capture; converts exotic types losslessly to PNG
+    (after their header says they are within ``max_pixels``)."""
     ext = _target_ext(src)
     dst = dst_stem.with_suffix(ext)
     dst.parent.mkdir(parents=True, exist_ok=True)
     if src.suffix.lower() in _CONVERT_EXTS:
         import cv2
 
+        try:
+            width, height = read_other_header(src)
+            check_pixels(ImageHeader(width, height, "png"), max_pixels)
+        except HeaderError as exc:
+            raise CaptureError([Problem(str(src), str(exc))]) from None
         arr = cv2.imread(str(src), cv2.IMREAD_UNCHANGED)
         if arr is None or not cv2.imwrite(str(dst), arr):
             raise CaptureError([Problem(str(src), "cannot decode image to convert it to PNG")])
@@ -138,7 +145,11 @@ def _place(src: Path, dst_stem: Path, link: bool) -> Path:
 
 
 def write_canonical(
-    imported: ImportedCapture, out: str | os.PathLike[str], *, link: bool = False
+    imported: ImportedCapture,
+    out: str | os.PathLike[str],
+    *,
+    link: bool = False,
+    max_pixels: int | None = None,
 ) -> Capture:
     """Write ``imported`` to ``out`` in the canonical layout and return the loaded capture.
 
@@ -157,7 +168,7 @@ def write_canonical(
     tmp = out.parent / f".{out.name}.partial-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
     try:
-        placed = _write_files(imported, tmp, link)
+        placed = _write_files(imported, tmp, link, max_pixels)
         capture = Capture(
             tmp,
             tuple(imported.cameras),
@@ -166,14 +177,12 @@ def write_canonical(
             import_record=imported.record,
         )
         save_capture(capture)
-        problems = validate_capture(tmp)
+        problems = validate_capture(tmp, max_pixels=max_pixels)
         if problems:
-            # Point at the source file the user has to fix, not at our scratch copy.
+            # Point at the source file the user has to fix, not at our scratch copy
+            # (validation names files relative to the capture).
             raise CaptureError(
-                [
-                    Problem(placed.get(p.path, p.path.replace(str(tmp), str(out))), p.message)
-                    for p in problems
-                ]
+                [Problem(placed.get(p.path, str(out / p.path)), p.message) for p in problems]
             )
         if out.exists():
             out.rmdir()
@@ -185,14 +194,17 @@ def write_canonical(
     return capture
 
 
-def _write_files(imported: ImportedCapture, root: Path, link: bool) -> dict[str, str]:
-    """Place every view's files; returns {written path: source path} for error messages."""
+def _write_files(
+    imported: ImportedCapture, root: Path, link: bool, max_pixels: int | None
+) -> dict[str, str]:
+    """Place every view's files; returns {written path relative to ``root``: source path} for
+    error messages."""
     placed: dict[str, str] = {}
     for v in imported.views:
         for sub, src in (("images", v.image), ("masks", v.mask), ("normals", v.normal)):
             if src is not None:
-                dst = _place(src, root / sub / v.frame / v.camera, link)
-                placed[str(dst)] = str(src)
+                dst = _place(src, root / sub / v.frame / v.camera, link, max_pixels)
+                placed[dst.relative_to(root).as_posix()] = str(src)
     seen: set[str] = set()
     for meta in imported.metadata_files:
         name = meta.name if meta.name not in seen else f"{len(seen)}_{meta.name}"

@@ -35,7 +35,7 @@ from core.data.importers.common import (
     safe_name,
     source_transform,
 )
-from core.data.schema import extrinsics_problems, intrinsics_problems
+from core.data.schema import extrinsics_problems, intrinsics_problems, read_json
 
 __all__ = ["export_transforms", "find_transforms", "read_transforms"]
 
@@ -109,9 +109,9 @@ def _read_file(
     path: Path, prefix: str, problems: list[Problem], top_extra: dict[str, Any]
 ) -> list[dict]:
     try:
-        data = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        problems.append(Problem(str(path), f"cannot parse JSON: {exc}"))
+        data = read_json(path)
+    except ValueError as exc:
+        problems.append(Problem(str(path), str(exc)))
         return []
     if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
         problems.append(Problem(str(path), "expected an object with a non-empty 'frames' list"))
