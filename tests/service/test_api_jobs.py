@@ -62,7 +62,7 @@ def test_create_job(client, services, capture_id):
     job = r.json()
     assert r.headers["Location"].endswith(f"/v1/jobs/{job['id']}")
     assert job["state"] == "queued" and job["name"] == "first" and job["attempts"] == 0
-    assert job["params"]["preset"] == "test" and job["params"]["gop"] == 20  # resolved
+    assert job["params"]["preset"] == "test" and job["params"]["gop"] is None  # config.gop
     assert job["progress"]["fraction"] == 0.0 and job["links"]["events"].endswith("/events")
     broker = services.settings.data_dir / "broker.sqlite3"
     with sqlite3.connect(broker) as db:

@@ -34,7 +34,7 @@ def _alive(pid: int) -> bool:
 
 
 def test_demo_command_runs_through_the_service():
-    args = build_parser().parse_args(["demo"])
+    args = build_parser(["demo"]).parse_args(["demo"])
     assert args.func.__module__ == "service.commands"
     assert not args.in_process and not args.raster
 
