@@ -6,15 +6,15 @@ from __future__ import annotations
 from fastapi import Depends, FastAPI
 from fastapi.middleware.cors import CORSMiddleware
 
-from service.commit import Committer, recover_commits
 from service.deps import Services
 from service.errors import install_error_handlers
 from service.middleware import EXPOSED, BodyLimit, strict_query
 from service.routers import artifacts, assets, captures, info, jobs, renders, uploads
 from service.routers.info import package_version
 from service.settings import ServiceSettings, get_service_settings
-from service.staging import ManifestCache, Staging
-from service.tus import HashCache
+from service.upload.commit import Committer, recover_commits
+from service.upload.staging import ManifestCache, Staging
+from service.upload.tus import HashCache
 from service.webpage import mount_web
 from worker.blobs import open_store
 from worker.celery_app import make_celery

@@ -12,8 +12,8 @@ from fastapi import Depends, Request
 
 from service.errors import ApiError
 from service.settings import ServiceSettings
-from service.staging import ManifestCache, Staging
-from service.tus import HashCache
+from service.upload.staging import ManifestCache, Staging
+from service.upload.tus import HashCache
 from worker.blobs import BlobStore
 from worker.models import utcnow
 from worker.store import JobStore
@@ -30,9 +30,9 @@ class Services:
     staging: Staging
     manifests: ManifestCache
     hashes: HashCache
-    """SHA-256 state of uploads in progress (service.tus)."""
+    """SHA-256 state of uploads in progress (service.upload.tus)."""
     committer: Any = None
-    """service.commit.Committer: this process's background commits."""
+    """service.upload.commit.Committer: this process's background commits."""
 
 
 async def get_services(request: Request) -> Services:

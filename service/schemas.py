@@ -8,8 +8,8 @@ from typing import Annotated, Any, Literal
 
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, WithJsonSchema
 
-from service.errors import ErrorInfo
 from core.config import schema
+from service.errors import ErrorInfo
 from worker.pipelines import LightParams, ReconstructParams, RelightJobParams
 
 __all__ = [

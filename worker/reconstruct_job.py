@@ -18,7 +18,7 @@ from sqlalchemy import select
 from worker.models import Asset, Job
 from worker.pipelines import MODEL_KIND, ReconstructParams
 from worker.progress import JobLink
-from worker.runner import JobStopped
+from worker.execution import JobStopped
 
 if TYPE_CHECKING:
     from worker.runner import Runner

@@ -24,7 +24,7 @@ from core.files import write_json
 from worker.models import Asset, Job
 from worker.pipelines import RelightJobParams
 from worker.progress import JobLink
-from worker.runner import JobStopped
+from worker.execution import JobStopped
 
 if TYPE_CHECKING:
     from worker.runner import Runner

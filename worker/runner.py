@@ -15,20 +15,22 @@ import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 from core.files import sha256_file
 from core.rundir import classify
 from worker.blobs import BlobStore, open_store
+from worker.execution import Execution, JobStopped
 from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
+from worker.reconstruct_job import ReconstructJob
+from worker.relight_job import RelightJob
 from worker.redact import SERVER, redact
 from worker.scratch import job_folder, mark
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
 
-__all__ = ["Execution", "JobStopped", "Outcome", "Runner"]
+__all__ = ["Outcome", "Runner"]
 
 
 @dataclass(frozen=True)
@@ -49,26 +51,6 @@ _DROPPED = {
     "missing": "it was deleted; its message is dropped",
     "exhausted": "its worker was lost {job.attempts} times; it failed (worker_lost)",
 }
-
-
-class JobStopped(Exception):
-    """An execution stopped between two steps because `link.should_stop()` said so (a cancel,
-    a lost lease, this worker shutting down); `where` says where, for the log."""
-
-    def __init__(self, where: str):
-        super().__init__(f"stopped at {where}")
-        self.where = where
-
-
-class Execution(Protocol):
-    """One job of one pipeline, run by `Runner`: `run()` does the work and publishes it, or
-    raises JobStopped, ValueError (bad input: the job fails with invalid_input) or anything
-    else (internal, retryable)."""
-
-    retry_note: str
-    """What a retry of a cancelled job does, for its message."""
-
-    def run(self) -> None: ...
 
 
 @contextmanager
@@ -128,9 +110,6 @@ class Runner:
         return outcome
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
-        from worker.reconstruct_job import ReconstructJob
-        from worker.relight_job import RelightJob
-
         pipeline = get_pipeline(job.pipeline)
         params = pipeline.params.model_validate(job.params)
         kinds = {"reconstruct": ReconstructJob, "relight": RelightJob}

@@ -18,6 +18,8 @@ def run_job(job_id: str) -> str:
     """Run job `job_id` to its end (idempotent: a message for a job that has ended, was
     deleted or runs on another live worker finds nothing to do, says so in the log and is
     acknowledged; no retry, no traceback)."""
+    # lazy: the runner loads torch, which the Celery parent process must not hold before it
+    # forks the child that runs this task
     from worker.runner import Runner
 
     outcome = Runner(get_settings()).run(job_id)

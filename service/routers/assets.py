@@ -15,16 +15,16 @@ from pydantic import AwareDatetime
 from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool as run
 
-from service.archive import spool
 from service.auth import TenantDep
 from service.deps import Services, ServicesDep, absolute_url, default_expiry
 from service.envmap import CONTENT_TYPES, EnvmapError, inspect_envmap
-from service.modelfile import MODEL_CONTENT_TYPES, ModelFileError, inspect_model
 from service.errors import COMMON, ApiError, error_responses
+from service.modelfile import MODEL_CONTENT_TYPES, ModelFileError, inspect_model
 from service.pagination import newest_page
 from service.ranges import blob_response
 from service.records import get_asset
 from service.schemas import AssetOut, AssetPage
+from service.upload.archive import spool
 from worker.models import Asset
 from worker.pipelines import MODEL_KIND
 from worker.store import JobStore, new_id

@@ -13,18 +13,28 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import defer
 from starlette.concurrency import run_in_threadpool as run
 
-from service.archive import extract, inspect_zip, spool
 from service.auth import TenantDep
-from service.commit import OWNER_KEY, begin_commit, run_commit
 from service.deps import Services, ServicesDep, absolute_url, default_expiry
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
-from service.manifest import check_manifest
 from service.pagination import decode_cursor, encode_cursor, newest_page
 from service.records import get_capture
 from service.schemas import (
-    CaptureFilesOut, CaptureIn, CaptureItem, CaptureOut, CapturePage, CaptureSummary, FileOut,
-    FilePage, Format, ManifestPatchIn, manifest_entries)
-from service.staging import Manifest, file_states
+    CaptureFilesOut,
+    CaptureIn,
+    CaptureItem,
+    CaptureOut,
+    CapturePage,
+    CaptureSummary,
+    FileOut,
+    FilePage,
+    Format,
+    ManifestPatchIn,
+    manifest_entries,
+)
+from service.upload.archive import extract, inspect_zip, spool
+from service.upload.commit import OWNER_KEY, begin_commit, run_commit
+from service.upload.manifest import check_manifest
+from service.upload.staging import Manifest, file_states
 from worker.models import Capture, Job, Upload
 from worker.store import ACTIVE, Owner, new_id
 

@@ -20,11 +20,25 @@ from service.auth import TenantDep
 from service.deps import Services, ServicesDep, absolute_url
 from service.errors import COMMON, ApiError, error_responses
 from service.records import get_upload
-from service.tus import (
-    ALGORITHMS, EXTENSIONS, OFFSET_TYPE, TUS_VERSION, PartLock, PartWriter, parse_checksum,
-    parse_length, parse_metadata, tus_headers)
-from service.uploads import (
-    complete_upload, create_upload, record_offset, require_uploading, terminate_upload)
+from service.upload.files import (
+    complete_upload,
+    create_upload,
+    record_offset,
+    require_uploading,
+    terminate_upload,
+)
+from service.upload.tus import (
+    ALGORITHMS,
+    EXTENSIONS,
+    OFFSET_TYPE,
+    TUS_VERSION,
+    PartLock,
+    PartWriter,
+    parse_checksum,
+    parse_length,
+    parse_metadata,
+    tus_headers,
+)
 from worker.models import Upload
 
 __all__ = ["router"]

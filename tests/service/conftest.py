@@ -13,12 +13,12 @@ import pytest
 # Starlette's TestClient now suggests httpx2; the dev extra installs httpx, which works.
 warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
 from fastapi.testclient import TestClient  # noqa: E402
+from leak_scan import LeakScan  # noqa: E402
+from service_harness import capture_files, make_settings, manifest_of, upload_file  # noqa: E402
 
 from service.app import create_app
 from service.auth import create_key
 from service.settings import ServiceSettings
-from leak_scan import LeakScan  # noqa: E402
-from service_harness import capture_files, make_settings, manifest_of, upload_file  # noqa: E402
 
 
 @pytest.fixture(scope="session", autouse=True)

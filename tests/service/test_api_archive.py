@@ -9,8 +9,8 @@ import stat
 import zipfile
 
 import pytest
-from service_harness import capture_files, make_settings
 from fastapi.testclient import TestClient
+from service_harness import capture_files, make_settings
 from sqlalchemy import func, select
 
 from service.app import create_app

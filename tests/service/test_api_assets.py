@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from service_harness import make_settings
 from fastapi.testclient import TestClient
+from service_harness import make_settings
 
 from core.data.images import write_exr
 from service.app import create_app

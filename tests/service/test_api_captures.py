@@ -67,8 +67,8 @@ def test_malformed_entries_are_422(client, services, entry):
 
 
 def test_limits(tmp_path):
-    from service_harness import make_settings
     from fastapi.testclient import TestClient
+    from service_harness import make_settings
 
     from service.app import create_app
 
@@ -258,20 +258,20 @@ def test_a_long_commit_answers_202_and_finishes_in_the_background(client, servic
                                                                   synth_capture, monkeypatch):
     import threading
 
-    import service.commit
+    import service.upload.commit
 
     services.settings.commit_wait_seconds = 0.2
     files = capture_files(synth_capture)
     capture = new_capture(files)
     for path, data in files.items():
         upload_file(client, capture["id"], path, data)
-    proceed, summarize = threading.Event(), service.commit.summarize
+    proceed, summarize = threading.Event(), service.upload.commit.summarize
 
     def slow_summary(*args):
         assert proceed.wait(30)
         return summarize(*args)
 
-    monkeypatch.setattr(service.commit, "summarize", slow_summary)  # validation takes long
+    monkeypatch.setattr(service.upload.commit, "summarize", slow_summary)  # validation takes long
     r = client.post(f"/v1/captures/{capture['id']}/commit")
     assert r.status_code == 202 and r.json()["state"] == "committing"
     assert client.post(f"/v1/captures/{capture['id']}/commit").status_code == 202
@@ -285,8 +285,8 @@ def test_a_long_commit_answers_202_and_finishes_in_the_background(client, servic
 def test_default_retention(tmp_path):
     import datetime as dt
 
-    from service_harness import make_settings
     from fastapi.testclient import TestClient
+    from service_harness import make_settings
 
     from service.app import create_app
 

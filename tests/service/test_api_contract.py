@@ -12,10 +12,10 @@ from pathlib import Path
 
 import pytest
 import schemathesis
-from service_harness import make_settings
 from hypothesis import HealthCheck, Phase, given, settings
 from hypothesis.errors import Unsatisfiable
 from schemathesis.specs.openapi.checks import positive_data_acceptance
+from service_harness import make_settings
 
 from service.app import create_app
 from service.auth import create_key

@@ -8,8 +8,8 @@ import hashlib
 import secrets
 
 import pytest
-from service_harness import capture_files, make_settings, upload_file
 from fastapi.testclient import TestClient
+from service_harness import capture_files, make_settings, upload_file
 
 from service.app import create_app
 

@@ -91,8 +91,8 @@ def test_a_capture_must_be_ready(client, new_capture):
 
 
 def test_a_broker_that_is_away_leaves_the_job_to_the_sweeper(tmp_path, synth_capture):
-    from service_harness import make_settings
     from fastapi.testclient import TestClient
+    from service_harness import make_settings
 
     from service.app import create_app
     from worker.models import Capture
@@ -265,8 +265,8 @@ def test_fraction_never_goes_back_in_the_api(client, services, capture_id):
 
 
 def test_readyz_reports_an_unreachable_broker(tmp_path):
-    from service_harness import make_settings
     from fastapi.testclient import TestClient
+    from service_harness import make_settings
 
     from service.app import create_app
 

@@ -10,8 +10,8 @@ import json
 from pathlib import Path
 
 import pytest
-
 from live_server import LiveServer
+
 from service.client import Client
 
 pytestmark = pytest.mark.timeout(420)

@@ -273,8 +273,8 @@ def test_uploads_stop_once_committing_or_ready(client, ready_capture):
 
 
 def test_browsers_on_allowed_origins_can_speak_tus(tmp_path):
-    from service_harness import make_settings
     from fastapi.testclient import TestClient
+    from service_harness import make_settings
 
     from service.app import create_app
 

@@ -1,4 +1,4 @@
-"""service.tus.PartWriter: the block pipeline's bookkeeping (what is buffered, in flight and
+"""service.upload.tus.PartWriter: the block pipeline's bookkeeping (what is buffered, in flight and
 written), partial writes, and rewinds."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ import os
 
 import pytest
 
-from service.tus import PartWriter
+from service.upload.tus import PartWriter
 
 
 def test_chunks_are_written_in_order_hashed_and_counted(tmp_path):

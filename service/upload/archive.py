@@ -23,8 +23,8 @@ from fastapi import Request
 from starlette.concurrency import run_in_threadpool as run
 
 from service.errors import ApiError
-from service.manifest import check_manifest, path_problem
 from service.settings import ServiceSettings
+from service.upload.manifest import check_manifest, path_problem
 
 __all__ = ["Member", "extract", "inspect_zip", "spool"]
 

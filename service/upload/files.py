@@ -12,8 +12,8 @@ from sqlalchemy import select, update
 
 from service.deps import Services
 from service.errors import ApiError
-from service.manifest import check_path
 from service.records import get_capture, missing
+from service.upload.manifest import check_path
 from worker.models import Upload
 from worker.store import new_id
 

@@ -22,7 +22,7 @@ from sqlalchemy import select, update
 
 from service.deps import Services
 from service.errors import ApiError
-from service.staging import file_states
+from service.upload.staging import file_states
 from worker.models import Capture, Upload, utcnow
 from worker.redact import SERVER, redact
 from worker.store import Owner

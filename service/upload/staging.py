@@ -7,7 +7,7 @@
 
 Every API process that takes uploads must see the same data_dir (one machine, or a shared
 volume). A manifest path is split on '/' and joined under files/ only after
-`service.manifest.check_path` accepted it.
+`service.upload.manifest.check_path` accepted it.
 """
 
 from __future__ import annotations
