@@ -20,6 +20,7 @@ __all__ = ["main", "build_parser"]
 # Modules that add sub-commands; each has `register(subparsers) -> None`.
 _COMMAND_MODULES: tuple[str, ...] = (
     "core.commands_demo",
+    "core.commands_export",
     "core.commands_reconstruct",
     "core.commands_relight",
     "core.data.commands",
