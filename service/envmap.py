@@ -24,6 +24,9 @@ class EnvmapInfo:
     width: int
     height: int
     channels: int
+    sh9: list[list[float]]
+    """(9, 3) radiance SH in the map's own frame (poles on +z, unrotated): what the page's
+    player relights with, turned into the capture's up frame and rotated there."""
 
 
 def _read_exr(path: Path) -> np.ndarray:
@@ -62,4 +65,8 @@ def inspect_envmap(path: Path, suffix: str) -> EnvmapInfo:
     bad = int(np.count_nonzero(~np.isfinite(image[..., :3])))
     if bad:
         raise EnvmapError(f"has {bad} non-finite values (NaN or infinity)")
-    return EnvmapInfo(int(width), int(height), int(channels))
+    from core.relight.envmap import project_sh9
+
+    sh9 = project_sh9(np.clip(image[..., :3].astype(np.float64), 0, None))
+    return EnvmapInfo(int(width), int(height), int(channels),
+                      [[round(float(v), 6) for v in row] for row in sh9])

@@ -114,12 +114,13 @@ class Runner:
             link.close()
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
+        from worker.export_job import ExportJob
         from worker.reconstruct_job import ReconstructJob
         from worker.relight_job import RelightJob
 
         pipeline = get_pipeline(job.pipeline)
         params = pipeline.params.model_validate(job.params)
-        kinds = {"reconstruct": ReconstructJob, "relight": RelightJob}
+        kinds = {"reconstruct": ReconstructJob, "relight": RelightJob, "export": ExportJob}
         return kinds[pipeline.name](self, job, params, link)
 
     def _execute(self, job: Job, link: JobLink) -> Outcome:

@@ -40,7 +40,7 @@ def asset_out(a: Asset) -> AssetOut:
     return AssetOut(id=a.id, kind=a.kind, filename=a.filename, size=a.size, sha256=a.sha256,
                     content_type=a.content_type, width=a.meta.get("width", 0),
                     height=a.meta.get("height", 0), channels=a.meta.get("channels", 0),
-                    created_at=a.created_at, expires_at=a.expires_at,
+                    sh9=a.meta.get("sh9"), created_at=a.created_at, expires_at=a.expires_at,
                     links={"self": base, "content": f"{base}/content"})
 
 
@@ -85,7 +85,8 @@ def _store_asset(services: Services, tenant: str, kind: str, filename: str, suff
                        details=[{"path": filename, "message": str(exc)}]) from None
     asset = Asset(id=new_id("ast"), tenant=tenant, kind=kind, filename=filename, size=size,
                   sha256=sha, content_type=CONTENT_TYPES[suffix],
-                  meta={"width": info.width, "height": info.height, "channels": info.channels},
+                  meta={"width": info.width, "height": info.height, "channels": info.channels,
+                        "sh9": info.sh9},
                   expires_at=expires_at)
     key = f"assets/{asset.id}/{filename}"
     try:
