@@ -78,11 +78,22 @@ def stream_header(run: Path, frames: list[str], fps: float | None,
                                       s.world_to_camera.tolist(), "heldout": i % 8 == 0})
         first = capture.image_path(capture.frames[0], capture.cameras[0].id)
         header["render"]["linear"] = first is not None and first.suffix.lower() == ".exr"
+    header["envmaps"] = _builtin_sh9()
     rate = fps if fps is not None else meta.get("fps", 24.0)
     if not (isinstance(rate, (int, float)) and math.isfinite(rate) and rate > 0):
         raise ValueError(f"fps: expected a frame rate > 0, got {rate!r}")
     header["fps"] = float(rate)
     return header
+
+
+def _builtin_sh9() -> dict[str, list]:
+    """The built-in maps' SH9 radiance in their own frame (poles on +z, unrotated): the player
+    turns them into the capture's up frame and rotates them as the relight job does."""
+    from core.relight.envmap import project_sh9
+    from core.relight.presets import BUILTIN_PREFIX, PRESETS, builtin_radiance
+
+    return {BUILTIN_PREFIX + name: np.round(project_sh9(builtin_radiance(name)), 7).tolist()
+            for name in PRESETS}
 
 
 def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], *,
