@@ -62,7 +62,7 @@ class ExportJob(RelightJob):
     def _sequence(self, source, run: Path) -> None:
         """The source's sequence.json, when it published one (a run of one frame has none)."""
         key = f"jobs/{source.id}/artifacts/sequence.json"
-        if any(b.key == key for b in self.blobs.list(f"jobs/{source.id}/artifacts/sequence")):
+        if self.blobs.size(key) is not None:
             self._get(key, run / "sequence.json")
 
     def _on_export(self, what: str, done: int, total: int) -> None:

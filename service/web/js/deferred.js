@@ -10,7 +10,7 @@
 // DESIGN.md 3.4. Pass 2 reads that G-buffer per pixel: appearance, normals, AO, or relit =
 // albedo * (visibility * E_env(n) + lights) + the view-dependent residual (core.relight.shade).
 
-const ROW = 1024; // Gaussians per texture row
+const ROW = 256; // Gaussians per texture row (the SH texture is 16 x ROW texels wide)
 
 const COMMON = `#version 300 es
 precision highp float;

@@ -155,12 +155,19 @@ export class Player {
     if (!this.header || this.error) return;
     this.playing = true;
     const fps = this.header.fps, n = this.source.frames;
-    let start = performance.now() - this.index * 1000 / fps, last = this.index;
+    if (this.index >= n - 1) this.show(0);  // played to the end: from the start again
+    let start = null, last = this.index;
     const tick = (now) => {
       if (!this.playing) return;
-      let k = Math.floor((now - start) * fps / 1000);
+      if (start === null) start = now - last * 1000 / fps;
+      let k = Math.max(0, Math.floor((now - start) * fps / 1000));
       if (k >= n) {
-        if (!this.loop) { this.stop(); this.onEnd?.(); return; }
+        if (!this.loop) {  // the last frame stays on screen, also when it was due but dropped
+          if (last !== n - 1) this.show(n - 1);
+          this.stop();
+          this.onEnd?.();
+          return;
+        }
         start = now;
         k = 0;
       }
@@ -268,6 +275,8 @@ export async function openStream(url) {
 
 async function openFor(job) {
   const status = $('player-status');
+  const id = $('job-select').value || (job && job.id);
+  if (id) job = await getJson(`/v1/jobs/${id}`).catch(() => job);
   if (!job || job.state !== 'succeeded' || job.pipeline !== 'reconstruct') {
     showStatus(status, 'pick a succeeded reconstruction (panel 2) first', 'error');
     return;
