@@ -26,7 +26,8 @@ import numpy as np
 from core.export.splats import Splats, dequantize, quantize
 
 __all__ = ["ATTRIBUTES", "GroupDecoder", "StreamConfig", "attribute", "blend_deform",
-           "group_quant", "quat_to_rotmat", "rotmat_to_quat", "with_attributes"]
+           "blend_parts", "group_quant", "quat_to_rotmat", "rotmat_to_quat", "with_attributes",
+           "with_residuals"]
 
 PREDICTED = ("means", "quats", "normals")
 DIRECT = ("scales", "opacity", "sh0", "shN", "visibility")
@@ -39,20 +40,29 @@ class StreamConfig:
     step; a value is re-sent when its decoded one drifts further than this)."""
 
     position: float = 1e-4
-    """Centres, as a fraction of the group's bounding-box diagonal."""
-    rotation: float = 2e-3
-    """Unit-quaternion components."""
-    normal: float = 2e-3
-    """Unit-normal components (2e-3 is at most 0.2 degrees)."""
-    scale: float = 0.01
-    """Log-scales (1%)."""
-    opacity: float = 1 / 512
+    """Centres: the quantizer's step as a fraction of the group's bounding-box diagonal, and
+    the tolerance where the capture's cameras are not known."""
+    position_pixels: float = 0.15
+    """Centres, where the cameras are known: the tolerance in pixels of the finest capture
+    camera that sees the Gaussian (what the capture could resolve there), at least the step."""
+    rotation: float = 0.02
+    """Unit-quaternion components (about 2.3 degrees): the step, and the tolerance of a
+    strongly anisotropic Gaussian."""
+    rotation_max: float = 0.05
+    """Unit-quaternion components: the tolerance of a nearly round Gaussian, whose rotation
+    barely shows (a slot's tolerance is what moves its surface by the centres' tolerance:
+    that over twice its largest minus smallest scale, between `rotation` and this)."""
+    normal: float = 0.02
+    """Unit-normal components (about 1.1 degrees)."""
+    scale: float = 0.05
+    """Log-scales (5%)."""
+    opacity: float = 0.01
     """Both opacities, activated (0..1)."""
-    color: float = 0.01
-    """SH degree-0 coefficients (x 0.28 in colour: under 1/255)."""
-    sh: float = 0.02
+    color: float = 0.05
+    """SH degree-0 coefficients (x 0.28 in colour: 3.6/255)."""
+    sh: float = 0.05
     """Higher SH coefficients."""
-    visibility: float = 1 / 512
+    visibility: float = 0.01
     """Ambient visibility, activated."""
     nodes: int = 1024
     """Most deformation-graph nodes per group."""
@@ -60,8 +70,8 @@ class StreamConfig:
     """Graph nodes: one per this many key-frame Gaussians (at least 5, at most `nodes`)."""
 
     def __post_init__(self) -> None:
-        for name in ("position", "rotation", "normal", "scale", "opacity", "color", "sh",
-                     "visibility"):
+        for name in ("position", "position_pixels", "rotation", "rotation_max", "normal",
+                     "scale", "opacity", "color", "sh", "visibility"):
             value = getattr(self, name)
             if not (math.isfinite(value) and 0 < value < 1):
                 raise ValueError(f"{name}: expected a tolerance in (0, 1), got {value!r}")
@@ -180,19 +190,37 @@ def weights_of(codes: np.ndarray) -> np.ndarray:
     return np.where(total > 0, c / np.where(total > 0, total, 1), np.float32(0.25))
 
 
-def blend_deform(key: dict[str, np.ndarray], anchors: np.ndarray, weights: np.ndarray,
-                 nodes: np.ndarray, node_q: np.ndarray | None, node_t: np.ndarray | None):
-    """Predicted (means, quats, normals) of key-space values under the node transforms
-    (None: the rest pose), as `core.sequence.graph.DeformationGraph.deform` computes them."""
-    if node_q is None:
-        return key["means"], key["quats"], key["normals"]
+def blend_parts(anchors: np.ndarray, weights: np.ndarray, nodes: np.ndarray,
+                node_q: np.ndarray, node_t: np.ndarray):
+    """Per slot the blended deformation x -> A x + c and rotation q_b (unit) of the node
+    transforms: sum_j w_j (R_j (x - g_j) + g_j + t_j) = (sum w R) x + sum w (g + t - R g)."""
     R = quat_to_rotmat(node_q)[anchors]  # (S, 4, 3, 3)
     g = nodes[anchors]
-    local = np.einsum("skij,skj->ski", R, key["means"][:, None, :] - g) + g + node_t[anchors]
-    means = (weights[..., None] * local).sum(1)
-    qb = _unit((weights[..., None] * node_q[anchors]).sum(1))
-    quats = qmul(qb, key["quats"])
-    normals = np.einsum("sij,sj->si", quat_to_rotmat(qb), key["normals"])
+    w = weights[..., None]
+    A = (w[..., None] * R).sum(1)
+    c = (w * (g + node_t[anchors] - np.einsum("skij,skj->ski", R, g))).sum(1)
+    qb = _unit((w * node_q[anchors]).sum(1))
+    return A.astype(np.float32), c.astype(np.float32), qb
+
+
+def with_residuals(key: dict[str, np.ndarray], res: dict[str, np.ndarray], quant: dict):
+    """Key-space values plus their residual codes (the residuals live in key space, so an
+    offset from the graph moves and turns with the body instead of being re-sent)."""
+    step = {name: np.float32(quant[name]["tol"]) for name in PREDICTED}
+    return {"means": key["means"] + res["means"].astype(np.float32) * step["means"],
+            "quats": _unit(key["quats"] + res["quats"].astype(np.float32) * step["quats"]),
+            "normals": _unit(key["normals"] + res["normals"].astype(np.float32) * step["normals"])}
+
+
+def blend_deform(local: dict[str, np.ndarray], parts):
+    """(means, quats, normals) of key-space values under `blend_parts` (None: the rest pose),
+    as `core.sequence.graph.DeformationGraph.deform` computes them."""
+    if parts is None:
+        return local["means"], local["quats"], local["normals"]
+    A, c, qb = parts
+    means = np.einsum("sij,sj->si", A, local["means"]) + c
+    quats = qmul(qb, local["quats"])
+    normals = np.einsum("sij,sj->si", quat_to_rotmat(qb), local["normals"])
     return means.astype(np.float32), quats, normals.astype(np.float32)
 
 
@@ -247,7 +275,7 @@ class GroupDecoder:
 
                 raise StreamError(f"group {self.p.meta['group']}: an update names slot "
                                   f"{int(idx.max())} of {len(self.ids)}")
-            target[name][idx] = self.p.get(f"{key}.val").astype(np.int64)
+            target[name][idx] += self.p.get(f"{key}.val").astype(np.int64)  # deltas
 
     def frame(self) -> Splats:
         """The next frame of the group."""
@@ -268,13 +296,15 @@ class GroupDecoder:
         out["quats"], out["normals"] = _unit(out["quats"]), _unit(out["normals"])
         return out
 
+    def parts(self, node_q, node_t):
+        """`blend_parts` of every slot (None for the key frame)."""
+        if node_q is None:
+            return None
+        return blend_parts(self.anchors, weights_of(self.wcodes), self.nodes, node_q, node_t)
+
     def splats(self, node_q, node_t) -> Splats:
         v = self.key_values()
-        means, quats, normals = blend_deform(v, self.anchors, weights_of(self.wcodes),
-                                             self.nodes, node_q, node_t)
-        step = {name: np.float32(self.quant[name]["tol"]) for name in PREDICTED}
-        v["means"] = means + self.res["means"].astype(np.float32) * step["means"]
-        v["quats"] = _unit(quats + self.res["quats"].astype(np.float32) * step["quats"])
-        v["normals"] = _unit(normals + self.res["normals"].astype(np.float32) * step["normals"])
+        local = with_residuals(v, self.res, self.quant)
+        v["means"], v["quats"], v["normals"] = blend_deform(local, self.parts(node_q, node_t))
         a = self.alive
         return with_attributes({k: x[a] for k, x in v.items()}, self.ids[a], self.sh_dim)

@@ -27,7 +27,7 @@ VERSION = 1
 FILE_MAGIC, CHUNK_MAGIC = b"DGSS", b"DGSG"
 FILE_HEADER = 12
 CHUNK_HEADER = 16
-DTYPES = {"u8": "<u1", "u16": "<u2", "u32": "<u4", "i16": "<i2", "i32": "<i4", "f32": "<f4"}
+DTYPES = {"i8": "<i1", "u8": "<u1", "u16": "<u2", "u32": "<u4", "i16": "<i2", "i32": "<i4", "f32": "<f4"}
 _NAMES = {np.dtype(v): k for k, v in DTYPES.items()}
 
 

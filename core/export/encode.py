@@ -16,6 +16,7 @@ from core.export.codec import (
     attribute,
     blend_deform,
     codes_of,
+    with_residuals,
     group_quant,
     quat_to_rotmat,
     qmul,
@@ -29,14 +30,44 @@ __all__ = ["encode_group"]
 _I16 = 32767
 
 
+def pixel_footprint(points: np.ndarray, cameras: list[dict]) -> np.ndarray | None:
+    """(N,) the size of a pixel at each point for the finest capture camera that sees it
+    (depth / focal length; cameras where it projects into the image, in front), None without
+    cameras; points no camera sees get the median of the others."""
+    if not cameras or not len(points):
+        return None
+    best = np.full(len(points), np.inf)
+    for c in cameras:
+        m = np.asarray(c["world_to_camera"], np.float64)
+        K = np.asarray(c["K"], np.float64)
+        p = points.astype(np.float64) @ m[:3, :3].T + m[:3, 3]
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = K[0, 0] * p[:, 0] / z + K[0, 2], K[1, 1] * p[:, 1] / z + K[1, 2]
+        seen = (z > 0.01) & (u >= 0) & (u <= c["width"]) & (v >= 0) & (v <= c["height"])
+        best = np.where(seen, np.minimum(best, z / max(K[0, 0], K[1, 1])), best)
+    finite = np.isfinite(best)
+    if not finite.any():
+        return None
+    return np.where(finite, best, np.median(best[finite]))
+
+
+def _narrow(deltas: np.ndarray) -> np.ndarray:
+    """Integer deltas in the narrowest of int8, int16, int32 that holds them."""
+    top = int(np.abs(deltas).max()) if deltas.size else 0
+    return deltas.astype(np.int8 if top <= 127 else np.int16 if top <= _I16 else np.int32)
+
+
 def _delta(idx: np.ndarray) -> np.ndarray:
     """Sorted slot indices as first differences (what deflate compresses best)."""
     return np.diff(np.asarray(idx, np.int64), prepend=0).astype(np.uint32)
 
 
 class _Encoder:
-    def __init__(self, frames: list[Splats], config: StreamConfig, sh_dim: int, group: int):
+    def __init__(self, frames: list[Splats], config: StreamConfig, sh_dim: int, group: int,
+                 cameras: list[dict] | None = None):
         self.frames, self.config, self.sh_dim = frames, config, sh_dim
+        self.cameras = cameras or []
         self.quant = group_quant(frames, config, sh_dim)
         key = frames[0]
         self.arrays: dict[str, np.ndarray] = {}
@@ -52,6 +83,15 @@ class _Encoder:
                             "key.ids": key.ids.astype(np.uint32), "graph.nodes": self.nodes})
         self.decoder = GroupDecoder(None, self.quant, sh_dim, self.nodes, codes, anchors, wcodes,
                                     key.ids)
+        self.position_tol = self._position_tol(key_means)
+        """Per slot: how far its decoded centre may be from the frame's (encoder only)."""
+
+    def _position_tol(self, points: np.ndarray) -> np.ndarray:
+        step = self.quant["means"]["tol"]
+        foot = pixel_footprint(points, self.cameras)
+        if foot is None:
+            return np.full(len(points), step, np.float32)
+        return np.maximum(step, self.config.position_pixels * foot).astype(np.float32)
 
     def _values(self, name: str, codes: np.ndarray) -> np.ndarray:
         from core.export.codec import values_of
@@ -112,41 +152,68 @@ class _Encoder:
         d.wcodes = np.concatenate([d.wcodes, wcodes])
         d.ids = np.concatenate([d.ids, born.ids.astype(np.int64)])
         d.alive = np.concatenate([d.alive, np.ones(len(rows), bool)])
+        self.position_tol = np.concatenate([self.position_tol, self._position_tol(born.means)])
         return np.arange(len(d.ids) - len(rows), len(d.ids))
+
+    def _rotation_tol(self, frame: Splats, slot: np.ndarray) -> np.ndarray:
+        """Per Gaussian: the quaternion error that moves its 1-sigma surface by the centres'
+        tolerance (a round Gaussian's rotation does not show)."""
+        s = np.exp(frame.scales.astype(np.float64))
+        spread = 2 * (s.max(1) - s.min(1))
+        tol = self.position_tol[slot] / np.maximum(spread, 1e-12)
+        return np.clip(tol, self.config.rotation, self.config.rotation_max)
+
+    def _targets(self, frame: Splats, slot: np.ndarray, parts) -> dict[str, np.ndarray]:
+        """The key-space residual codes that would carry each slot exactly to `frame`."""
+        d = self.decoder
+        kv = {k: v[slot] for k, v in d.key_values().items()}
+        step = {name: np.float32(self.quant[name]["tol"]) for name in PREDICTED}
+        if parts is None:
+            local = {"means": frame.means, "quats": frame.quats, "normals": frame.normals}
+        else:
+            A, c, qb = (x[slot] for x in parts)
+            qc = qb * np.float32([1, -1, -1, -1])
+            local = {"means": np.linalg.solve(A.astype(np.float64),
+                                              (frame.means - c)[..., None].astype(np.float64))[..., 0],
+                     "quats": qmul(qc, frame.quats),
+                     "normals": np.einsum("sji,sj->si", quat_to_rotmat(qb), frame.normals)}
+        q = local["quats"]  # q and -q: the key's side
+        local["quats"] = np.where((q * kv["quats"]).sum(1, keepdims=True) < 0, -q, q)
+        return {name: np.clip(np.rint((local[name] - kv[name]) / step[name]), -_I16, _I16)
+                .astype(np.int64) for name in PREDICTED}
 
     def _updates(self, prefix: str, frame: Splats, slot: np.ndarray, q, t) -> dict[str, int]:
         """Re-send what drifted beyond its tolerance; returns how many slots per attribute."""
         d = self.decoder
-        kv = d.key_values()
-        pred = dict(zip(PREDICTED, blend_deform(kv, d.anchors, weights_of(d.wcodes), self.nodes,
-                                                q, t)))
+        parts = d.parts(q, t)
+        local = with_residuals({k: v[slot] for k, v in d.key_values().items()},
+                               {k: v[slot] for k, v in d.res.items()}, self.quant)
+        now = dict(zip(PREDICTED, blend_deform(local, None if parts is None else
+                                               tuple(x[slot] for x in parts))))
+        targets = self._targets(frame, slot, parts)
         counts = {}
         for name in ATTRIBUTES:
             qd = self.quant[name]
             actual = attribute(frame, name, self.sh_dim)
             if name in PREDICTED:
-                p = pred[name][slot]
-                if name == "quats":  # q and -q: compare on the prediction's side
-                    actual = np.where((actual * p).sum(1, keepdims=True) < 0, -actual, actual)
-                step = np.float32(qd["tol"])
-                now = p + d.res[name][slot].astype(np.float32) * step
-                if name != "means":
-                    now = _unit(now)
-                err = np.abs(actual - now).max(1)
-                codes = np.clip(np.rint((actual - p) / step), -_I16, _I16).astype(np.int16)
-                state = d.res[name]
+                cur = now[name]
+                if name == "quats":  # q and -q are one rotation
+                    actual = np.where((actual * cur).sum(1, keepdims=True) < 0, -actual, actual)
+                codes, state = targets[name], d.res[name]
             else:
-                now = self._values(name, d.codes[name][slot])
-                err = np.abs(actual - now).max(1)
-                codes = codes_of(actual, qd)
-                state = d.codes[name]
-            send = np.flatnonzero(err > qd["tol"])
+                cur = self._values(name, d.codes[name][slot])
+                codes, state = codes_of(actual, qd).astype(np.int64), d.codes[name]
+            err = np.abs(actual - cur).max(1)
+            tol = self.position_tol[slot] if name == "means" else \
+                self._rotation_tol(frame, slot) if name == "quats" else qd["tol"]
+            send = np.flatnonzero(err > tol)
             order = send[np.argsort(slot[send], kind="stable")]
             counts[name] = int(len(order))
             if len(order):
+                new = codes[order]
                 self.arrays[f"{prefix}.upd.{name}.idx"] = _delta(slot[order])
-                self.arrays[f"{prefix}.upd.{name}.val"] = codes[order]
-                state[slot[order]] = codes[order].astype(np.int64)
+                self.arrays[f"{prefix}.upd.{name}.val"] = _narrow(new - state[slot[order]])
+                state[slot[order]] = new
         return counts
 
     def frame(self, index: int) -> None:
@@ -174,9 +241,11 @@ class _Encoder:
 
 
 def encode_group(frames: list[Splats], config: StreamConfig, *, sh_dim: int = 15,
-                 group: int = 0) -> tuple[dict, dict[str, np.ndarray]]:
+                 group: int = 0, cameras: list[dict] | None = None
+                 ) -> tuple[dict, dict[str, np.ndarray]]:
     """(metadata, named arrays) of one group: `frames[0]` is its key frame; the others must
-    carry the key frame's track ids for the Gaussians they share with it."""
+    carry the key frame's track ids for the Gaussians they share with it. `cameras` (the
+    stream header's) make the centres' tolerance a fraction of a capture pixel."""
     if not frames:
         raise ValueError("frames: a group needs at least its key frame")
     if sh_dim not in (0, 3, 8, 15):
@@ -184,7 +253,7 @@ def encode_group(frames: list[Splats], config: StreamConfig, *, sh_dim: int = 15
     for f in frames:
         if len(np.unique(f.ids)) != len(f):
             raise ValueError("frames: a frame repeats a track id; ids must be unique per frame")
-    enc = _Encoder(frames, config, sh_dim, group)
+    enc = _Encoder(frames, config, sh_dim, group, cameras)
     for i in range(len(frames)):
         enc.frame(i)
     return enc.meta, enc.arrays

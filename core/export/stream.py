@@ -53,7 +53,8 @@ def write_stream(path: str | os.PathLike[str], groups: list[list[Splats]], heade
     stats, chunks, index, first = StreamStats(), [], [], 0
     start = time.perf_counter()
     for g, frames in enumerate(groups):
-        meta, arrays = encode_group(frames, config, sh_dim=sh_dim, group=g)
+        meta, arrays = encode_group(frames, config, sh_dim=sh_dim, group=g,
+                                    cameras=header.get("cameras"))
         chunk = pack_chunk(g, pack_payload(meta, arrays))
         chunks.append(chunk)
         index.append({"index": g, "first": first, "count": len(frames),

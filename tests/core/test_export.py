@@ -123,7 +123,7 @@ def assert_within_tolerance(orig: Splats, dec: Splats, config: StreamConfig, dia
     a, b = by_id(orig), by_id(dec)
     assert np.array_equal(a.ids, b.ids)
     assert np.abs(a.means - b.means).max() <= config.position * diag * 1.01
-    assert same_rotation_error(a.quats, b.quats) <= config.rotation * 1.01
+    assert same_rotation_error(a.quats, b.quats) <= config.rotation_max * 1.01
     assert np.abs(a.normals - b.normals).max() <= config.normal * 1.01
     assert np.abs(a.scales - b.scales).max() <= config.scale * 1.01
     assert np.abs(a.opacity_g - b.opacity_g).max() <= config.opacity * 1.01

@@ -8,7 +8,7 @@ export class StreamError extends Error {}
 
 const PREDICTED = ['means', 'quats', 'normals'];
 const ATTRIBUTES = [...PREDICTED, 'scales', 'opacity', 'sh0', 'shN', 'visibility'];
-const DTYPES = { u8: Uint8Array, u16: Uint16Array, u32: Uint32Array, i16: Int16Array,
+const DTYPES = { i8: Int8Array, u8: Uint8Array, u16: Uint16Array, u32: Uint32Array, i16: Int16Array,
   i32: Int32Array, f32: Float32Array };
 const HEAD_GUESS = 65536;
 
@@ -186,7 +186,7 @@ export class GroupDecoder {
       for (let i = 0; i < idx.length; i++) {
         slot += idx[i];
         if (slot >= S) throw new StreamError(`group ${this.p.meta.group}: an update names slot ${slot} of ${S}`);
-        for (let k = 0; k < c; k++) target[slot * c + k] = val[i * c + k];
+        for (let k = 0; k < c; k++) target[slot * c + k] += val[i * c + k]; // deltas
       }
     }
   }
@@ -226,9 +226,15 @@ export class GroupDecoder {
     let o = 0;
     for (let s = 0; s < S; s++) {
       if (!this.alive[s]) continue;
+      // Key-space values, unit, then their residuals (key space too), unit again.
+      const rm = this.res.means, rq = this.res.quats, rn = this.res.normals;
       for (let k = 0; k < 3; k++) { x[k] = deq('means', s, k, 3); nk[k] = deq('normals', s, k, 3); }
       for (let k = 0; k < 4; k++) qk[k] = deq('quats', s, k, 4);
       let l = Math.hypot(...qk) || 1;
+      for (let k = 0; k < 4; k++) qk[k] = qk[k] / l + rq[4 * s + k] * tol.quats;
+      l = Math.hypot(...nk) || 1;
+      for (let k = 0; k < 3; k++) { nk[k] = nk[k] / l + rn[3 * s + k] * tol.normals; x[k] += rm[3 * s + k] * tol.means; }
+      l = Math.hypot(...qk) || 1;
       for (let k = 0; k < 4; k++) qk[k] /= l;
       l = Math.hypot(...nk) || 1;
       for (let k = 0; k < 3; k++) nk[k] /= l;
@@ -258,17 +264,14 @@ export class GroupDecoder {
         pn = [mb[0] * nk[0] + mb[1] * nk[1] + mb[2] * nk[2], mb[3] * nk[0] + mb[4] * nk[1] + mb[5] * nk[2],
           mb[6] * nk[0] + mb[7] * nk[1] + mb[8] * nk[2]];
       }
-      const rm = this.res.means, rq = this.res.quats, rn = this.res.normals;
-      out.means[3 * o] = px + rm[3 * s] * tol.means;
-      out.means[3 * o + 1] = py + rm[3 * s + 1] * tol.means;
-      out.means[3 * o + 2] = pz + rm[3 * s + 2] * tol.means;
-      const qq = [0, 1, 2, 3].map((c) => pq[c] + rq[4 * s + c] * tol.quats);
-      l = Math.hypot(...qq) || 1;
-      const sign = qq[0] < 0 ? -1 : 1;
-      for (let c = 0; c < 4; c++) out.quats[4 * o + c] = sign * qq[c] / l;
-      const nn = [0, 1, 2].map((c) => pn[c] + rn[3 * s + c] * tol.normals);
-      l = Math.hypot(...nn) || 1;
-      for (let c = 0; c < 3; c++) out.normals[3 * o + c] = nn[c] / l;
+      out.means[3 * o] = px;
+      out.means[3 * o + 1] = py;
+      out.means[3 * o + 2] = pz;
+      l = Math.hypot(...pq) || 1;
+      const sign = pq[0] < 0 ? -l : l;
+      for (let c = 0; c < 4; c++) out.quats[4 * o + c] = pq[c] / sign;
+      l = Math.hypot(...pn) || 1;
+      for (let c = 0; c < 3; c++) out.normals[3 * o + c] = pn[c] / l;
       for (let k = 0; k < 3; k++) { out.scales[3 * o + k] = deq('scales', s, k, 3); out.sh0[3 * o + k] = deq('sh0', s, k, 3); }
       out.opacityC[o] = deq('opacity', s, 0, 2);
       out.opacityG[o] = deq('opacity', s, 1, 2);
