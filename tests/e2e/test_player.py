@@ -35,7 +35,7 @@ def wait_for(d, what: str, predicate, timeout: float = 60):
 # Tolerance of the page's relit frame against the server's (the stream's frame against the PLY, same
 # camera): the stream's quantization, float16/32 blending on the GPU, the depth sort in 65536
 # bins against the server's exact one (docs/stream.md, "The player").
-RELIT_PSNR_DB = 40.0
+RELIT_PSNR_DB = 38.0
 
 
 @pytest.fixture(scope="module")

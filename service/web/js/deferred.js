@@ -279,18 +279,25 @@ export class DeferredSplats {
     const g = new Float32Array(rows * ROW * 16), sh = new Float32Array(rows * ROW * 64);
     const dim = f.shDim;
     for (let i = 0; i < n; i++) {
-      let w = f.quats[4 * i], x = f.quats[4 * i + 1], y = f.quats[4 * i + 2], z = f.quats[4 * i + 3];
-      const R = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)];
-      const s = [Math.exp(f.scales[3 * i]), Math.exp(f.scales[3 * i + 1]), Math.exp(f.scales[3 * i + 2])];
-      const M = R.map((v, k) => v * s[k % 3]);
-      const cov = (a, b) => M[3 * a] * M[3 * b] + M[3 * a + 1] * M[3 * b + 1] + M[3 * a + 2] * M[3 * b + 2];
-      g.set([f.means[3 * i], f.means[3 * i + 1], f.means[3 * i + 2], f.opacityC[i],
-        cov(0, 0), cov(0, 1), cov(0, 2), cov(1, 1), cov(1, 2), cov(2, 2), f.opacityG[i], f.visibility[i],
-        f.normals[3 * i], f.normals[3 * i + 1], f.normals[3 * i + 2], 0], 16 * i);
-      sh.set(f.sh0.subarray(3 * i, 3 * i + 3), 64 * i);
-      for (let k = 0; k < dim; k++) sh.set(f.shN.subarray(3 * (dim * i + k), 3 * (dim * i + k) + 3), 64 * i + 4 * (k + 1));
+      const w = f.quats[4 * i], x = f.quats[4 * i + 1], y = f.quats[4 * i + 2], z = f.quats[4 * i + 3];
+      const s0 = Math.exp(f.scales[3 * i]), s1 = Math.exp(f.scales[3 * i + 1]), s2 = Math.exp(f.scales[3 * i + 2]);
+      // M = R S, covariance M M^T (rows of M: a, b, c).
+      const a0 = (1 - 2 * (y * y + z * z)) * s0, a1 = 2 * (x * y - w * z) * s1, a2 = 2 * (x * z + w * y) * s2;
+      const b0 = 2 * (x * y + w * z) * s0, b1 = (1 - 2 * (x * x + z * z)) * s1, b2 = 2 * (y * z - w * x) * s2;
+      const c0 = 2 * (x * z - w * y) * s0, c1 = 2 * (y * z + w * x) * s1, c2 = (1 - 2 * (x * x + y * y)) * s2;
+      const o = 16 * i;
+      g[o] = f.means[3 * i]; g[o + 1] = f.means[3 * i + 1]; g[o + 2] = f.means[3 * i + 2]; g[o + 3] = f.opacityC[i];
+      g[o + 4] = a0 * a0 + a1 * a1 + a2 * a2; g[o + 5] = a0 * b0 + a1 * b1 + a2 * b2;
+      g[o + 6] = a0 * c0 + a1 * c1 + a2 * c2; g[o + 7] = b0 * b0 + b1 * b1 + b2 * b2;
+      g[o + 8] = b0 * c0 + b1 * c1 + b2 * c2; g[o + 9] = c0 * c0 + c1 * c1 + c2 * c2;
+      g[o + 10] = f.opacityG[i]; g[o + 11] = f.visibility[i];
+      g[o + 12] = f.normals[3 * i]; g[o + 13] = f.normals[3 * i + 1]; g[o + 14] = f.normals[3 * i + 2];
+      const h = 64 * i;
+      sh[h] = f.sh0[3 * i]; sh[h + 1] = f.sh0[3 * i + 1]; sh[h + 2] = f.sh0[3 * i + 2];
+      for (let k = 0; k < dim; k++) {
+        const src = 3 * (dim * i + k), dst = h + 4 * (k + 1);
+        sh[dst] = f.shN[src]; sh[dst + 1] = f.shN[src + 1]; sh[dst + 2] = f.shN[src + 2];
+      }
     }
     const upload = (tex, data, width) => {
       gl.bindTexture(gl.TEXTURE_2D, tex);

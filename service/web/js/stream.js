@@ -209,74 +209,87 @@ export class GroupDecoder {
     return this.output(nodeQ, nodeT);
   }
 
+  /** Dequantized attribute `name` of every slot: float32(lo + float32(code * step)), as numpy. */
+  values(name) {
+    const q = this.quant[name], codes = this.codes[name], out = new Float32Array(codes.length);
+    const c = codes.length / this.ids.length, step = Math.fround(q.step);
+    const lo = Float32Array.from({ length: c }, (_, k) => q.lo[q.lo.length > 1 ? k : 0]);
+    for (let i = 0; i < codes.length; i++) out[i] = lo[i % c] + Math.fround(codes[i] * step);
+    return out;
+  }
+
   output(nodeQ, nodeT) {
-    const S = this.ids.length, q = this.quant, dim = this.shDim;
+    const S = this.ids.length, dim = this.shDim, q = this.quant;
     let n = 0;
     for (let s = 0; s < S; s++) n += this.alive[s];
     const out = { count: n, ids: new Uint32Array(n), means: new Float32Array(3 * n),
       quats: new Float32Array(4 * n), normals: new Float32Array(3 * n), scales: new Float32Array(3 * n),
       opacityC: new Float32Array(n), opacityG: new Float32Array(n), sh0: new Float32Array(3 * n),
       shN: new Float32Array(3 * dim * n), visibility: new Float32Array(n), shDim: dim };
-    const M = nodeQ ? nodeQ.length / 4 : 0, R = new Float32Array(9 * M);
+    const M = nodeQ ? nodeQ.length / 4 : 0, R = new Float32Array(9 * M), mb = new Float32Array(9);
     for (let j = 0; j < M; j++) quatToMat(nodeQ, 4 * j, R.subarray(9 * j, 9 * j + 9));
-    const deq = (name, s, k, c) => Math.fround(Math.fround(q[name].lo[q[name].lo.length > 1 ? k : 0])
-      + Math.fround(this.codes[name][s * c + k] * q[name].step));
-    const tol = { means: q.means.tol, quats: q.quats.tol, normals: q.normals.tol };
-    const x = [0, 0, 0], qk = [0, 0, 0, 0], nk = [0, 0, 0], qb = [0, 0, 0, 0], mb = new Float32Array(9);
+    const X = this.values('means'), Q = this.values('quats'), N = this.values('normals');
+    const SC = this.values('scales'), OP = this.values('opacity'), C0 = this.values('sh0');
+    const SH = this.values('shN'), VI = this.values('visibility');
+    const rm = this.res.means, rq = this.res.quats, rn = this.res.normals;
+    const tm = q.means.tol, tq = q.quats.tol, tn = q.normals.tol, w = [0, 0, 0, 0], qb = [0, 0, 0, 0];
     let o = 0;
     for (let s = 0; s < S; s++) {
       if (!this.alive[s]) continue;
-      // Key-space values, unit, then their residuals (key space too), unit again.
-      const rm = this.res.means, rq = this.res.quats, rn = this.res.normals;
-      for (let k = 0; k < 3; k++) { x[k] = deq('means', s, k, 3); nk[k] = deq('normals', s, k, 3); }
-      for (let k = 0; k < 4; k++) qk[k] = deq('quats', s, k, 4);
-      let l = Math.hypot(...qk) || 1;
-      for (let k = 0; k < 4; k++) qk[k] = qk[k] / l + rq[4 * s + k] * tol.quats;
-      l = Math.hypot(...nk) || 1;
-      for (let k = 0; k < 3; k++) { nk[k] = nk[k] / l + rn[3 * s + k] * tol.normals; x[k] += rm[3 * s + k] * tol.means; }
-      l = Math.hypot(...qk) || 1;
-      for (let k = 0; k < 4; k++) qk[k] /= l;
-      l = Math.hypot(...nk) || 1;
-      for (let k = 0; k < 3; k++) nk[k] /= l;
-      let px = x[0], py = x[1], pz = x[2], pq = qk, pn = nk;
+      // Key-space values, unit, plus their residuals (key space too), unit again.
+      let l = Math.sqrt(Q[4 * s] ** 2 + Q[4 * s + 1] ** 2 + Q[4 * s + 2] ** 2 + Q[4 * s + 3] ** 2) || 1;
+      let qw = Q[4 * s] / l + rq[4 * s] * tq, qx = Q[4 * s + 1] / l + rq[4 * s + 1] * tq;
+      let qy = Q[4 * s + 2] / l + rq[4 * s + 2] * tq, qz = Q[4 * s + 3] / l + rq[4 * s + 3] * tq;
+      l = Math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) || 1;
+      qw /= l; qx /= l; qy /= l; qz /= l;
+      l = Math.sqrt(N[3 * s] ** 2 + N[3 * s + 1] ** 2 + N[3 * s + 2] ** 2) || 1;
+      let nx = N[3 * s] / l + rn[3 * s] * tn, ny = N[3 * s + 1] / l + rn[3 * s + 1] * tn;
+      let nz = N[3 * s + 2] / l + rn[3 * s + 2] * tn;
+      l = Math.sqrt(nx * nx + ny * ny + nz * nz) || 1;
+      nx /= l; ny /= l; nz /= l;
+      const x0 = X[3 * s] + rm[3 * s] * tm, x1 = X[3 * s + 1] + rm[3 * s + 1] * tm;
+      const x2 = X[3 * s + 2] + rm[3 * s + 2] * tm;
+      let px = x0, py = x1, pz = x2;
       if (M) {
-        const w = [0, 0, 0, 0];
         let total = 0;
         for (let k = 0; k < 4; k++) { w[k] = this.wcodes[4 * s + k]; total += w[k]; }
         for (let k = 0; k < 4; k++) w[k] = total > 0 ? w[k] / total : 0.25;
         px = py = pz = 0;
         qb[0] = qb[1] = qb[2] = qb[3] = 0;
         for (let k = 0; k < 4; k++) {
-          const j = this.anchors[4 * s + k], r = 9 * j;
+          const j = this.anchors[4 * s + k], r = 9 * j, wk = w[k];
           const gx = this.nodes[3 * j], gy = this.nodes[3 * j + 1], gz = this.nodes[3 * j + 2];
-          const dx = x[0] - gx, dy = x[1] - gy, dz = x[2] - gz;
-          px += w[k] * (R[r] * dx + R[r + 1] * dy + R[r + 2] * dz + gx + nodeT[3 * j]);
-          py += w[k] * (R[r + 3] * dx + R[r + 4] * dy + R[r + 5] * dz + gy + nodeT[3 * j + 1]);
-          pz += w[k] * (R[r + 6] * dx + R[r + 7] * dy + R[r + 8] * dz + gz + nodeT[3 * j + 2]);
-          for (let c = 0; c < 4; c++) qb[c] += w[k] * nodeQ[4 * j + c];
+          const dx = x0 - gx, dy = x1 - gy, dz = x2 - gz;
+          px += wk * (R[r] * dx + R[r + 1] * dy + R[r + 2] * dz + gx + nodeT[3 * j]);
+          py += wk * (R[r + 3] * dx + R[r + 4] * dy + R[r + 5] * dz + gy + nodeT[3 * j + 1]);
+          pz += wk * (R[r + 6] * dx + R[r + 7] * dy + R[r + 8] * dz + gz + nodeT[3 * j + 2]);
+          for (let c = 0; c < 4; c++) qb[c] += wk * nodeQ[4 * j + c];
         }
-        const [bw, bx, by, bz] = qb, [aw, ax, ay, az] = qk;
-        pq = [bw * aw - bx * ax - by * ay - bz * az, bw * ax + bx * aw + by * az - bz * ay,
-          bw * ay - bx * az + by * aw + bz * ax, bw * az + bx * ay - by * ax + bz * aw];
-        l = Math.hypot(...qb) || 1;
-        for (let c = 0; c < 4; c++) pq[c] /= l;
+        l = Math.sqrt(qb[0] ** 2 + qb[1] ** 2 + qb[2] ** 2 + qb[3] ** 2) || 1;
+        const bw = qb[0] / l, bx = qb[1] / l, by = qb[2] / l, bz = qb[3] / l;
+        const aw = qw, ax = qx, ay = qy, az = qz;
+        qw = bw * aw - bx * ax - by * ay - bz * az;
+        qx = bw * ax + bx * aw + by * az - bz * ay;
+        qy = bw * ay - bx * az + by * aw + bz * ax;
+        qz = bw * az + bx * ay - by * ax + bz * aw;
         quatToMat(qb, 0, mb);
-        pn = [mb[0] * nk[0] + mb[1] * nk[1] + mb[2] * nk[2], mb[3] * nk[0] + mb[4] * nk[1] + mb[5] * nk[2],
-          mb[6] * nk[0] + mb[7] * nk[1] + mb[8] * nk[2]];
+        const ax2 = nx, ay2 = ny, az2 = nz;
+        nx = mb[0] * ax2 + mb[1] * ay2 + mb[2] * az2;
+        ny = mb[3] * ax2 + mb[4] * ay2 + mb[5] * az2;
+        nz = mb[6] * ax2 + mb[7] * ay2 + mb[8] * az2;
       }
-      out.means[3 * o] = px;
-      out.means[3 * o + 1] = py;
-      out.means[3 * o + 2] = pz;
-      l = Math.hypot(...pq) || 1;
-      const sign = pq[0] < 0 ? -l : l;
-      for (let c = 0; c < 4; c++) out.quats[4 * o + c] = pq[c] / sign;
-      l = Math.hypot(...pn) || 1;
-      for (let c = 0; c < 3; c++) out.normals[3 * o + c] = pn[c] / l;
-      for (let k = 0; k < 3; k++) { out.scales[3 * o + k] = deq('scales', s, k, 3); out.sh0[3 * o + k] = deq('sh0', s, k, 3); }
-      out.opacityC[o] = deq('opacity', s, 0, 2);
-      out.opacityG[o] = deq('opacity', s, 1, 2);
-      out.visibility[o] = deq('visibility', s, 0, 1);
-      for (let k = 0; k < 3 * dim; k++) out.shN[3 * dim * o + k] = deq('shN', s, k, 3 * dim);
+      out.means[3 * o] = px; out.means[3 * o + 1] = py; out.means[3 * o + 2] = pz;
+      l = Math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz) || 1;
+      if (qw < 0) l = -l;
+      out.quats[4 * o] = qw / l; out.quats[4 * o + 1] = qx / l;
+      out.quats[4 * o + 2] = qy / l; out.quats[4 * o + 3] = qz / l;
+      l = Math.sqrt(nx * nx + ny * ny + nz * nz) || 1;
+      out.normals[3 * o] = nx / l; out.normals[3 * o + 1] = ny / l; out.normals[3 * o + 2] = nz / l;
+      for (let k = 0; k < 3; k++) { out.scales[3 * o + k] = SC[3 * s + k]; out.sh0[3 * o + k] = C0[3 * s + k]; }
+      out.opacityC[o] = OP[2 * s];
+      out.opacityG[o] = OP[2 * s + 1];
+      out.visibility[o] = VI[s];
+      out.shN.set(SH.subarray(3 * dim * s, 3 * dim * (s + 1)), 3 * dim * o);
       out.ids[o] = this.ids[s];
       o += 1;
     }
