@@ -66,6 +66,11 @@ window.ready = true;
 </script></body></html>"""
 
 
+class _Quiet(http.server.SimpleHTTPRequestHandler):
+    def log_message(self, *args) -> None:
+        pass
+
+
 def make_stream(path: Path, n: int, width: int, height: int) -> None:
     """A shell of n Gaussians (a figure-sized blob) and the same turned by 0.1 rad."""
     from core.export.run import _builtin_sh9
@@ -120,7 +125,7 @@ def main(argv: list[str] | None = None) -> int:
         t = time.perf_counter()
         make_stream(site / "stream.dgss", args.gaussians, *args.size)
         encode_s = time.perf_counter() - t
-        handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(site))
+        handler = functools.partial(_Quiet, directory=str(site))
         server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
         threading.Thread(target=server.serve_forever, daemon=True).start()
         opts = webdriver.ChromeOptions()
@@ -129,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
             opts.add_argument(arg)
         driver = webdriver.Chrome(service=Service(shutil.which("chromedriver")
                                                   or "/usr/bin/chromedriver"), options=opts)
+        # A draw of a large frame in software GL can hold the page's thread for minutes.
+        driver.command_executor.client_config.timeout = 3600
         try:
             driver.set_script_timeout(1800)
             driver.get(f"http://127.0.0.1:{server.server_port}/bench.html")
@@ -136,10 +143,14 @@ def main(argv: list[str] | None = None) -> int:
                 if driver.execute_script("return window.ready === true"):
                     break
                 time.sleep(0.1)
-            out = driver.execute_async_script(
-                "const done = arguments[arguments.length - 1];"
-                "window.bench(arguments[0]).then(done, (e) => done({error: String(e)}));",
-                args.draws)
+            # Started, then polled: one long script call would outlast the driver's timeout.
+            driver.execute_script("window.bench(arguments[0]).then((r) => { window.result = r; },"
+                                  " (e) => { window.result = {error: String(e)}; });",
+                                  args.draws)
+            out = None
+            while out is None:
+                time.sleep(2)
+                out = driver.execute_script("return window.result || null;")
         finally:
             driver.quit()
             server.shutdown()
