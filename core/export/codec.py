@@ -101,7 +101,8 @@ def with_attributes(values: dict[str, np.ndarray], ids: np.ndarray, sh_dim: int)
     shN = np.zeros((n, 15, 3), np.float32)
     shN[:, :sh_dim] = values["shN"].reshape(n, sh_dim, 3)
     return Splats(means=values["means"], scales=values["scales"], quats=values["quats"],
-                  opacity_c=values["opacity"][:, 0].copy(), opacity_g=values["opacity"][:, 1].copy(),
+                  opacity_c=values["opacity"][:, 0].copy(),
+                  opacity_g=values["opacity"][:, 1].copy(),
                   sh0=values["sh0"], shN=shN, normals=values["normals"],
                   visibility=values["visibility"][:, 0].copy(), ids=ids).canonical()
 

@@ -3,6 +3,8 @@
 // to front (WebGL2, one instanced quad per Gaussian, attributes read from a float texture).
 // Colour modes: appearance (SH degree 0), geometry-branch normals, visibility (AO).
 
+import { compile } from './deferred.js';
+
 const SH_C0 = 0.28209479177387814;
 const ROW = 512; // Gaussians per texture row (4 texels each)
 
@@ -156,13 +158,6 @@ void main() {
   fragColor = vec4(v_color.rgb * alpha, alpha);
 }`;
 
-function compile(gl, type, source) {
-  const s = gl.createShader(type);
-  gl.shaderSource(s, source);
-  gl.compileShader(s);
-  if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
-  return s;
-}
 
 function lookAt(eye, target, up) {
   const f = norm(sub(target, eye)), s = norm(cross(f, up)), u = cross(s, f);
