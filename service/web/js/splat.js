@@ -81,7 +81,7 @@ function packGaussians(ply, mode) {
       r = 0.5 + 0.5 * nx / nn; g = 0.5 + 0.5 * ny / nn; b = 0.5 + 0.5 * nz / nn;
       if (c.opacity_geo) alpha = sigmoid(c.opacity_geo[i]);
     } else if (mode === 'visibility' && c.visibility) {
-      r = g = b = Math.min(1, Math.max(0, c.visibility[i]));
+      r = g = b = sigmoid(c.visibility[i]);  // stored as a logit, like the opacities
       if (c.opacity_geo) alpha = sigmoid(c.opacity_geo[i]);
     } else {
       r = 0.5 + SH_C0 * (c.f_dc_0 ? c.f_dc_0[i] : 0);
