@@ -129,6 +129,7 @@ def test_the_page_plays_a_relit_stream_matching_the_servers_relight(sequence_job
              and d.find_element("id", "player-canvas").get_attribute("data-frame") == "4", 120)
     shown = d.execute_script("return window.dgsPlayer.player.stats.shown;")
     assert shown >= 2
+    d.execute_script("document.getElementById('player').scrollIntoView()")
     shot(d, "07-player-played")
 
     # Relight live: a built-in map, rotated, and a light; the held-out camera cam00, frame 3.
@@ -144,6 +145,7 @@ def test_the_page_plays_a_relit_stream_matching_the_servers_relight(sequence_job
              .get_attribute("data-frame") == "3", 30)
     d.execute_script("window.dgsPlayer.player.draw();")
     page = page_pixels(d)
+    d.execute_script("document.getElementById('player').scrollIntoView()")
     shot(d, "08-player-relit")
     server = server_relit(live, key, job_id, {
         "envmap": "builtin:sunset", "rotation_deg": 90, "cameras": "cam00", "frames": "3",
@@ -191,6 +193,7 @@ def test_the_page_refuses_a_damaged_stream_and_says_why(sequence_job, browser):
     assert d.find_element("id", "player-canvas").get_attribute("data-frame") == "0"
     d.find_element("id", "player-play").click()  # playing on stays refused, without a crash
     assert "corrupted" in text(d, "player-status")
+    d.execute_script("document.getElementById('player').scrollIntoView()")
     shot(d, "09-player-refused")
     severe = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
     assert not severe, severe
