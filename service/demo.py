@@ -249,7 +249,8 @@ def _export(client, job_id: str, run_dir: Path) -> None:
     exp = client.wait(client.export(job_id, ("stream",), name="dgs demo")["id"])
     if exp["state"] != "succeeded":
         raise RuntimeError(f"the export job {exp['id']} {exp['state']}: {exp.get('error')}")
-    client.download_all(exp["id"], run_dir, kind="export")
+    for kind in ("export", "stream"):  # the record, and the stream to open anywhere
+        client.download_all(exp["id"], run_dir, kind=kind)
     stream = json.loads((run_dir / "export" / "export.json").read_text())["stream"]
     print(f"      stream (POST /v1/exports): {stream['bytes_per_frame'] / 1e3:.1f} kB a frame, "
           f"{stream['ratio_to_ply']:.1f}x smaller than the PLY", flush=True)
