@@ -107,7 +107,11 @@ export class Player {
     const up = this.header.up || [0, 0, 1], o = this.orbit, [e1, e2] = upFrame(up);
     const dir = [0, 1, 2].map((k) => Math.cos(o.pitch) * (Math.cos(o.yaw) * e1[k] + Math.sin(o.yaw) * e2[k]) + Math.sin(o.pitch) * up[k]);
     const eye = o.target.map((v, k) => v + o.distance * dir[k]);
-    return { width: base.width, height: base.height, K: base.K, world_to_camera: lookAt(eye, o.target, up) };
+    // The orbit draws at least 480 pixels across, whatever the capture's resolution.
+    const k = Math.max(1, 480 / Math.max(base.width, base.height));
+    const K = [[base.K[0][0] * k, 0, base.K[0][2] * k], [0, base.K[1][1] * k, base.K[1][2] * k], [0, 0, 1]];
+    return { width: Math.round(base.width * k), height: Math.round(base.height * k), K,
+             world_to_camera: lookAt(eye, o.target, up) };
   }
 
   shading() {
