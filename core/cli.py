@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "capture": ("core.data.commands", "import and validate captures"),
     "demo": ("core.demo.commands", "run the main job on a small built-in capture"),
     "eval": ("core.evaluation.commands", "score a run's held-out views; writes RUN/eval.json"),
+    "export": ("core.export.commands", "a run's frames as PLY, SPZ or a relightable stream"),
     "mesh": ("core.mesh.commands", "meshes of a run's frames (TSDF of the geometry branch)"),
     "reconstruct": ("core.pipeline.commands", "reconstruct a capture into a run directory"),
     "relight": ("core.relight.commands", "relit renders of a run under an environment map"),

@@ -31,7 +31,8 @@ __all__ = ["ARTIFACT_KINDS", "CONTENT_TYPES", "ArtifactKind", "RunDir", "classif
 
 CONTENT_TYPES = {".png": "image/png", ".json": "application/json", ".ply": "application/x-ply",
                  ".npy": "application/x-npy", ".mp4": "video/mp4", ".exr": "image/x-exr",
-                 ".obj": "model/obj", ".glb": "model/gltf-binary", ".jpg": "image/jpeg"}
+                 ".obj": "model/obj", ".glb": "model/gltf-binary", ".jpg": "image/jpeg",
+                 ".dgss": "application/octet-stream", ".spz": "application/octet-stream"}
 
 # (pattern on the path relative to the run directory, kind); the first match wins.
 _RULES: tuple[tuple[str, str], ...] = (
@@ -46,6 +47,10 @@ _RULES: tuple[tuple[str, str], ...] = (
     (r"relit/(?P<frame>[^/]+)\.mp4", "video"),
     (r"relit/videos/[^/]+\.mp4", "video"),
     (r"relit/relight\.json", "relight"),
+    (r"export/stream\.dgss", "stream"),
+    (r"export/spz/(?P<frame>[^/]+)\.spz", "spz"),
+    (r"export/ply/(?P<frame>[^/]+)\.ply", "ply"),
+    (r"export/export\.json", "export"),
     (r"plots/[^/]+\.png", "plot"),
     (r"config\.json", "config"),
     (r"(metrics|sequence)\.json", "metrics"),

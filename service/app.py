@@ -9,7 +9,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from service.deps import Services
 from service.errors import install_error_handlers
 from service.middleware import EXPOSED, BodyLimit, strict_query
-from service.routers import artifacts, assets, captures, info, jobs, renders, uploads
+from service.routers import artifacts, assets, captures, exports, info, jobs, renders, uploads
 from service.routers.info import package_version
 from service.settings import ServiceSettings, get_service_settings
 from service.upload.commit import Committer, recover_commits
@@ -52,10 +52,10 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
                   generate_unique_id_function=lambda route: route.name,
                   dependencies=[Depends(strict_query)],
                   openapi_tags=[{"name": n} for n in ("info", "captures", "uploads", "jobs",
-                                                      "artifacts", "assets", "renders")])
+                                                      "artifacts", "assets", "renders", "exports")])
     app.state.services = services
     install_error_handlers(app)
-    for module in (info, captures, uploads, jobs, artifacts, assets, renders):
+    for module in (info, captures, uploads, jobs, artifacts, assets, renders, exports):
         app.include_router(module.router)
     mount_web(app)  # the web page at / (after the API, which it never shadows)
     app.add_middleware(BodyLimit, limit=settings.max_json_bytes)

@@ -376,6 +376,14 @@ class Client:
                 **params}
         return self._json("POST", "/v1/renders", json=body)
 
+    def export(self, job_id: str, formats: tuple[str, ...] = ("stream",), *, name: str = "",
+               **params: Any) -> dict:
+        """Request an export of the succeeded reconstruction `job_id` (202): the relightable
+        stream (export/stream.dgss, kind stream), SPZ or PLY per frame; returns the export job
+        (pipeline export), to follow with `wait`. `params`: frames, fps, position_tolerance."""
+        return self._json("POST", "/v1/exports", json={"job_id": job_id, "formats": list(formats),
+                                                        "name": name, **params})
+
     # -- artifacts ----------------------------------------------------------------------------
     def artifacts(self, job_id: str, kind: str | None = None) -> list[dict]:
         return list(self._pages(f"/v1/jobs/{job_id}/artifacts", {"kind": kind} if kind else {}))

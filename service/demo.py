@@ -207,6 +207,9 @@ def run_service_demo(out: str = "demo", *, synth: dict | None = None,
     report(capture, capture_dir, run_dir, metrics, result, train_s, step=f"[6/{STEPS}]")
     print(f"      PLY per frame: {run_dir / 'frames'}")
     print(f"      total {time.perf_counter() - t0:.0f} s")
+    print(f"open it in a browser: DGS_DATA_DIR={data_dir} {Path(sys.executable).parent / 'dgs'} "
+          "serve --port 8000, then http://127.0.0.1:8000/ : panel 2 has the job, panel 5 "
+          "plays its stream relit live")
     return 0
 
 
@@ -237,4 +240,17 @@ def _run_job(data_dir: Path, capture_dir: Path, run_dir: Path, overrides: dict,
         files = client.download_all(job["id"], run_dir)
         print(f"      {len(files)} files, {sum(p.stat().st_size for p in files) / 1e6:.1f} MB",
               flush=True)
+        _export(client, job["id"], run_dir)
     return job, files, train_s
+
+
+def _export(client, job_id: str, run_dir: Path) -> None:
+    """The reconstruction as the relightable stream the page's player plays (an export job)."""
+    exp = client.wait(client.export(job_id, ("stream",), name="dgs demo")["id"])
+    if exp["state"] != "succeeded":
+        raise RuntimeError(f"the export job {exp['id']} {exp['state']}: {exp.get('error')}")
+    for kind in ("export", "stream"):  # the record, and the stream to open anywhere
+        client.download_all(exp["id"], run_dir, kind=kind)
+    stream = json.loads((run_dir / "export" / "export.json").read_text())["stream"]
+    print(f"      stream (POST /v1/exports): {stream['bytes_per_frame'] / 1e3:.1f} kB a frame, "
+          f"{stream['ratio_to_ply']:.1f}x smaller than the PLY", flush=True)

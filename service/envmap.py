@@ -9,6 +9,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 __all__ = ["CONTENT_TYPES", "EnvmapError", "EnvmapInfo", "inspect_envmap"]
 
 CONTENT_TYPES = {".exr": "image/x-exr", ".hdr": "image/vnd.radiance"}
@@ -27,13 +29,16 @@ class EnvmapInfo:
     width: int
     height: int
     channels: int
+    sh9: list[list[float]]
+    """(9, 3) radiance SH in the map's own frame (poles on +z, unrotated): what the page's
+    player relights with, turned into the capture's up frame and rotated there."""
 
 
 def inspect_envmap(path: Path, name: str, max_pixels: int) -> EnvmapInfo:
     """Decode the whole image at `path`, known to the client as `name`, and check it
     (EnvmapError naming `name` otherwise)."""
     from core.data.images import ImageReadError
-    from core.relight.envmap import check_radiance, read_envmap
+    from core.relight.envmap import check_radiance, project_sh9, read_envmap
 
     suffix = Path(name).suffix.lower()
     if suffix not in CONTENT_TYPES:
@@ -47,4 +52,6 @@ def inspect_envmap(path: Path, name: str, max_pixels: int) -> EnvmapInfo:
     except ValueError as exc:  # "envmap: <name>: <problem>"
         raise EnvmapError(name, str(exc).split(f"{name}: ", 1)[-1]) from None
     height, width, channels = image.shape
-    return EnvmapInfo(int(width), int(height), int(channels))
+    sh9 = project_sh9(np.clip(image[..., :3].astype(np.float64), 0, None))
+    return EnvmapInfo(int(width), int(height), int(channels),
+                      [[round(float(v), 6) for v in row] for row in sh9])

@@ -10,11 +10,11 @@ from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, WithJsonSchema
 
 from core.config import schema
 from service.errors import ErrorInfo
-from worker.pipelines import LightParams, ReconstructParams, RelightJobParams
+from worker.pipelines import ExportJobParams, LightParams, ReconstructParams, RelightJobParams
 
 __all__ = [
     "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
-    "CaptureItem", "CaptureOut", "CapturePage", "CaptureSummary", "FileOut", "FilePage",
+    "CaptureItem", "CaptureOut", "CapturePage", "CaptureSummary", "ExportIn", "FileOut", "FilePage",
     "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut", "JobPage", "JobState",
     "LightIn", "LimitsOut", "LogsOut", "ManifestFileIn", "ManifestIn", "ManifestPatchIn", "PipelineOut",
     "ProgressOut", "ReadyOut", "RenderIn", "TusOut", "manifest_entries",
@@ -214,6 +214,9 @@ class AssetOut(BaseModel):
     width: int
     height: int
     channels: int
+    sh9: list[list[float]] | None = Field(None, description=(
+        "An environment map's 9-coefficient SH radiance (9 x RGB) in its own frame (poles on "
+        "+z, unrotated), for relighting in the browser; null for maps stored before it."))
     created_at: dt.datetime
     expires_at: dt.datetime | None
     links: dict[str, str]
@@ -242,6 +245,21 @@ class RenderIn(RelightJobParams):
     def params(self) -> dict[str, Any]:
         """The relight job's stored parameters."""
         return RelightJobParams.model_validate(self.model_dump(
+            exclude={"job_id", "name", "expires_at"})).model_dump(mode="json")
+
+
+class ExportIn(ExportJobParams):
+    """A reconstruction (job_id) and the export pipeline's parameters to deliver it with."""
+
+    job_id: str = Field(min_length=1, max_length=64, description=(
+        "A succeeded reconstruct job of yours; it cannot be deleted while this export is "
+        "queued or running."))
+    name: str = Field("", max_length=256)
+    expires_at: AwareDatetime | None = None
+
+    def params(self) -> dict[str, Any]:
+        """The export job's stored parameters."""
+        return ExportJobParams.model_validate(self.model_dump(
             exclude={"job_id", "name", "expires_at"})).model_dump(mode="json")
 
 

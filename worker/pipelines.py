@@ -25,8 +25,8 @@ from pydantic_core import PydanticCustomError
 from core.config import RunConfig, load_config, schema
 from worker.settings import WorkerSettings
 
-__all__ = ["BUILTIN_ENVMAPS", "LightParams", "MODEL_KIND", "PIPELINES", "Pipeline", "ReconstructParams",
-           "RelightJobParams", "get_pipeline"]
+__all__ = ["BUILTIN_ENVMAPS", "ExportJobParams", "LightParams", "MODEL_KIND", "PIPELINES",
+           "Pipeline", "ReconstructParams", "RelightJobParams", "get_pipeline"]
 
 FRAMES = r"^-?\d*(:-?\d*){0,2}$"
 # core.relight.presets.PRESETS, named here so that the API needs no core import (a test keeps
@@ -200,6 +200,28 @@ class RelightJobParams(BaseModel):
             else self.envmap
 
 
+class ExportJobParams(BaseModel):
+    """Parameters of `export` (the `dgs export` command line): a succeeded reconstruction's
+    frames as PLY, SPZ or the relightable sequence stream the web page plays."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    formats: list[Literal["ply", "spz", "stream"]] = Field(
+        ["stream"], min_length=1, max_length=3,
+        description="ply (the frame PLYs), spz (one SPZ per frame), stream "
+                    "(export/stream.dgss, range-requestable, docs/stream.md).")
+    frames: str | None = Field(
+        None, pattern=FRAMES, max_length=32,
+        description="Python slice over the reconstruction's frames; all by default.")
+    fps: float | None = Field(None, gt=0, le=240, allow_inf_nan=False,
+                              description="The stream's frame rate (default: the capture's, "
+                                          "else 24).")
+    position_tolerance: float | None = Field(
+        None, gt=0, lt=0.01, allow_inf_nan=False,
+        description="Stream: largest centre error as a fraction of a group's bounding-box "
+                    "diagonal (default 1e-4).")
+
+
 @dataclass(frozen=True)
 class Pipeline:
     name: str
@@ -242,6 +264,16 @@ PIPELINES: dict[str, Pipeline] = {
                     "relit/videos/<camera>.mp4; relit/relight.json.",
         params=RelightJobParams,
         artifacts=("relit", "video", "relight"),
+        soft_limit="relight_soft_limit_seconds",
+        source="job",
+    ),
+    "export": Pipeline(
+        name="export",
+        description="A succeeded reconstruction delivered (POST /v1/exports): export/stream.dgss "
+                    "(the relightable sequence stream), export/spz/<frame>.spz, "
+                    "export/ply/<frame>.ply, export/export.json (sizes, timings).",
+        params=ExportJobParams,
+        artifacts=("stream", "spz", "ply", "export"),
         soft_limit="relight_soft_limit_seconds",
         source="job",
     ),

@@ -20,6 +20,7 @@ from core.files import sha256_file
 from core.rundir import classify
 from worker.blobs import BlobStore, open_store
 from worker.execution import Execution, JobStopped
+from worker.export_job import ExportJob
 from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
@@ -112,7 +113,7 @@ class Runner:
     def _execution(self, job: Job, link: JobLink) -> Execution:
         pipeline = get_pipeline(job.pipeline)
         params = pipeline.params.model_validate(job.params)
-        kinds = {"reconstruct": ReconstructJob, "relight": RelightJob}
+        kinds = {"reconstruct": ReconstructJob, "relight": RelightJob, "export": ExportJob}
         return kinds[pipeline.name](self, job, params, link)
 
     def _execute(self, job: Job, link: JobLink) -> Outcome:

@@ -1,3 +1,4 @@
 """One router per resource (STYLE.md 11)."""
 
-__all__ = ["artifacts", "assets", "captures", "info", "jobs", "renders", "uploads"]
+__all__ = ["artifacts", "assets", "captures", "exports", "info", "jobs", "renders",
+           "uploads"]

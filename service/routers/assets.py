@@ -43,7 +43,7 @@ def asset_out(a: Asset) -> AssetOut:
     return AssetOut(id=a.id, kind=a.kind, filename=a.filename, size=a.size, sha256=a.sha256,
                     content_type=a.content_type, width=a.meta.get("width", 0),
                     height=a.meta.get("height", 0), channels=a.meta.get("channels", 0),
-                    created_at=a.created_at, expires_at=a.expires_at,
+                    sh9=a.meta.get("sh9"), created_at=a.created_at, expires_at=a.expires_at,
                     links={"self": base, "content": f"{base}/content"})
 
 
@@ -65,8 +65,8 @@ def _inspect(services: Services, tmp: Path, kind: str, filename: str,
     if kind == MODEL_KIND:
         return inspect_model(tmp, suffix), MODEL_CONTENT_TYPES[suffix]
     info = inspect_envmap(tmp, filename, services.settings.max_image_pixels)
-    return ({"width": info.width, "height": info.height, "channels": info.channels},
-            CONTENT_TYPES[suffix])
+    return ({"width": info.width, "height": info.height, "channels": info.channels,
+             "sh9": info.sh9}, CONTENT_TYPES[suffix])
 
 
 @router.post("", status_code=201, response_model=AssetOut, responses=error_responses(413),

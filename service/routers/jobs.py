@@ -70,7 +70,8 @@ def _params(pipeline_name: str, params: dict) -> BaseModel:
         pipeline = get_pipeline(pipeline_name)
         if pipeline.source != "capture":
             raise ValueError(f"pipeline: {pipeline.name} runs on a finished job, not on a "
-                             "capture; request it with POST /v1/renders")
+                             "capture; request it with POST /v1/"
+                             f"{'exports' if pipeline.name == 'export' else 'renders'}")
     except ValueError as exc:
         raise ApiError(422, str(exc), details=[{"path": "pipeline", "message": str(exc)}]) from None
     try:

@@ -163,3 +163,33 @@ def test_a_source_and_an_envmap_in_use_are_not_deleted(client, services, envmap)
     assert client.delete(f"/v1/assets/{envmap}").status_code == 204
     r = render(client, source, "ast_gone")
     assert r.status_code == 404
+
+
+def test_an_export_is_an_export_job_and_bad_requests_are_refused(client, services, ready_capture,
+                                                                  envmap):
+    """/v1/exports: the same shape as a render (an `export` job on a succeeded reconstruction);
+    refused with the reason for a source that is not one, unknown formats and tolerances."""
+    capture = ready_capture()
+    source = finished(services, capture_id=capture)
+    r = client.post("/v1/exports", json={"job_id": source, "formats": ["stream", "spz"],
+                                         "fps": 30})
+    assert r.status_code == 202, r.text
+    job = r.json()
+    assert job["pipeline"] == "export" and job["source_job_id"] == source
+    assert job["params"] == {"formats": ["stream", "spz"], "frames": None, "fps": 30.0,
+                             "position_tolerance": None}
+    for body, status, words in (
+            ({"job_id": source, "formats": ["gif"]}, 422, "formats"),
+            ({"job_id": source, "formats": []}, 422, "formats"),
+            ({"job_id": source, "position_tolerance": 0.5}, 422, "position_tolerance"),
+            ({"job_id": finished(services, state="failed", capture_id=capture)}, 409,
+             "succeeded reconstruction"),
+            ({"job_id": job["id"]}, 409, "from a reconstruct job"),
+            ({"job_id": "job_nope"}, 404, "job_nope")):
+        r = client.post("/v1/exports", json=body)
+        assert r.status_code == status, (body, r.text)
+        assert words in r.json()["error"]["message"], r.text
+    assets = client.get(f"/v1/assets/{envmap}").json()
+    assert len(assets["sh9"]) == 9 and assets["sh9"][0][0] > 0  # the page relights with it
+    r = client.post("/v1/jobs", json={"capture_id": capture, "pipeline": "export"})
+    assert r.status_code == 422 and "POST /v1/exports" in r.text

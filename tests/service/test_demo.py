@@ -67,6 +67,8 @@ def test_the_demo_through_the_service(tmp_path, monkeypatch, capsys):
     config = json.loads((run / "config.json").read_text())
     assert config["train"]["schedule"]["iterations"] == 40
     assert "[6/6] results" in text and "contact sheet:" in text and "%" in text
+    assert "smaller than the PLY" in text and "open it in a browser:" in text
+    assert (run / "export" / "stream.dgss").read_bytes().startswith(b"DGSS")
     # The server and its worker are gone.
     (server,) = servers
     assert server.proc.returncode == 0

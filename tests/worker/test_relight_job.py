@@ -181,3 +181,28 @@ def test_the_api_knows_core_s_built_in_maps():
     from worker.pipelines import BUILTIN_ENVMAPS
 
     assert BUILTIN_ENVMAPS == tuple(PRESETS)
+
+
+def test_an_export_job_publishes_a_stream_and_spz_of_the_reconstruction(
+        setup, capture3: Path, tiny_run: Path):
+    """`export` (POST /v1/exports) runs like a render: the source's frames in, export/ out."""
+    from core.export.stream import read_stream
+
+    settings, store, blobs, _, _ = setup
+    source = add_source(store, blobs, capture3, tiny_run, ["000000", "000001", "000002"])
+    job = store.create_render("t1", source, "export", {"formats": ["stream", "spz"], "fps": 12})
+    assert Runner(settings, store, blobs).run(job.id).status == "succeeded", \
+        [r.line for r in store.logs(job.id, 0, 100)]
+    with store.session(write=False) as s:
+        listed = {a.path: (a.kind, a.frame) for a in s.scalars(
+            select(Artifact).where(Artifact.job_id == job.id))}
+    spz = {f"export/spz/00000{i}.spz": ("spz", f"00000{i}") for i in range(3)}
+    assert listed == {**spz, "export/stream.dgss": ("stream", None),
+                      "export/export.json": ("export", None)}
+    header, frames = read_stream(blobs.local_path(f"jobs/{job.id}/artifacts/export/stream.dgss"))
+    assert header["fps"] == 12 and len(header["groups"]) == 3  # no sequence.json: one a frame
+    assert len(header["cameras"]) == 8 and header["cameras"][0]["heldout"]
+    assert len(list(frames)) == 3
+    logs = [r.line for r in store.logs(job.id, 0, 100)]
+    assert any("smaller than PLY" in line for line in logs), logs
+    assert not (settings.scratch / "jobs" / job.id).exists()

@@ -1,10 +1,11 @@
-// The page: sign in, then the four panels (capture, job, results, relight). Panels talk through
+// The page: sign in, then the five panels (capture, job, results, relight, player). Panels talk through
 // `bus` events: 'captures' (the list changed), 'capture-ready' (id), 'job' (a job object),
 // 'frame' ({job, frame}).
 
 import { auth, getJson } from './api.js';
 import { initCapture } from './capture.js';
 import { initJobs } from './jobs.js';
+import { initPlayer } from './player.js';
 import { initRelight } from './relight.js';
 import { initResults } from './results.js';
 import { $, emit } from './ui.js';
@@ -22,6 +23,7 @@ async function enter(info) {
   await initJobs(info);
   initResults();
   initRelight();
+  initPlayer();
   emit('captures');
 }
 

@@ -3,6 +3,8 @@
 // to front (WebGL2, one instanced quad per Gaussian, attributes read from a float texture).
 // Colour modes: appearance (SH degree 0), geometry-branch normals, visibility (AO).
 
+import { compile } from './deferred.js';
+
 const SH_C0 = 0.28209479177387814;
 const ROW = 512; // Gaussians per texture row (4 texels each)
 
@@ -79,7 +81,7 @@ function packGaussians(ply, mode) {
       r = 0.5 + 0.5 * nx / nn; g = 0.5 + 0.5 * ny / nn; b = 0.5 + 0.5 * nz / nn;
       if (c.opacity_geo) alpha = sigmoid(c.opacity_geo[i]);
     } else if (mode === 'visibility' && c.visibility) {
-      r = g = b = Math.min(1, Math.max(0, c.visibility[i]));
+      r = g = b = sigmoid(c.visibility[i]);  // stored as a logit, like the opacities
       if (c.opacity_geo) alpha = sigmoid(c.opacity_geo[i]);
     } else {
       r = 0.5 + SH_C0 * (c.f_dc_0 ? c.f_dc_0[i] : 0);
@@ -156,13 +158,6 @@ void main() {
   fragColor = vec4(v_color.rgb * alpha, alpha);
 }`;
 
-function compile(gl, type, source) {
-  const s = gl.createShader(type);
-  gl.shaderSource(s, source);
-  gl.compileShader(s);
-  if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(gl.getShaderInfoLog(s));
-  return s;
-}
 
 function lookAt(eye, target, up) {
   const f = norm(sub(target, eye)), s = norm(cross(f, up)), u = cross(s, f);

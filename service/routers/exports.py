@@ -1,0 +1,47 @@
+"""/v1/exports: a finished reconstruction delivered as the relightable sequence stream (the
+web page's player fetches it by HTTP ranges), SPZ per frame or PLY per frame.
+
+An export is a job of the `export` pipeline, the same shape as a render (202 + Location, the
+job representation of /v1/jobs: events, logs, cancel, retry, artifacts under export/); it keeps
+the reconstruction as `source_job_id`, which cannot be deleted while the export runs.
+"""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Request
+from fastapi.responses import JSONResponse
+
+from service.auth import TenantDep
+from service.deps import ServicesDep, default_expiry
+from service.errors import COMMON, ApiError, error_responses
+from service.records import get_job
+from service.routers.jobs import accepted, send
+from service.schemas import ExportIn, JobOut
+
+__all__ = ["router"]
+
+router = APIRouter(prefix="/v1/exports", tags=["exports"], responses=error_responses(*COMMON))
+
+
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409),
+             response_description="The export job, queued (Location names it)")
+def request_export(body: ExportIn, request: Request, services: ServicesDep,
+                   tenant: TenantDep) -> JSONResponse:
+    """Queue an export of a succeeded reconstruction (404 for a job that is not yours; 409 when
+    it is not a succeeded reconstruction)."""
+    source = get_job(services.store, body.job_id, tenant)
+    if source.pipeline != "reconstruct":
+        raise ApiError(409, f"job {source.id} is a {source.pipeline} job; exports are made "
+                            "from a reconstruct job")
+    if source.state != "succeeded":
+        running = source.state in ("queued", "running")
+        raise ApiError(409, f"job {source.id} is {source.state}; exports are made from a "
+                            "succeeded reconstruction" + (" (wait for it to end)" if running
+                                                          else ""), retryable=running)
+    job = services.store.create_render(
+        tenant, source.id, "export", body.params(), name=body.name,
+        expires_at=default_expiry(services, body.expires_at))
+    if job is None:  # deleted meanwhile
+        raise ApiError(404, f"no job {body.job_id!r}")
+    send(services, job)
+    return accepted(request, services, job)
