@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import torch
 from torch import Tensor
@@ -47,8 +48,6 @@ def init_visibility(model: GaussianModel, optimizer=None, config: AOConfig = AOC
 
 
 def _filter(ao: np.ndarray, guide: np.ndarray, config: AOConfig) -> np.ndarray:
-    import cv2
-
     if not hasattr(cv2, "ximgproc"):
         raise RuntimeError("AO baking needs OpenCV's contrib modules (ximgproc): install "
                            "opencv-contrib-python-headless instead of opencv-python-headless")

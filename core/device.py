@@ -18,6 +18,7 @@ import torch
 from torch import Tensor
 
 from core.config import DEVICE_PATTERN
+from native._backend import cuda_build
 
 __all__ = ["DEVICE_CHOICES", "check_device_spec", "resolve_device", "to_device"]
 
@@ -39,7 +40,6 @@ def _cuda_problem() -> str | None:
         return "this torch is a CPU-only build"
     if not torch.cuda.is_available():
         return "torch sees no CUDA GPU"
-    from native._backend import cuda_build
 
     if not cuda_build():
         return ("the native extension would be built without its CUDA kernels (no nvcc found "

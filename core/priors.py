@@ -82,6 +82,7 @@ class OnnxNormalEstimator:
 
     def __init__(self, path: str | os.PathLike[str], space: Space = "camera"):
         try:
+            # lazy: optional dependency, only for .onnx estimators
             import onnxruntime
         except ImportError:
             raise ValueError(f"normal_estimator: {path} is an ONNX file but onnxruntime is not "

@@ -28,6 +28,8 @@ import threading
 from pathlib import Path
 from types import ModuleType
 
+import torch
+
 __all__ = ["NativeBuildError", "load", "build_dir", "fingerprint", "cuda_build", "has_cuda",
            "SOURCES", "CUDA_SOURCES"]
 
@@ -56,10 +58,10 @@ def cuda_build() -> bool:
     (torch's CUDA_HOME), and DGS_CUDA not "0"."""
     if os.environ.get("DGS_CUDA", "1") == "0":
         return False
-    import torch
 
     if torch.version.cuda is None or not torch.cuda.is_available():
         return False
+    # lazy: only to build (it imports setuptools)
     from torch.utils import cpp_extension
 
     return cpp_extension.CUDA_HOME is not None
@@ -75,8 +77,6 @@ def _sources() -> list[str]:
 
 
 def _cuda_arch() -> str:
-    import torch
-
     env = os.environ.get("TORCH_CUDA_ARCH_LIST")
     if env:
         return env
@@ -85,8 +85,6 @@ def _cuda_arch() -> str:
 
 
 def fingerprint() -> str:
-    import torch
-
     h = hashlib.sha256()
     # What the build compiles: its sources and every header they could include.
     paths = [_CSRC / s for s in _sources()] + sorted(_CSRC.glob("*.h"))
@@ -123,7 +121,6 @@ def _import_built(out: Path, name: str) -> ModuleType | None:
     library = out / marker.read_text().strip()
     if not library.is_file():
         return None
-    import torch  # noqa: F401  (the extension links against libtorch, loaded by this import)
 
     spec = importlib.util.spec_from_file_location(name, library)
     module = importlib.util.module_from_spec(spec)
@@ -156,6 +153,7 @@ def load(verbose: bool = False) -> ModuleType:
 
 def _build(out: Path, name: str, verbose: bool) -> ModuleType:
     """Compile and import (the caller holds the folder's flock)."""
+    # lazy: only to build (it imports setuptools)
     from torch.utils import cpp_extension
 
     (out / "lock").unlink(missing_ok=True)  # torch's baton, left by a build that was killed

@@ -7,7 +7,10 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from native._backend import has_cuda
 from native._validate import check_inputs
+from native._wrapper import Projection, Rasterization, intersect_tiles
+from native.reference import rasterize as reference
 from native.types import RasterOutput
 
 __all__ = ["rasterize", "Backend"]
@@ -48,8 +51,6 @@ def rasterize(
     that has already checked its tensors).
     """
     if backend == "reference":
-        from native.reference import rasterize as reference
-
         return reference(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat,
                          K, width, height, beta=beta, eps2d=eps2d, antialiased=antialiased,
                          near=near, far=far, background=background, validate=validate)
@@ -59,14 +60,11 @@ def rasterize(
         check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
                      width, height, beta, eps2d, near, far, background, require_contiguous=True)
     if means.device.type != "cpu":
-        from native._backend import has_cuda
-
         if means.device.type != "cuda" or not has_cuda():
             raise ValueError(
                 f"means is on {means.device}, but the native extension was built without CUDA "
                 "(it needs a CUDA build of torch and nvcc); pass backend='reference' or move "
                 "the tensors to the CPU")
-    from native._wrapper import Projection, Rasterization, intersect_tiles
 
     width, height = int(width), int(height)
     geometry_branch = geometry is not None

@@ -13,6 +13,9 @@ from typing import Literal
 import torch
 from torch import Tensor
 
+from native._backend import load
+from native.reference import trace_visibility as reference
+
 __all__ = ["trace_visibility", "gaussian_visibility"]
 
 
@@ -79,13 +82,10 @@ def trace_visibility(origins: Tensor, normals: Tensor, means: Tensor, quats: Ten
         raise ValueError("offset must be finite and >= 0")
     origins = origins + (offset[:, None] if offset.dim() else offset) * normals
     if backend == "reference":
-        from native.reference import trace_visibility as reference
-
         return reference(origins, normals, means, quats, scales, opacity, n_dirs=n_dirs,
                          exclude=exclude)
     if backend != "native":
         raise ValueError(f"backend must be 'native' or 'reference', got {backend!r}")
-    from native._backend import load
 
     if device.type == "cuda":
         if not getattr(load(), "has_cuda", lambda: False)():

@@ -23,12 +23,12 @@ from typing import Annotated
 
 from fastapi import Depends, Request
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy import select, update
+from sqlalchemy import func, select, update
 
 from service.deps import ServicesDep
 from service.errors import ApiError
 from worker.db import session_scope
-from worker.models import ApiKey, utcnow
+from worker.models import ApiKey, Asset, Capture, Job, utcnow
 from worker.settings import WorkerSettings
 
 __all__ = [
@@ -73,10 +73,6 @@ def create_key(url: str, tenant: str, name: str = "") -> tuple[ApiKey, str]:
 def tenant_holdings(url: str, tenant: str) -> dict[str, int]:
     """How many captures, jobs and assets `tenant` has (those of "local" were made before any
     key existed and are reached only by a key of tenant "local")."""
-    from sqlalchemy import func
-
-    from worker.models import Asset, Capture, Job
-
     with session_scope(url, write=False) as s:
         return {table.__tablename__: s.scalar(select(func.count()).select_from(table)
                                               .where(table.tenant == tenant))

@@ -42,6 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _missing_service_packages() -> list[str]:
+    # lazy: `dgs` starts without the service extra installed
     from importlib.util import find_spec
 
     return [name for name in ("fastapi", "uvicorn", "httpx", "sqlalchemy", "celery",
@@ -62,6 +63,7 @@ def _demo(args: argparse.Namespace) -> int:
               "so the job runs in this process (pip install -e '.[service]' to run it through "
               "the HTTP service)", flush=True)
         return run_demo(args.out)
+    # lazy: `dgs` starts without the service extra installed
     from service.demo import run_service_demo
 
     try:
@@ -72,6 +74,7 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _settings(args: argparse.Namespace):
+    # lazy: `dgs` starts without the service extra installed
     from service.settings import ServiceSettings
 
     overrides = {k: v for k, v in (("host", getattr(args, "host", None)),
@@ -82,12 +85,14 @@ def _settings(args: argparse.Namespace):
 
 
 def _serve(args: argparse.Namespace) -> int:
+    # lazy: `dgs` starts without the service extra installed
     from service.serve import serve
 
     return serve(_settings(args), worker=not args.no_worker)
 
 
 def _database(args: argparse.Namespace) -> str:
+    # lazy: `dgs` starts without the service extra installed
     from worker.db import migrate
 
     url = _settings(args).database
@@ -96,6 +101,7 @@ def _database(args: argparse.Namespace) -> str:
 
 
 def _create(args: argparse.Namespace) -> int:
+    # lazy: `dgs` starts without the service extra installed
     from service.auth import LOCAL_TENANT, create_key, tenant_holdings
 
     url = _database(args)
@@ -121,6 +127,7 @@ def _when(value) -> str:
 
 
 def _list(args: argparse.Namespace) -> int:
+    # lazy: `dgs` starts without the service extra installed
     from service.auth import list_keys
 
     rows = list_keys(_database(args))
@@ -132,6 +139,7 @@ def _list(args: argparse.Namespace) -> int:
 
 
 def _revoke(args: argparse.Namespace) -> int:
+    # lazy: `dgs` starts without the service extra installed
     from service.auth import revoke_key
 
     row = revoke_key(_database(args), args.key_id)

@@ -24,6 +24,12 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
+import httpx
+
+from core.evaluation import evaluate_run
+from service.client import Client
+from service.settings import ServiceSettings
+
 __all__ = ["DemoServer", "ProgressBar", "run_service_demo"]
 
 STEPS = 6
@@ -34,8 +40,6 @@ class DemoServer:
     folder `data_dir`, none of the caller's DGS_* service settings (the demo stands alone)."""
 
     def __init__(self, data_dir: Path, *, start_timeout: float = 120.0):
-        from service.settings import ServiceSettings
-
         self.data_dir = data_dir
         data_dir.mkdir(parents=True, exist_ok=True)
         with socket.socket() as s:
@@ -57,8 +61,6 @@ class DemoServer:
             raise
 
     def _wait_ready(self, timeout: float) -> None:
-        import httpx
-
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if self.proc.poll() is not None:
@@ -182,8 +184,8 @@ def run_service_demo(out: str = "demo", *, synth: dict | None = None,
                      overrides: dict | None = None, preset: str = "test") -> int:
     """The demo through the service (see the module docstring); `synth` (SynthConfig fields)
     and `overrides` (the job's config) default to core's demo."""
+    # lazy: the demo loads torch; `dgs serve` imports this package without it
     from core.demo import DEMO_OVERRIDES, demo_capture, report
-    from core.evaluation import evaluate_run
 
     root = Path(out)
     capture_dir, run_dir, data_dir = root / "capture", root / "run", root / "service"
@@ -216,8 +218,6 @@ def run_service_demo(out: str = "demo", *, synth: dict | None = None,
 def _run_job(data_dir: Path, capture_dir: Path, run_dir: Path, overrides: dict,
              preset: str) -> tuple[dict, list[Path], float]:
     """Steps 2 to 5: serve, upload, run the job, download; the server is stopped after."""
-    from service.client import Client
-
     with DemoServer(data_dir) as server, Client(server.url) as client:
         print(f"      {server.url} (OpenAPI: {server.url}/docs), worker log "
               f"{server.worker_log}", flush=True)

@@ -11,6 +11,9 @@ from pathlib import Path
 
 import numpy as np
 
+from core.data.images import ImageReadError
+from core.relight.envmap import check_radiance, project_sh9, read_envmap
+
 __all__ = ["CONTENT_TYPES", "EnvmapError", "EnvmapInfo", "inspect_envmap"]
 
 CONTENT_TYPES = {".exr": "image/x-exr", ".hdr": "image/vnd.radiance"}
@@ -37,9 +40,6 @@ class EnvmapInfo:
 def inspect_envmap(path: Path, name: str, max_pixels: int) -> EnvmapInfo:
     """Decode the whole image at `path`, known to the client as `name`, and check it
     (EnvmapError naming `name` otherwise)."""
-    from core.data.images import ImageReadError
-    from core.relight.envmap import check_radiance, project_sh9, read_envmap
-
     suffix = Path(name).suffix.lower()
     if suffix not in CONTENT_TYPES:
         raise EnvmapError(name, f"unsupported file type {suffix!r}; send .exr or .hdr")

@@ -13,6 +13,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 
 __all__ = [
     "COMMON",
@@ -125,8 +126,6 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
 
 def _allowed(request: Request) -> list[str]:
     """Every method some route serves at this path (Starlette names only the first route's)."""
-    from starlette.routing import Match
-
     scope = {"type": "http", "path": request.url.path, "root_path": ""}
     return [m for m in ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
             if any(r.matches({**scope, "method": m})[0] == Match.FULL

@@ -7,17 +7,17 @@ import sys
 import tempfile
 from pathlib import Path
 
+import yaml
+
+from service.app import create_app
+from service.settings import ServiceSettings
+
 __all__ = ["openapi_yaml"]
 
 
 def openapi_yaml() -> str:
     """The document of an app on default limits (a throw-away data folder, so nothing local
     leaks into it)."""
-    import yaml
-
-    from service.app import create_app
-    from service.settings import ServiceSettings
-
     with tempfile.TemporaryDirectory(prefix="dgs-openapi-") as tmp:
         fields = {"data_dir": Path(tmp), "database_url": None, "broker_url": None,
                   "storage_url": None, "public_url": None, "retention_days": None}

@@ -10,8 +10,14 @@ import logging
 import signal
 import sys
 
+import uvicorn
+
+from service.app import create_app
 from service.auth import BindRefused, check_bind, has_active_key
 from service.settings import ServiceSettings
+from worker.db import migrate
+from worker.settings import WorkerSettings
+from worker.supervise import EmbeddedWorker, make_sweeper
 
 __all__ = ["serve", "worker_env"]
 
@@ -20,8 +26,6 @@ log = logging.getLogger("dgs.service")
 
 def worker_env(settings: ServiceSettings) -> dict[str, str]:
     """DGS_* variables that give a worker subprocess this process's settings."""
-    from worker.settings import WorkerSettings
-
     env = {}
     for name in WorkerSettings.model_fields:
         value = getattr(settings, name)
@@ -32,11 +36,6 @@ def worker_env(settings: ServiceSettings) -> dict[str, str]:
 
 def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
     """Run until interrupted; 2 when the bind is refused (see service.auth.check_bind)."""
-    import uvicorn
-
-    from service.app import create_app
-    from worker.db import migrate
-
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     migrate(settings.database)
     try:
@@ -46,7 +45,6 @@ def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
         return 2
     app = create_app(settings)
     services = app.state.services
-    from worker.supervise import EmbeddedWorker, make_sweeper
 
     sweeper = make_sweeper(services.celery, settings, store=services.store,
                            blobs=services.blobs).start()

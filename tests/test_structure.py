@@ -150,12 +150,21 @@ def test_imports_are_at_the_top_or_say_why_not():
                 continue
             if any(node is n for n in tree.body) or _in_top_block(tree, node):
                 continue
-            said = " ".join(lines[max(0, node.lineno - 2):node.lineno])
-            if "# lazy:" not in said:
+            if not _says_why(lines, node):
                 hidden.append(f"{_rel(path)}:{node.lineno}")
     assert not hidden, (f"{len(hidden)} imports inside functions without a '# lazy: why' "
                         f"comment: {hidden[:40]}")
     assert modules
+
+
+def _says_why(lines: list[str], node: ast.AST) -> bool:
+    """A '# lazy:' comment on the import's lines or in the comment block just above it."""
+    said = lines[node.lineno - 1:node.end_lineno]
+    row = node.lineno - 2
+    while row >= 0 and lines[row].lstrip().startswith("#"):
+        said.append(lines[row])
+        row -= 1
+    return any("# lazy:" in line for line in said)
 
 
 def _in_top_block(tree: ast.Module, node: ast.AST) -> bool:

@@ -136,8 +136,9 @@ class S3BlobStore:
 
     def __init__(self, bucket: str, prefix: str = "", *, endpoint_url: str | None = None,
                  region: str | None = None, client=None):
+        # lazy: only with S3 storage (boto3)
         import boto3
-        from botocore.config import Config
+        from botocore.config import Config  # lazy: as boto3
 
         self.bucket, self.prefix = bucket, prefix.strip("/")
         self.client = client or boto3.client(
@@ -155,6 +156,7 @@ class S3BlobStore:
         self.client.upload_file(str(path), self.bucket, self._name(key))
 
     def get_file(self, key: str, dest: Path) -> None:
+        # lazy: only with S3 storage (boto3)
         from botocore.exceptions import ClientError
 
         name = self._name(key)
@@ -168,6 +170,7 @@ class S3BlobStore:
         os.replace(tmp, dest)
 
     def size(self, key: str) -> int | None:
+        # lazy: only with S3 storage (boto3)
         from botocore.exceptions import ClientError
 
         name = self._name(key)

@@ -26,7 +26,9 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
+import sqlalchemy as sa
 from celery import Celery
+from sqlalchemy.exc import OperationalError, ProgrammingError
 
 from worker.celery_app import TASK_NAME
 from worker.settings import WorkerSettings
@@ -91,9 +93,6 @@ class BrokerInspector:
         return jobs
 
     def _sqla(self, url: str, grace: float) -> set[str]:
-        import sqlalchemy as sa
-        from sqlalchemy.exc import OperationalError, ProgrammingError
-
         if self._engine is None:
             args = {"timeout": 30} if url.startswith("sqlite") else {}
             self._engine = sa.create_engine(url, connect_args=args)

@@ -21,6 +21,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _worker(args: argparse.Namespace) -> int:
+    # lazy: `dgs` starts without the worker extra installed
     from worker.supervise import run_worker
 
     return run_worker(concurrency=args.concurrency, loglevel=args.loglevel,

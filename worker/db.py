@@ -97,6 +97,7 @@ def session_scope(url: str, write: bool = True) -> Iterator[Session]:
 
 
 def alembic_config(url: str):
+    # lazy: only to migrate (alembic is slow to import)
     from alembic.config import Config
 
     cfg = Config()
@@ -108,6 +109,7 @@ def alembic_config(url: str):
 def migrate(url: str) -> None:
     """Bring the job store's schema to the newest migration (idempotent; safe to call at every
     start of the API or a worker)."""
+    # lazy: only to migrate
     from alembic import command
 
     engine = engine_for(url)

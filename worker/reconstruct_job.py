@@ -15,10 +15,12 @@ from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 
+from core.evaluation import evaluate_run
+from core.pipeline import Stopped, reconstruct
+from worker.execution import JobStopped
 from worker.models import Asset, Job
 from worker.pipelines import MODEL_KIND, ReconstructParams
 from worker.progress import JobLink
-from worker.execution import JobStopped
 
 if TYPE_CHECKING:
     from worker.runner import Runner
@@ -42,8 +44,6 @@ class ReconstructJob:
         self.blobs = runner.blobs
 
     def run(self) -> None:
-        from core.pipeline import Stopped
-
         capture = self.runner.capture(self.job, self.link)
         run = self._run_dir()
         try:
@@ -68,8 +68,6 @@ class ReconstructJob:
         return run
 
     def _reconstruct(self, capture: Path, run: Path) -> None:
-        from core.pipeline import reconstruct
-
         params, link = self.params, self.link
         overrides = dict(params.config)
         if params.checkpoint_every is not None:
@@ -140,8 +138,6 @@ class ReconstructJob:
         return on_progress
 
     def _evaluate(self, run: Path, capture: Path) -> None:
-        from core.evaluation import evaluate_run
-
         self.link.update(fraction=1 - PUBLISH_SHARE, stage="evaluating", message="")
         try:
             result = evaluate_run(run, capture)

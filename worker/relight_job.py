@@ -20,11 +20,14 @@ from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 
+from core.config import parse_frames
 from core.files import write_json
+from core.relight.lights import LightSpec
+from core.relight.run import RelightParams, RelightStopped, run_params
+from worker.execution import JobStopped
 from worker.models import Asset, Job
 from worker.pipelines import RelightJobParams
 from worker.progress import JobLink
-from worker.execution import JobStopped
 
 if TYPE_CHECKING:
     from worker.runner import Runner
@@ -49,8 +52,6 @@ class RelightJob:
         self.frames: list[str] = []
 
     def run(self) -> None:
-        from core.relight.run import RelightStopped, run_params
-
         try:
             self.link.update(fraction=0.0, stage="fetching inputs", message="")
             source = self._source()
@@ -106,8 +107,6 @@ class RelightJob:
 
     def _run_dir(self, source: Job, capture: Path) -> Path:
         """A run directory of the source's config.json and the selected frames' PLYs."""
-        from core.config import parse_frames
-
         base = f"jobs/{source.id}/artifacts"
         published = {b.key[len(base) + 1:] for b in self.blobs.list(f"{base}/frames")}
         order = json.loads((capture / "capture.json").read_text()).get("frames", [])
@@ -150,9 +149,6 @@ class RelightJob:
     def _core_params(self, envmap: str | None):
         """core's RelightParams (its checks raise ValueError: the job fails as invalid_input).
         Frames are already selected: the run directory holds only those."""
-        from core.relight.lights import LightSpec
-        from core.relight.run import RelightParams
-
         p = self.params
         lights = tuple(LightSpec.from_json(light.model_dump(exclude_none=True))
                        for light in p.lights)

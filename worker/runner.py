@@ -16,6 +16,10 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+from billiard.exceptions import SoftTimeLimitExceeded
+from pydantic import ValidationError
+
+from core.data.headers import set_default_max_pixels
 from core.files import sha256_file
 from core.rundir import classify
 from worker.blobs import BlobStore, open_store
@@ -25,8 +29,8 @@ from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
 from worker.reconstruct_job import ReconstructJob
-from worker.relight_job import RelightJob
 from worker.redact import SERVER, redact
+from worker.relight_job import RelightJob
 from worker.scratch import job_folder, mark
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
@@ -78,8 +82,6 @@ class Runner:
 
     def __init__(self, settings: WorkerSettings, store: JobStore | None = None,
                  blobs: BlobStore | None = None):
-        from core.data.headers import set_default_max_pixels
-
         set_default_max_pixels(settings.max_image_pixels)  # every image core decodes here
         self.settings = settings
         self.store = store or JobStore(settings.database)
@@ -151,9 +153,6 @@ class Runner:
         return Outcome("cancelled")
 
     def _fail(self, job: Job, link: JobLink, exc: Exception, retry_note: str) -> Outcome:
-        from billiard.exceptions import SoftTimeLimitExceeded
-        from pydantic import ValidationError
-
         roots = self._client_roots(job, link)
         if isinstance(exc, SoftTimeLimitExceeded):
             error = {"code": "time_limit", "retryable": True,

@@ -9,12 +9,14 @@ and the same code runs distributed (docs/design.md section 4).
 from __future__ import annotations
 
 import functools
+import os
 import re
 from pathlib import Path
 
 from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from core.config import DEVICE_PATTERN
 from core.data.headers import DEFAULT_MAX_PIXELS
 
 # A model the operator offers by name (not an asset id, which starts with "ast_").
@@ -24,8 +26,6 @@ __all__ = ["WorkerSettings", "get_settings"]
 
 
 def _default_data_dir() -> Path:
-    import os
-
     base = os.environ.get("XDG_DATA_HOME") or str(Path.home() / ".local" / "share")
     return Path(base) / "dgs"
 
@@ -106,8 +106,6 @@ class WorkerSettings(BaseSettings):
     @field_validator("devices")
     @classmethod
     def _devices(cls, value: str) -> str:
-        from core.config import DEVICE_PATTERN
-
         names = [d.strip() for d in value.split(",") if d.strip()]
         bad = [d for d in names if not re.match(DEVICE_PATTERN, d)]
         if not names or bad:

@@ -3,6 +3,7 @@ subprocess that `dgs serve` supervises when no broker is configured (docs/design
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import signal
@@ -15,8 +16,12 @@ from collections.abc import Callable
 from pathlib import Path
 
 from celery import Celery
+from celery.signals import worker_shutting_down
 
+from worker.app import app
+from worker.broker import BrokerInspector
 from worker.celery_app import dispatch
+from worker.db import migrate
 from worker.settings import WorkerSettings, get_settings
 from worker.store import JobStore
 from worker.sweeper import Sweeper
@@ -29,8 +34,6 @@ log = logging.getLogger("dgs.worker")
 def make_sweeper(app: Celery, settings: WorkerSettings, **kwargs) -> Sweeper:
     """The sweeper of a process: it sends jobs with `app` and looks into its broker for the
     messages of queued jobs (worker.broker)."""
-    from worker.broker import BrokerInspector
-
     return Sweeper(settings, job_sender(app, settings),
                    held=BrokerInspector(app, settings).held_jobs, **kwargs)
 
@@ -50,16 +53,12 @@ def job_sender(app: Celery, settings: WorkerSettings) -> Callable[[str], None]:
 def run_worker(*, concurrency: int = 1, loglevel: str = "INFO", hostname: str | None = None,
                sweeper: bool = True) -> int:
     """Migrate the job store, start the sweeper thread, run the Celery worker (blocks)."""
-    from worker.db import migrate
-
     settings = get_settings()
     logging.basicConfig(level=loglevel.upper(), format="%(asctime)s %(name)s %(message)s")
     migrate(settings.database)
-    from worker.app import app
 
     if sweeper:
         _RUNNING["sweeper"] = make_sweeper(app, settings).start()
-    from celery.signals import worker_shutting_down
 
     worker_shutting_down.connect(_drain, weak=False)
     # Gossip, mingle and worker heartbeats need broadcast, which the SQLite transport lacks;
@@ -112,8 +111,6 @@ def _die_with_parent() -> None:
     dies, so no orphaned worker keeps consuming the queue (Linux prctl PR_SET_PDEATHSIG; a
     no-op elsewhere). SIGTERM drains the worker: its job goes back to the queue."""
     try:
-        import ctypes
-
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):

@@ -43,6 +43,7 @@ _LAZY = {"ByteLRUCache", "CaptureDataset", "Sample"}
 
 def __getattr__(name: str) -> Any:
     if name in _LAZY:
+        # lazy: the dataset needs torch; the API reads and validates captures with this package
         from core.data import dataset
 
         return getattr(dataset, name)

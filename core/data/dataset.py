@@ -32,6 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 
@@ -237,7 +238,6 @@ class CaptureDataset(torch.utils.data.Dataset):
             # 1/1024 of a pixel: below that the division only amplifies rounding.
             return np.ascontiguousarray(
                 np.where(den > 1 / 1024, num / np.maximum(den, 1 / 1024), plain), dtype=np.float32)
-        import cv2
 
         if self.undistort and cam.distortion is not None:
             map_x, map_y = self._undistort_maps(cam)
@@ -249,8 +249,6 @@ class CaptureDataset(torch.utils.data.Dataset):
         return np.ascontiguousarray(arr, dtype=np.float32)
 
     def _undistort_maps(self, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
-        import cv2
-
         key = ("undistort", cam.id)
         maps = self.cache.get(key)
         if maps is None:

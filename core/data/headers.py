@@ -8,11 +8,14 @@ Messages never contain the path (callers name the file the way their user knows 
 
 from __future__ import annotations
 
+import importlib
 import re
 import struct
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
+
+import OpenEXR
 
 __all__ = [
     "DEFAULT_MAX_PIXELS",
@@ -143,8 +146,6 @@ def _jpeg(path: Path) -> tuple[int, int]:
 
 
 def _exr(path: Path) -> tuple[int, int]:
-    import OpenEXR
-
     with open(path, "rb") as f:
         magic = f.read(4)
     if magic != _EXR_MAGIC:
@@ -184,8 +185,6 @@ _OTHER = {".bmp": ("BmpImagePlugin", "BmpImageFile"), ".tif": ("TiffImagePlugin"
 def read_other_header(path: Path) -> tuple[int, int]:
     """(width, height) of an image importers convert to PNG (BMP, TIFF, WebP, PPM/PGM), from
     its header (HeaderError otherwise)."""
-    import importlib
-
     path = Path(path)
     where = _OTHER.get(path.suffix.lower())
     if where is None:

@@ -10,7 +10,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
+import OpenEXR
+from PIL import JpegImagePlugin, PngImagePlugin
 
 from core.data.headers import HeaderError, ImageHeader, check_pixels, read_header
 
@@ -62,7 +65,6 @@ def verify_image(path: Path, max_pixels: int | None = None) -> tuple[int, int, s
     if header.format in ("exr", "hdr"):
         arr = _DECODERS[header.format](path)
         return arr.shape[1], arr.shape[0], f"F{arr.shape[2]}"
-    from PIL import JpegImagePlugin, PngImagePlugin
 
     # The plugin classes, not Image.open: the header check above is the pixel limit, and
     # Image.open would add PIL's own (a fixed 179 MP) on top of the configured one.
@@ -90,8 +92,6 @@ def _clean(exc: BaseException, path: Path) -> str:
 
 
 def _read_ldr(path: Path) -> np.ndarray:
-    import cv2
-
     # cv2 keeps 16-bit PNGs at full precision, which PIL does not for RGB.
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None:
@@ -110,8 +110,6 @@ def _read_ldr(path: Path) -> np.ndarray:
 
 
 def _read_hdr(path: Path) -> np.ndarray:
-    import cv2
-
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ImageReadError(path, "cannot decode the Radiance HDR pixels (truncated or "
@@ -121,8 +119,6 @@ def _read_hdr(path: Path) -> np.ndarray:
 
 
 def _read_exr(path: Path) -> np.ndarray:
-    import OpenEXR
-
     try:
         channels = OpenEXR.File(str(path)).channels()
     except Exception:  # OpenEXR raises bare exceptions (naming the path) for corrupt data
@@ -145,8 +141,6 @@ _DECODERS = {"png": _read_ldr, "jpeg": _read_ldr, "exr": _read_exr, "hdr": _read
 
 def write_png(path: Path, image: np.ndarray) -> None:
     """Write uint8 or uint16 (H, W) / (H, W, C) RGB(A) to PNG, creating parent folders."""
-    import cv2
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     arr = np.asarray(image)
@@ -164,8 +158,6 @@ def write_png(path: Path, image: np.ndarray) -> None:
 
 def write_exr(path: Path, image: np.ndarray) -> None:
     """Write float (H, W, 3) or (H, W, 4) to a ZIP-compressed float32 EXR."""
-    import OpenEXR
-
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     arr = np.ascontiguousarray(image, dtype=np.float32)

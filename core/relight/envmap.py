@@ -21,6 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
+from core.data.images import ImageReadError, read_image
+from core.relight.presets import builtin_radiance, is_builtin
+
 __all__ = [
     "A_HAT",
     "EnvMap",
@@ -53,6 +56,7 @@ def sh9_basis(d):
              _Y20 * (3 * z * z - 1), _Y2 * x * z, _Y22 * (x * x - y * y)]
     if isinstance(d, np.ndarray):
         return np.stack(terms, axis=-1)
+    # lazy: the API reads maps with this module and must not load torch
     import torch
 
     return torch.stack(terms, dim=-1)
@@ -125,8 +129,6 @@ class EnvMap:
 def read_envmap(path: Path, max_pixels: int | None = None) -> np.ndarray:
     """Decode an .exr or .hdr map (RGB order), header checked first (core.data.images);
     ImageReadError otherwise, its message without the path."""
-    from core.data.images import ImageReadError, read_image
-
     path = Path(path)
     if path.suffix.lower() not in (".exr", ".hdr"):
         raise ImageReadError(path, f"unsupported file type {path.suffix!r} (expected .exr or "
@@ -135,8 +137,6 @@ def read_envmap(path: Path, max_pixels: int | None = None) -> np.ndarray:
 
 
 def _read(path: Path) -> np.ndarray:
-    from core.data.images import ImageReadError
-
     try:
         return read_envmap(path)
     except ImageReadError as exc:
@@ -174,7 +174,6 @@ def load_envmap(path, up=(0.0, 0.0, 1.0), rotation_deg: float = 0.0,
     for name, value in (("rotation_deg", rotation_deg), ("exposure", exposure)):
         if not math.isfinite(float(value)):
             raise ValueError(f"{name}: expected a finite number, got {value!r}")
-    from core.relight.presets import builtin_radiance, is_builtin
 
     if is_builtin(path):  # builtin:studio, builtin:sunset, builtin:neon (core.relight.presets)
         rgb = builtin_radiance(str(path))

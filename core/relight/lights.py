@@ -18,6 +18,8 @@ from typing import Literal
 
 import numpy as np
 
+from core.relight.envmap import load_envmap
+
 __all__ = ["CaptureLight", "LightSpec", "load_capture_light", "parse_light"]
 
 
@@ -124,8 +126,6 @@ def load_capture_light(spec: str | float | None, up=(0.0, 0.0, 1.0)) -> CaptureL
         return CaptureLight(value, None, f"uniform {value:g}")
     path = Path(str(spec))
     if path.suffix.lower() in (".exr", ".hdr"):
-        from core.relight.envmap import load_envmap
-
         return CaptureLight(None, load_envmap(path, up).sh9, f"envmap {path}")
     if path.suffix.lower() != ".json":
         raise ValueError(f"capture_light: expected a number, an .exr/.hdr map or a .json with "

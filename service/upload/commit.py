@@ -20,6 +20,7 @@ from typing import Any
 
 from sqlalchemy import select, update
 
+from core.data import CaptureError, check_capture, detect_format, import_capture
 from service.deps import Services
 from service.errors import ApiError
 from service.upload.staging import file_states
@@ -105,8 +106,6 @@ def recover_commits(services: Services) -> list[str]:
 
 
 def _resolve_format(fmt: str, src: Path) -> str:
-    from core.data import detect_format
-
     if fmt != "auto":
         return fmt
     if (src / "capture.json").is_file():
@@ -145,8 +144,6 @@ def freeze(services: Services, root: Path, capture_id: str) -> None:
 
 def run_commit(services: Services, capture_id: str) -> None:
     """Validate and freeze a committing capture; records the outcome (never raises)."""
-    from core.data import CaptureError, check_capture, import_capture
-
     src = services.staging.files_dir(capture_id)
     out = services.staging.capture_dir(capture_id) / "canonical"
     with services.store.session(write=False) as s:

@@ -20,7 +20,7 @@ from service_harness import make_settings
 from test_api_artifacts import add_artifacts
 from test_api_live import padded_png
 
-from service import client as client_module
+from service.client import uploads as client_module
 from service.app import create_app
 from service.client import ApiError, Client, manifest_of
 from worker.store import Owner

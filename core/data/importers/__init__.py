@@ -7,7 +7,10 @@ from pathlib import Path
 from typing import Literal
 
 from core.data.capture import Capture, CaptureError, Problem
+from core.data.importers.actorshq import find_calibration, read_actorshq
+from core.data.importers.colmap import find_model, read_colmap
 from core.data.importers.common import ImportedCapture, SourceView, write_canonical
+from core.data.importers.transforms import find_transforms, read_transforms
 
 __all__ = [
     "FORMATS",
@@ -25,10 +28,6 @@ FORMATS: tuple[str, ...] = ("transforms", "colmap", "actorshq")
 
 def detect_format(src: str | os.PathLike[str]) -> Format:
     """Guess the source format from the files present; raises CaptureError when unclear."""
-    from core.data.importers.actorshq import find_calibration
-    from core.data.importers.colmap import find_model
-    from core.data.importers.transforms import find_transforms
-
     src = Path(src)
     if not src.exists():
         raise CaptureError([Problem(str(src), "source not found")])
@@ -50,16 +49,10 @@ def read_source(src: str | os.PathLike[str], fmt: str = "auto") -> ImportedCaptu
     if fmt == "auto":
         fmt = detect_format(src)
     if fmt == "transforms":
-        from core.data.importers.transforms import read_transforms
-
         return read_transforms(Path(src))
     if fmt == "colmap":
-        from core.data.importers.colmap import read_colmap
-
         return read_colmap(Path(src))
     if fmt == "actorshq":
-        from core.data.importers.actorshq import read_actorshq
-
         return read_actorshq(Path(src))
     raise ValueError(f"fmt: expected auto or one of {FORMATS}, got {fmt!r}")
 

@@ -15,6 +15,7 @@ import shutil
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from core.data.capture import (
@@ -23,7 +24,12 @@ from core.data.capture import (
     CaptureError,
     Problem,
 )
-from core.data.importers.common import ImportedCapture, SourceView, safe_name, source_transform
+from core.data.importers.common import (
+    ImportedCapture,
+    SourceView,
+    safe_name,
+    source_transform,
+)
 from core.data.schema import extrinsics_problems, intrinsics_problems
 
 __all__ = ["export_actorshq", "find_calibration", "read_actorshq"]
@@ -49,8 +55,6 @@ def _rodrigues(rvec: np.ndarray) -> np.ndarray:
 
 
 def _axis_angle(R: np.ndarray) -> np.ndarray:
-    import cv2
-
     # cv2.Rodrigues handles the theta ~ pi case that the trace formula gets wrong.
     return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].ravel()
 

@@ -16,9 +16,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
-from core.data.capture import Camera, Capture, CaptureError, Problem, save_capture, valid_name
+from core.data.capture import (
+    Camera,
+    Capture,
+    CaptureError,
+    Problem,
+    save_capture,
+    valid_name,
+)
 from core.data.headers import HeaderError, ImageHeader, check_pixels, read_other_header
 from core.data.validate import validate_capture
 
@@ -123,8 +131,6 @@ def _place(src: Path, dst_stem: Path, link: bool, max_pixels: int | None) -> Pat
     dst = dst_stem.with_suffix(ext)
     dst.parent.mkdir(parents=True, exist_ok=True)
     if src.suffix.lower() in _CONVERT_EXTS:
-        import cv2
-
         try:
             width, height = read_other_header(src)
             check_pixels(ImageHeader(width, height, "png"), max_pixels)

@@ -1,0 +1,102 @@
+"""The HTTP plumbing of the client: the connection, errors as `ApiError`, JSON calls and cursor
+pages."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import httpx
+
+__all__ = ["ApiError", "Event", "Http", "TERMINAL"]
+
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+class ApiError(RuntimeError):
+    """An error answer of the API: status, code, message, retryable, details."""
+
+    def __init__(self, status: int, code: str, message: str, retryable: bool = False,
+                 details: list[dict] | None = None):
+        super().__init__(f"{status} {code}: {message}")
+        self.status, self.code, self.message = status, code, message
+        self.retryable, self.details = retryable, details or []
+
+
+@dataclass(frozen=True)
+class Event:
+    """One server-sent event of a job: its id, kind (state, progress, artifact) and data."""
+
+    id: int
+    kind: str
+    data: dict[str, Any]
+
+
+class Http:
+    """The API at `base_url`, with a bearer key (None when the server has no keys).
+
+    `url_store`: a JSON file where the URLs of begun uploads are kept, so that another
+    process (after a crash, a closed laptop) resumes them instead of starting over.
+    `chunk_checksum`: None (default) streams each file in one PATCH; a dropped connection
+    loses nothing (the server keeps what arrived, HEAD says where to go on) and the server
+    checks the whole file against the manifest's SHA-256. "sha1" (or sha256, md5) sends
+    CHUNK-byte PATCHes with a tus Upload-Checksum each, so a chunk damaged on the way is
+    refused alone and sent again; it costs a hash on both sides and a request per chunk
+    (benchmarks/service.py measures both)."""
+
+    def __init__(self, base_url: str, api_key: str | None = None, *, timeout: float = 60.0,
+                 transport: httpx.BaseTransport | None = None,
+                 url_store: str | os.PathLike[str] | None = None,
+                 chunk_checksum: Literal["sha1", "sha256", "md5"] | None = None):
+        headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
+        self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers,
+                                 timeout=timeout, transport=transport)
+        self.url_store = Path(url_store) if url_store is not None else None
+        self.chunk_checksum = chunk_checksum
+        self._uploads: dict[str, str] = (
+            json.loads(self.url_store.read_text()) if self.url_store is not None
+            and self.url_store.is_file() else {})
+        """Upload URLs by "capture/path": resumed instead of started over."""
+
+    def close(self) -> None:
+        self.http.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # -- plumbing -----------------------------------------------------------------------------
+    @staticmethod
+    def _check(r: httpx.Response) -> httpx.Response:
+        if r.status_code < 400:
+            return r
+        try:
+            err = r.json()["error"]
+        except (ValueError, KeyError, TypeError):
+            err = {"code": "http_error", "message": r.text[:500]}
+        raise ApiError(r.status_code, err.get("code", "?"), err.get("message", ""),
+                       bool(err.get("retryable")), err.get("details"))
+
+    def _json(self, method: str, url: str, **kw) -> Any:
+        r = self._check(self.http.request(method, url, **kw))
+        return r.json() if r.content else None
+
+    def _pages(self, url: str, params: dict) -> Iterator[dict]:
+        cursor = None
+        while True:
+            page = self._json("GET", url, params={**params, **({"cursor": cursor}
+                                                               if cursor else {})})
+            yield from page["items"]
+            cursor = page.get("next_cursor")
+            if not cursor:
+                return
+
+    def info(self) -> dict:
+        return self._json("GET", "/v1/info")
+
