@@ -200,3 +200,12 @@ def test_the_command_line_loads_torch_only_for_a_command_that_needs_it(argv):
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True,
                          text=True, timeout=120)
     assert out.stdout.strip() == "True", out.stderr  # the check can see torch
+
+
+def test_test_modules_have_unique_names():
+    """pytest imports test files by their base name (rootdir mode, no __init__.py): two with
+    the same name stop the whole run at collection."""
+    names: dict[str, list[str]] = {}
+    for path in (ROOT / "tests").rglob("test_*.py"):
+        names.setdefault(path.name, []).append(_rel(path))
+    assert not {n: p for n, p in names.items() if len(p) > 1}

@@ -216,7 +216,7 @@ def test_stream_config_checks_its_tolerances():
 def fake_run(tmp_path: Path) -> Path:
     """A run directory of the `test` preset whose five frames are `moving_group`s: groups of
     pictures [0, 1, 2] and [3, 4] in sequence.json."""
-    from core.pipeline import resolve_config
+    from core.config import preset_config as resolve_config
 
     run = tmp_path / "run"
     frames = moving_group(3, 400) + moving_group(2, 400, seed=3)

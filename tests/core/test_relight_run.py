@@ -140,7 +140,7 @@ def _bad_map(tmp_path: Path, name: str, image: np.ndarray) -> Path:
 
 
 @pytest.mark.parametrize("case, message", [
-    ("unreadable", "not a readable OpenEXR"),
+    ("unreadable", "truncated or corrupt OpenEXR header"),
     ("square", "twice as wide"),
     ("nan", "NaN or Inf"),
     ("zero light", "intensity: expected a number > 0"),

@@ -45,8 +45,10 @@ with make_celery(settings).connection_for_read() as conn:
 @pytest.fixture(params=["embedded", "redis"])
 def stack(request, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     """(environment of worker processes, settings of this process)."""
-    env = {"DGS_DATA_DIR": str(tmp_path / "data"), "DGS_LEASE_SECONDS": "4",
-           "DGS_HEARTBEAT_SECONDS": "0.5", "DGS_LOST_MESSAGE_SECONDS": "2",
+    # Leases and the lost-message grace generous enough that a loaded machine (a child that
+    # takes seconds to claim its job, a heartbeat thread starved) changes nothing.
+    env = {"DGS_DATA_DIR": str(tmp_path / "data"), "DGS_LEASE_SECONDS": "20",
+           "DGS_HEARTBEAT_SECONDS": "0.5", "DGS_LOST_MESSAGE_SECONDS": "20",
            "DGS_QUEUE": f"q-{secrets.token_hex(4)}", "OMP_NUM_THREADS": "1"}
     if request.param == "redis":
         url, prefix = request.getfixturevalue("redis_broker")

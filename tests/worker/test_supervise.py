@@ -39,14 +39,14 @@ def _alive(pid: int) -> bool:
 def test_embedded_worker_is_restarted_when_it_dies(tmp_path: Path):
     w = EmbeddedWorker(WorkerSettings(data_dir=tmp_path)).start()
     try:
-        first = wait_for(lambda: w.proc, 30, "the worker to start")
-        wait_for(lambda: " ready." in w.log_path.read_text(errors="replace"), 60,
+        first = wait_for(lambda: w.proc, 300, "the worker to start")
+        wait_for(lambda: " ready." in w.log_path.read_text(errors="replace"), 300,
                  "the worker to be ready")
         # The worker yields the cores to the API it shares the machine with.
         nice = int(Path(f"/proc/{first.pid}/stat").read_text().rsplit(")", 1)[1].split()[16])
         assert nice == min(19, os.nice(0) + WORKER_NICE)
         os.killpg(first.pid, signal.SIGKILL)
-        second = wait_for(lambda: w.proc if w.proc is not first else None, 30,
+        second = wait_for(lambda: w.proc if w.proc is not first else None, 300,
                           "a new worker process")
         assert second.pid != first.pid and w.restarts == 1
     finally:
@@ -60,7 +60,7 @@ def test_embedded_worker_dies_with_its_supervisor(tmp_path: Path):
     child = int(sup.stdout.readline())
     wait_for(lambda: (tmp_path / "logs" / "worker.log").is_file()
              and " ready." in (tmp_path / "logs" / "worker.log").read_text(errors="replace"),
-             60, "the worker to be ready")
+             300, "the worker to be ready")
     sup.kill()  # SIGKILL: no chance to stop its worker
     sup.wait()
-    wait_for(lambda: not _alive(child), 30, "the orphaned worker to exit")
+    wait_for(lambda: not _alive(child), 300, "the orphaned worker to exit")

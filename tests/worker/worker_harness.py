@@ -46,7 +46,7 @@ class WorkerProcess:
         self.env, self.log, self.args = env, log, args
         self.proc: subprocess.Popen | None = None
 
-    def start(self, timeout: float = 60.0) -> WorkerProcess:
+    def start(self, timeout: float = 300.0) -> WorkerProcess:
         start = self.log.stat().st_size if self.log.exists() else 0
         with open(self.log, "ab") as out:
             self.proc = subprocess.Popen([sys.executable, "-m", "core.cli", "worker",
