@@ -68,6 +68,9 @@ class Progress:
     phase: Literal["key", "deform", "refine"] = "key"
     """How the frame is made: static stages (a GoP's key frame), or the deform / refine stage
     of a frame deformed from its predecessor."""
+    notes: tuple[str, ...] = ()
+    """kind 'frame_start': what the trainer noted while it was made (where its initial points
+    came from, a fallback to random points), for the job's log."""
 
 
 class Stopped(Exception):
@@ -269,7 +272,8 @@ class _Hooks(Callback):
             kind=kind, frame=self.frame, frame_index=self.index, frames=self.frames,
             step=trainer.step, iterations=frame_iterations(trainer), stage=self.stage,
             gaussians=len(trainer.model), loss=self.loss if kind == "step" else None, path=path,
-            phase=getattr(trainer, "phase", "key")))
+            phase=getattr(trainer, "phase", "key"),
+            notes=tuple(trainer.notes) if kind == "frame_start" else ()))
 
     def on_train_start(self, trainer: Trainer) -> None:
         self.trainer = trainer

@@ -131,6 +131,7 @@ def render(
     eps2d: float = 0.1,
     antialiased: bool = True,
     backend: native.Backend = "native",
+    validate: bool = True,
 ) -> Render:
     """Render `model` from `camera`.
 
@@ -139,7 +140,8 @@ def render(
     leaves the appearance opacity unchanged). The defaults eps2d 0.1, antialiased follow the
     Mip-Splatting 2D filter of DESIGN.md section 5. Renders on the model's device; a camera or
     background elsewhere is copied there (give a trainer's cameras that device once, so no
-    step pays for the copy).
+    step pays for the copy). `validate=False` skips the rasterizer's per-element checks of the
+    values (a training loop's later steps: the model's activations keep them valid).
     """
     if not 0 <= sh_degree <= 3:
         raise ValueError(f"sh_degree: expected 0..3, got {sh_degree}")
@@ -156,7 +158,7 @@ def render(
         means, model.quats.contiguous(), model.scales.contiguous(), opacity_c.contiguous(),
         opacity_g.contiguous(), colors.contiguous(), features, camera.viewmat, camera.K,
         camera.width, camera.height, beta=float(beta), eps2d=eps2d, antialiased=antialiased,
-        background=background.to(means.device, means.dtype), backend=backend)
+        background=background.to(means.device, means.dtype), backend=backend, validate=validate)
     if geometry:
         normal, visibility = out.geometry[..., :3], out.geometry[..., 3:4]
     else:

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from core.data.capture import Camera
+from core.data.points import PointCloud
 from core.device import check_device_spec, resolve_device, to_device
 from core.losses import (
     LossWeights,
@@ -33,7 +34,7 @@ from core.losses import (
 )
 from core.model import GaussianModel, LearningRates, means_lr
 from core.render import RenderCamera, render
-from core.seeding import sample_points, scene_extent
+from core.seeding import InitConfig, scene_extent, seed_points
 from core.stages import Schedule, StagePlan, plan, schedule_for
 from core.strategy import DensifyConfig, DensifyStrategy, StrategyState
 
@@ -65,7 +66,10 @@ class TrainConfig:
     losses: LossWeights = field(default_factory=LossWeights)
     """Loss weights."""
     init_points: int = 100_000
-    """Random initial points (carved by masks when present)."""
+    """Random initial points where neither the capture nor triangulation gives any; with masks,
+    the visual hull is filled with random points up to this many seeds."""
+    init: InitConfig = field(default_factory=InitConfig)
+    """Where the initial points come from (the capture's points.ply, triangulation, random)."""
     eps2d: float = 0.1
     """Screen-space blur of the Mip-Splatting 2D filter (DESIGN.md section 5)."""
     antialiased: bool = True
@@ -239,7 +243,7 @@ class Trainer:
 
     def __init__(self, views: Sequence[View], config: TrainConfig = TrainConfig(), *,
                  model: GaussianModel | None = None, callbacks: Sequence[Callback] = (),
-                 ao_baker: AOBaker | None = None):
+                 ao_baker: AOBaker | None = None, points: PointCloud | None = None):
         if not views:
             raise ValueError("views: expected at least one training view")
         self.config = config
@@ -253,7 +257,8 @@ class Trainer:
         self.ao_baker = ao_baker if config.bake_ao else None
         self.extent = scene_extent([v.camera for v in self.views])
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.model = (model.to(self.device) if model is not None else self._initial_model())
+        self.notes: list[str] = []
+        self.model = (model.to(self.device) if model is not None else self._initial_model(points))
         self.optimizer = self.model.make_optimizer(config.rates, self.extent)
         self.strategy = DensifyStrategy(config.densify, self.extent)
         self.state = self.strategy.initialize_state(len(self.model), device=self.device)
@@ -262,7 +267,7 @@ class Trainer:
         self.background = torch.tensor(config.background, dtype=torch.float32,
                                        device=self.device)
         self.ao_targets: list[Tensor] | None = None
-        self.notes: list[str] = []
+        self._validated = False
         self.step = 0
         self._order: list[int] = []
 
@@ -270,8 +275,10 @@ class Trainer:
     def from_capture(cls, capture, frame: str, config: TrainConfig = TrainConfig(), *,
                      downscale: float = 1.0, **kwargs) -> Trainer:
         """A trainer on the training cameras (held-out ones excluded) of one frame of a
-        `core.data.Capture`; `kwargs` go to the constructor (model, callbacks, ao_baker)."""
+        `core.data.Capture`, seeded from its points.ply when it has one; `kwargs` go to the
+        constructor (model, callbacks, ao_baker)."""
         from core.data.dataset import CaptureDataset
+        from core.data.points import read_points_ply
 
         if frame not in capture.frames:
             raise ValueError(f"frame: {frame!r} is not in {capture.root} (frames "
@@ -281,15 +288,20 @@ class Trainer:
             raise ValueError(f"capture: {capture.root} has no training camera (every 8th camera "
                              "is held out, so at least 2 are needed)")
         ds = CaptureDataset(capture, frames=[frame], cameras=ids, downscale=downscale)
+        path = capture.points_path()
+        if path is not None and config.init.source in ("auto", "points") \
+                and kwargs.get("model") is None:
+            kwargs["points"] = read_points_ply(path)
         return cls([View.from_sample(ds[i]) for i in range(len(ds))], config, **kwargs)
 
-    def _initial_model(self) -> GaussianModel:
-        pts, cols = sample_points(
-            [v.camera for v in self.views], self.config.init_points,
-            images=[v.image.cpu().numpy() for v in self.views],
-            masks=[None if v.mask is None else v.mask.cpu().numpy() for v in self.views],
+    def _initial_model(self, points: PointCloud | None) -> GaussianModel:
+        seed = seed_points(
+            [v.camera for v in self.views], [v.image.cpu().numpy() for v in self.views],
+            [None if v.mask is None else v.mask.cpu().numpy() for v in self.views],
+            self.config.init, n_random=self.config.init_points, capture_points=points,
             seed=self.config.seed)
-        return GaussianModel.from_points(pts.to(self.device), cols.to(self.device))
+        self.notes.append(seed.note)
+        return GaussianModel.from_points(seed.points.to(self.device), seed.colors.to(self.device))
 
     def target(self, index: int, background: Tensor | None = None) -> Tensor:
         """The training image composited on `background` (default the configured one) by its
@@ -301,10 +313,14 @@ class Trainer:
         return view.image * view.mask + bg * (1 - view.mask)
 
     def render_view(self, index: int, p: StagePlan, background: Tensor | None = None):
+        # The rasterizer reads every value to check it (ms per 100k Gaussians): once per run is
+        # enough, since the model's activations keep scales positive and opacities in [0, 1].
+        validate, self._validated = not self._validated, True
         return render(self.model, self.cameras[index], sh_degree=p.sh_degree, beta=p.beta,
                       geometry=p.geometry_branch, tie_opacity=p.tie_opacity,
                       background=self.background if background is None else background,
-                      eps2d=self.config.eps2d, antialiased=self.config.antialiased)
+                      eps2d=self.config.eps2d, antialiased=self.config.antialiased,
+                      validate=validate)
 
     def _step_background(self, index: int) -> Tensor:
         if self.config.random_background and self.views[index].mask is not None:

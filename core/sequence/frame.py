@@ -74,6 +74,7 @@ class FrameTracker:
         if tuple(ids.shape) != (len(previous),):
             raise ValueError(f"ids: expected ({len(previous)},) track ids, got {tuple(ids.shape)}")
         self.device = resolve_device(config.device, "config.device")
+        self._validated = False  # before the start race renders
         self.views = [v.to(self.device) for v in views]
         self.config, self.seq = config, sequence
         self.callbacks = list(callbacks)
@@ -148,9 +149,12 @@ class FrameTracker:
 
     def _render(self, model, index: int, background: Tensor):
         p = self.plan
+        # Values checked once per frame, as core.train.Trainer does.
+        validate, self._validated = not self._validated, True
         return render(model, self.cameras[index], sh_degree=p.sh_degree, beta=p.beta,
                       geometry=True, tie_opacity=False, background=background,
-                      eps2d=self.config.eps2d, antialiased=self.config.antialiased)
+                      eps2d=self.config.eps2d, antialiased=self.config.antialiased,
+                      validate=validate)
 
     def _photometric(self, r, index: int, background: Tensor, sigma: float) -> Tensor:
         return photometric_loss(blur(r.rgb, sigma), blur(self.target(index, background), sigma),

@@ -19,14 +19,15 @@ __all__ = [
     "write_canonical",
 ]
 
-Format = Literal["transforms", "colmap", "actorshq"]
-FORMATS: tuple[str, ...] = ("transforms", "colmap", "actorshq")
+Format = Literal["transforms", "colmap", "actorshq", "idr"]
+FORMATS: tuple[str, ...] = ("transforms", "colmap", "actorshq", "idr")
 
 
 def detect_format(src: str | os.PathLike[str]) -> Format:
     """Guess the source format from the files present; raises CaptureError when unclear."""
     from core.data.importers.actorshq import find_calibration
     from core.data.importers.colmap import find_model
+    from core.data.importers.idr import find_cameras_npz
     from core.data.importers.transforms import find_transforms
 
     src = Path(src)
@@ -39,9 +40,11 @@ def detect_format(src: str | os.PathLike[str]) -> Format:
         found.append("colmap")
     if find_calibration(src) is not None:
         found.append("actorshq")
+    if find_cameras_npz(src) is not None:
+        found.append("idr")
     if len(found) != 1:
         what = "no known format" if not found else f"several formats ({', '.join(found)})"
-        raise CaptureError([Problem(str(src), f"{what}: pass --format transforms|colmap|actorshq")])
+        raise CaptureError([Problem(str(src), f"{what}: pass --format " + "|".join(FORMATS))])
     return found[0]
 
 
@@ -61,6 +64,10 @@ def read_source(src: str | os.PathLike[str], fmt: str = "auto") -> ImportedCaptu
         from core.data.importers.actorshq import read_actorshq
 
         return read_actorshq(Path(src))
+    if fmt == "idr":
+        from core.data.importers.idr import read_idr
+
+        return read_idr(Path(src))
     raise ValueError(f"fmt: expected auto or one of {FORMATS}, got {fmt!r}")
 
 
