@@ -499,6 +499,8 @@ def _reconstruct_frame(capture, frame: str, run: Path, cfg: RunConfig, estimator
         "renders": (getattr(trainer, "renders", None) or frame_iterations(trainer))
         + (rekeyed["tracked_renders"] if rekeyed else 0),
         "seconds": round(time.perf_counter() - start, 3),
+        "ao_bake_seconds": None if getattr(trainer, "ao_seconds", None) is None
+        else round(trainer.ao_seconds, 3),
         "resumed_at": resumed_at,
         "gaussians": len(trainer.model),
         "final_losses": {k: v for k, v in last.items()

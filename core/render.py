@@ -150,7 +150,10 @@ def render(
         background = torch.zeros(3, device=means.device)
     camera = camera.to(means.device)
     dirs = torch.nn.functional.normalize(means - camera.center[None], dim=-1)
-    colors = torch.clamp_min(eval_sh(model.sh, dirs, sh_degree) + 0.5, 0.0)
+    # At degree 0 only sh0 enters the graph: the higher coefficients get no gradient (None,
+    # not zeros), so the optimizer skips them instead of updating 45 numbers per Gaussian.
+    sh = model.params["sh0"] if sh_degree == 0 else model.sh
+    colors = torch.clamp_min(eval_sh(sh, dirs, sh_degree) + 0.5, 0.0)
     opacity_c = model.opacity_c
     opacity_g = opacity_c if tie_opacity else model.opacity_g
     features = torch.cat([model.normals, model.visibility], dim=1) if geometry else None

@@ -38,6 +38,10 @@ class Schedule:
     """SH degree reached in stage 3."""
     sh_interval: int = 1_000
     """Steps per SH degree increase in stage 3 (3DGS oneupSHdegree every 1000)."""
+    sh_start: int | None = None
+    """Step at which the SH degree first rises (then one more every `sh_interval`); None: the
+    start of stage 3 (DESIGN.md). A plain 3DGS (the appearance-only baseline) rises from
+    `sh_interval` on, whatever the stage."""
     densify_from: int = 500
     """Densification runs at steps > densify_from (3DGS densify_from_iter)."""
     densify_until: int = 15_000
@@ -50,6 +54,8 @@ class Schedule:
     def __post_init__(self) -> None:
         for f in fields(self):
             value = getattr(self, f.name)
+            if f.name == "sh_start" and value is None:
+                continue
             if f.name != "beta_max" and (not isinstance(value, int) or value < 0):
                 raise ValueError(f"{f.name}: expected a non-negative integer, got {value!r}")
         if not 0 < self.stage2_start <= self.stage3_start <= self.iterations:
@@ -74,6 +80,8 @@ class Schedule:
             "stage2_start", "stage3_start", "sh_interval", "densify_from", "densify_until",
             "densify_interval", "reset_interval")}
         counts["stage3_start"] = max(counts["stage3_start"], counts["stage2_start"])
+        if self.sh_start is not None:
+            counts["sh_start"] = round(self.sh_start * f)
         return replace(self, iterations=iterations, **counts)
 
 
@@ -137,8 +145,9 @@ def plan(step: int, schedule: Schedule = Schedule()) -> StagePlan:
         t = min((step - s.stage2_start) / span, 1.0)
         beta = s.beta_max * 0.5 * (1.0 - math.cos(math.pi * t))
     sh = 0
-    if stage == 3:
-        sh = min(s.sh_max_degree, 1 + (step - s.stage3_start) // s.sh_interval)
+    sh_start = s.stage3_start if s.sh_start is None else s.sh_start
+    if step >= sh_start and (stage == 3 or s.sh_start is not None):
+        sh = min(s.sh_max_degree, 1 + (step - sh_start) // s.sh_interval)
     in_window = s.densify_from < step < s.densify_until
     return StagePlan(
         step=step, stage=stage, beta=beta, sh_degree=sh, tie_opacity=stage == 1,

@@ -267,6 +267,8 @@ class Trainer:
         self.background = torch.tensor(config.background, dtype=torch.float32,
                                        device=self.device)
         self.ao_targets: list[Tensor] | None = None
+        self.ao_seconds: float | None = None
+        """Seconds the AO bake took (None until it ran)."""
         self._validated = False
         self.step = 0
         self._order: list[int] = []
@@ -361,8 +363,10 @@ class Trainer:
                 self.notes.append(f"step {p.step}: AO baking skipped (bake_ao is off); "
                                   "visibility loss off")
             else:
+                start = time.perf_counter()
                 targets = self.ao_baker(self.model, self.cameras, self.optimizer, p.beta)
                 self.ao_targets = to_device(list(targets), self.device)  # a baker's own device
+                self.ao_seconds = time.perf_counter() - start
         lr = means_lr(self.config.rates, self.extent, p.step)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
@@ -428,7 +432,8 @@ class Trainer:
             "step": self.step, "params": {k: v.detach() for k, v in self.model.params.items()},
             "optimizer": self.optimizer.state_dict(), "strategy": asdict(self.state),
             "generator": self.generator.get_state(), "order": list(self._order),
-            "ao_targets": self.ao_targets, "notes": list(self.notes), "extra": extra}, "cpu")
+            "ao_targets": self.ao_targets, "ao_seconds": self.ao_seconds,
+            "notes": list(self.notes), "extra": extra}, "cpu")
         tmp = path.with_name(path.name + ".tmp")
         torch.save(blob, tmp)
         os.replace(tmp, path)
@@ -446,5 +451,6 @@ class Trainer:
             self.generator.set_state(blob["generator"])
             self._order = [int(i) for i in blob["order"]]
         self.ao_targets = to_device(blob.get("ao_targets"), self.device)
+        self.ao_seconds = blob.get("ao_seconds")
         self.notes = list(blob.get("notes") or [])
         return blob.get("extra")
