@@ -11,6 +11,7 @@ visibility loss.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -21,7 +22,7 @@ from core.config import AOConfig
 from core.losses import depth_to_points
 from core.model import GaussianModel
 from core.render import RenderCamera, render
-from native import gaussian_visibility, trace_visibility
+from native import gaussian_rays, gaussian_visibility, trace_visibility
 
 __all__ = ["GaussianAOBaker", "init_visibility", "ao_map", "scaled_camera"]
 
@@ -42,9 +43,13 @@ def init_visibility(model: GaussianModel, optimizer=None, config: AOConfig = AOC
     vis = gaussian_visibility(model.means.detach(), model.quats.detach(),
                               model.scales.detach(), model.opacity_g.detach(),
                               model.normals.detach(), n_dirs=config.n_dirs)
+    _assign(model, vis, optimizer)
+    return vis
+
+
+def _assign(model: GaussianModel, vis: Tensor, optimizer) -> None:
     p = vis.clamp(1e-4, 1 - 1e-4)
     model.assign("visibility", torch.log(p / (1 - p))[:, None], optimizer)
-    return vis
 
 
 def _filter(ao: np.ndarray, guide: np.ndarray, config: AOConfig) -> np.ndarray:
@@ -56,46 +61,97 @@ def _filter(ao: np.ndarray, guide: np.ndarray, config: AOConfig) -> np.ndarray:
                                              d, config.sigma_color, config.sigma_space)
 
 
-@torch.no_grad()
-def ao_map(model: GaussianModel, camera: RenderCamera, *, beta: float = 0.0,
-           config: AOConfig = AOConfig()) -> Tensor:
-    """(H, W, 1) ambient occlusion of one view at the camera's full resolution, on the model's
-    device (the joint bilateral filter runs on the CPU, OpenCV)."""
-    device = model.means.device
-    camera = camera.to(device)
+@dataclass
+class _Origins:
+    """The rays one view's AO map traces: covered pixels of its 1/4-resolution render."""
+
+    covered: Tensor
+    """(h, w) pixels whose geometry coverage passes `min_alpha`."""
+    normal: Tensor
+    """(h, w, 3) unit rendered normals (the filter's guide)."""
+    points: Tensor
+    """(M, 3) surface points of the covered pixels with a usable normal."""
+    normals: Tensor
+    """(M, 3) their unit normals."""
+    offset: Tensor
+    """(M,) distance each ray starts above its surface (`AOConfig.offset_pixels`)."""
+    ok: Tensor
+    """(count of covered,) which covered pixels have a usable normal (the others stay 1)."""
+
+
+def _origins(model: GaussianModel, camera: RenderCamera, beta: float,
+             config: AOConfig) -> _Origins:
     small = scaled_camera(camera, config.scale)
     r = render(model, small, sh_degree=0, beta=beta, geometry=True, tie_opacity=False)
     covered = r.alpha_g[..., 0] > config.min_alpha
     normal = torch.nn.functional.normalize(r.normal, dim=-1)
-    ao = torch.ones(small.height, small.width, device=device)
-    if bool(covered.any()):
-        points = depth_to_points(r.depth, small.K, small.viewmat)[covered]
-        normals = normal[covered]
-        ok = normals.norm(dim=-1) > 0.5
-        depth = r.depth[..., 0][covered]
-        footprint = depth / camera.K[0, 0]
-        vis = torch.ones(points.shape[0], device=device)
-        vis[ok] = trace_visibility(points[ok].contiguous(), normals[ok].contiguous(),
-                                   model.means.detach(), model.quats.detach(),
-                                   model.scales.detach(), model.opacity_g.detach(),
-                                   n_dirs=config.n_dirs,
-                                   offset=config.offset_pixels * footprint[ok])
-        ao[covered] = vis
+    points = depth_to_points(r.depth, small.K, small.viewmat)[covered]
+    normals = normal[covered]
+    ok = normals.norm(dim=-1) > 0.5
+    footprint = r.depth[..., 0][covered] / camera.K[0, 0]
+    return _Origins(covered, normal, points[ok].contiguous(), normals[ok].contiguous(),
+                    config.offset_pixels * footprint[ok], ok)
+
+
+def _map(o: _Origins, vis: Tensor, camera: RenderCamera, config: AOConfig) -> Tensor:
+    """(H, W, 1) AO at the camera's full resolution from the traced visibility of `o`'s rays:
+    upsampled, then joint-bilateral filtered by the normal map (OpenCV, on the CPU)."""
+    device = o.normal.device
+    ao = torch.ones(o.covered.shape, device=device)
+    inner = torch.ones(o.ok.shape[0], device=device)
+    inner[o.ok] = vis.to(inner.dtype)
+    ao[o.covered] = inner
     size = (camera.height, camera.width)
     up = torch.nn.functional.interpolate(ao[None, None], size=size, mode="bilinear",
                                          align_corners=False)[0, 0]
-    guide = torch.nn.functional.interpolate(normal.permute(2, 0, 1)[None], size=size,
+    guide = torch.nn.functional.interpolate(o.normal.permute(2, 0, 1)[None], size=size,
                                             mode="bilinear", align_corners=False)[0]
     filtered = _filter(up.cpu().numpy(), guide.permute(1, 2, 0).cpu().numpy(), config)
     return torch.from_numpy(np.clip(filtered, 0.0, 1.0)).float()[..., None].to(device)
 
 
+def _trace(model: GaussianModel, origins: Tensor, normals: Tensor, offset: Tensor,
+           exclude: Tensor | None, config: AOConfig) -> Tensor:
+    if not origins.shape[0]:
+        return origins.new_ones(0)
+    return trace_visibility(origins, normals, model.means.detach(), model.quats.detach(),
+                            model.scales.detach(), model.opacity_g.detach(),
+                            n_dirs=config.n_dirs, offset=offset, exclude=exclude)
+
+
+@torch.no_grad()
+def ao_map(model: GaussianModel, camera: RenderCamera, *, beta: float = 0.0,
+           config: AOConfig = AOConfig()) -> Tensor:
+    """(H, W, 1) ambient occlusion of one view at the camera's full resolution, on the model's
+    device (the joint bilateral filter runs on the CPU, OpenCV)."""
+    camera = camera.to(model.means.device)
+    o = _origins(model, camera, beta, config)
+    return _map(o, _trace(model, o.points, o.normals, o.offset, None, config), camera, config)
+
+
 class GaussianAOBaker:
-    """The trainer's AO hook: initialise per-Gaussian visibility, return per-view AO targets."""
+    """The trainer's AO hook: initialise per-Gaussian visibility, return per-view AO targets.
+
+    Every ray of the bake, the Gaussians' own and every view's map, is traced in one call, so
+    the tree over the Gaussians is built once rather than once per view."""
 
     def __init__(self, config: AOConfig = AOConfig()):
         self.config = config
 
+    @torch.no_grad()
     def __call__(self, model: GaussianModel, cameras, optimizer=None, beta: float = 0.0):
-        init_visibility(model, optimizer, self.config)
-        return [ao_map(model, cam, beta=beta, config=self.config) for cam in cameras]
+        cfg, device = self.config, model.means.device
+        cameras = [c.to(device) for c in cameras]
+        views = [_origins(model, cam, beta, cfg) for cam in cameras]
+        n = len(model)
+        means = model.means.detach()
+        own_offset, own_exclude = gaussian_rays(means, model.scales)  # gaussian_visibility's
+        origins = torch.cat([means] + [o.points.to(means) for o in views])
+        normals = torch.cat([model.normals.detach()] + [o.normals.to(means) for o in views])
+        offset = torch.cat([own_offset] + [o.offset.to(means) for o in views])
+        exclude = torch.cat([own_exclude,
+                             torch.full((origins.shape[0] - n,), -1, device=device)])
+        vis = _trace(model, origins, normals, offset, exclude, cfg)
+        _assign(model, vis[:n], optimizer)
+        parts = vis[n:].split([o.points.shape[0] for o in views])
+        return [_map(o, v, cam, cfg) for o, v, cam in zip(views, parts, cameras)]

@@ -28,40 +28,65 @@ __all__ = [
     "normal_prior_loss",
     "photometric_loss",
     "ssim",
+    "ssim_reference",
     "visibility_loss",
 ]
 
 
 @functools.lru_cache(maxsize=8)
-def _window(size: int, sigma: float, channels: int,
-            device: torch.device = torch.device("cpu")) -> Tensor:
+def _window_1d(size: int, sigma: float, device: torch.device = torch.device("cpu")) -> Tensor:
     # Computed on the CPU and cached per device: no host-to-device copy per call.
     x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
     g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = (g / g.sum()).float()
-    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous().to(device)
+    return (g / g.sum()).float().to(device)
+
+
+def _ssim_map(mu_x: Tensor, mu_y: Tensor, xx: Tensor, yy: Tensor, xy: Tensor) -> Tensor:
+    sxx, syy, sxy = xx - mu_x * mu_x, yy - mu_y * mu_y, xy - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    return ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
+
+
+def _check_pair(a: Tensor, b: Tensor) -> None:
+    if a.shape != b.shape or a.dim() != 3:
+        raise ValueError(f"a, b: expected equal (H, W, C) shapes, got {tuple(a.shape)} and "
+                         f"{tuple(b.shape)}")
 
 
 def ssim(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
     """Mean SSIM of two (H, W, C) images in 0..1: Gaussian window, zero padding 'same' as in
-    3DGS utils/loss_utils.py, C1 = 0.01^2, C2 = 0.03^2 (Wang et al. 2004)."""
-    if a.shape != b.shape or a.dim() != 3:
-        raise ValueError(f"a, b: expected equal (H, W, C) shapes, got {tuple(a.shape)} and "
-                         f"{tuple(b.shape)}")
+    3DGS utils/loss_utils.py, C1 = 0.01^2, C2 = 0.03^2 (Wang et al. 2004).
+
+    The window is the outer product of a 1D Gaussian, so the five local means (x, y, x^2, y^2,
+    xy) are one pass of 1D convolutions along rows and one along columns over the five stacked
+    (a zero-padded separable filter equals the 2D one exactly); `ssim_reference` is the 2D
+    form."""
+    _check_pair(a, b)
     c = a.shape[2]
-    w = _window(window, sigma, c, a.device).to(a)
+    g = _window_1d(window, sigma, a.device).to(a)
+    x, y = a.permute(2, 0, 1), b.permute(2, 0, 1)
+    stack = torch.cat([x, y, x * x, y * y, x * y])[None]  # (1, 5C, H, W)
+    k = 5 * c
+    pad = window // 2
+    rows = F.conv2d(stack, g.view(1, 1, 1, window).expand(k, 1, 1, window), padding=(0, pad),
+                    groups=k)
+    mean = F.conv2d(rows, g.view(1, 1, window, 1).expand(k, 1, window, 1), padding=(pad, 0),
+                    groups=k)[0]
+    return _ssim_map(*mean.split(c)).mean()
+
+
+def ssim_reference(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """`ssim` with the 2D window: five 11x11 convolutions (the definition, for tests)."""
+    _check_pair(a, b)
+    c = a.shape[2]
+    g = _window_1d(window, sigma, a.device).to(a)
+    w = (g[:, None] * g[None, :]).expand(c, 1, window, window)
     x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
 
     def blur(t: Tensor) -> Tensor:
         return F.conv2d(t, w, padding=window // 2, groups=c)
 
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x * mu_x
-    syy = blur(y * y) - mu_y * mu_y
-    sxy = blur(x * y) - mu_x * mu_y
-    c1, c2 = 0.01**2, 0.03**2
-    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2))
-    return s.mean()
+    return _ssim_map(blur(x), blur(y), blur(x * x), blur(y * y), blur(x * y)).mean()
 
 
 def photometric_loss(pred: Tensor, target: Tensor, weights: LossWeights = LossWeights()) -> Tensor:

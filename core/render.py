@@ -131,6 +131,7 @@ def render(
     eps2d: float = 0.1,
     antialiased: bool = True,
     backend: native.Backend = "native",
+    validate: bool = True,
 ) -> Render:
     """Render `model` from `camera`.
 
@@ -139,7 +140,8 @@ def render(
     leaves the appearance opacity unchanged). The defaults eps2d 0.1, antialiased follow the
     Mip-Splatting 2D filter of docs/design.md section 5. Renders on the model's device; a camera or
     background elsewhere is copied there (give a trainer's cameras that device once, so no
-    step pays for the copy).
+    step pays for the copy). `validate=False` skips the rasterizer's per-element checks of the
+    values (a training loop's later steps: the model's activations keep them valid).
     """
     if not 0 <= sh_degree <= 3:
         raise ValueError(f"sh_degree: expected 0..3, got {sh_degree}")
@@ -148,7 +150,10 @@ def render(
         background = torch.zeros(3, device=means.device)
     camera = camera.to(means.device)
     dirs = torch.nn.functional.normalize(means - camera.center[None], dim=-1)
-    colors = torch.clamp_min(eval_sh(model.sh, dirs, sh_degree) + 0.5, 0.0)
+    # At degree 0 only sh0 enters the graph: the higher coefficients get no gradient (None,
+    # not zeros), so the optimizer skips them instead of updating 45 numbers per Gaussian.
+    sh = model.params["sh0"] if sh_degree == 0 else model.sh
+    colors = torch.clamp_min(eval_sh(sh, dirs, sh_degree) + 0.5, 0.0)
     opacity_c = model.opacity_c
     opacity_g = opacity_c if tie_opacity else model.opacity_g
     features = torch.cat([model.normals, model.visibility], dim=1) if geometry else None
@@ -156,7 +161,7 @@ def render(
         means, model.quats.contiguous(), model.scales.contiguous(), opacity_c.contiguous(),
         opacity_g.contiguous(), colors.contiguous(), features, camera.viewmat, camera.K,
         camera.width, camera.height, beta=float(beta), eps2d=eps2d, antialiased=antialiased,
-        background=background.to(means.device, means.dtype), backend=backend)
+        background=background.to(means.device, means.dtype), backend=backend, validate=validate)
     if geometry:
         normal, visibility = out.geometry[..., :3], out.geometry[..., 3:4]
     else:

@@ -1,18 +1,46 @@
-"""Initial points for a capture without a point cloud: random points in the cameras' common view,
-carved by the foreground masks when the capture has them (a visual hull), coloured from the
-images. Also the scene extent that scales the position learning rate and densification.
+"""Initial points of a key frame (`seed_points`), in order of preference:
+
+1. the capture's own point cloud (``points.ply``: COLMAP points3D, a nerfstudio PLY, ...);
+2. sparse points triangulated from the known poses (`core.triangulation`);
+3. random points in the cameras' common view, only when neither gives any (with a warning).
+Where the views have masks, every seed must land on the foreground of every view it projects
+into (a visual hull), and the hull is topped up with random points inside it up to
+`TrainConfig.init_points`, as before points were triangulated. Where they have none, a far
+shell of points along the cameras' pixel rays stands for the background no feature reaches.
+Also the scene extent that scales the position learning rate and densification.
 """
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from core.config import InitConfig
 from core.data.capture import Camera
+from core.data.points import PointCloud
+from core.triangulation import in_visual_hull, pixel_indices, triangulate_views
 
-__all__ = ["look_at_center", "sample_points", "scene_extent"]
+__all__ = ["Seed", "look_at_center", "sample_points", "scene_extent",
+           "seed_points", "shell_points"]
+
+log = logging.getLogger("dgs.seeding")
+
+# Fewer seeds than this from a capture or triangulation are no scene: fall back.
+MIN_POINTS = 32
+
+
+@dataclass
+class Seed:
+    """Initial points (N, 3) and colours (N, 3) in 0..1, with what they came from."""
+
+    points: torch.Tensor
+    colors: torch.Tensor
+    note: str
+    """One line for the run's notes: the source and the counts."""
 
 
 def scene_extent(cameras: Sequence[Camera]) -> float:
@@ -68,14 +96,11 @@ def sample_points(cameras: Sequence[Camera], n: int, *, images: Sequence[np.ndar
     for _ in range(max_rounds):
         pts = center + rng.uniform(-r, r, size=(4 * n, 3))
         ok = np.ones(len(pts), dtype=bool)
-        for i, cam in enumerate(cameras):
+        for cam in cameras:
             uv, z = cam.project(pts)
-            u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
-            inside = (z > 0) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
-            ok &= inside
-            if masks is not None and masks[i] is not None:
-                m = masks[i][np.clip(v, 0, cam.height - 1), np.clip(u, 0, cam.width - 1), 0]
-                ok &= m > 0.5
+            ok &= pixel_indices(uv, cam.width, cam.height, z)[2]
+        if masks is not None:
+            ok &= in_visual_hull(pts, cameras, masks)
         kept.append(pts[ok])
         total += int(ok.sum())
         if total >= n:
@@ -92,8 +117,108 @@ def _colours(cameras: Sequence[Camera], pts: np.ndarray,
         return np.full((len(pts), 3), 0.5)
     acc = np.zeros((len(pts), 3))
     for cam, img in zip(cameras, images):
-        uv, _ = cam.project(pts)
-        u = np.clip(np.floor(uv[:, 0]).astype(int), 0, cam.width - 1)
-        v = np.clip(np.floor(uv[:, 1]).astype(int), 0, cam.height - 1)
+        u, v, _ = pixel_indices(cam.project(pts)[0], cam.width, cam.height)
         acc += img[v, u, :3]
     return np.clip(acc / len(cameras), 0.0, 1.0)
+
+
+def shell_points(cameras: Sequence[Camera], images: Sequence[np.ndarray], n: int,
+                 center: np.ndarray, radius: float, seed: int = 0) -> PointCloud:
+    """`n` points where random pixel rays of random cameras leave the sphere (`center`,
+    `radius`) that holds them, coloured by their pixels."""
+    rng = np.random.default_rng(seed)
+    which = rng.integers(0, len(cameras), size=n)
+    pts, cols = np.zeros((n, 3)), np.zeros((n, 3))
+    for i in np.unique(which):
+        sel = np.flatnonzero(which == i)
+        cam, img = cameras[i], images[i]
+        u = rng.uniform(0, cam.width, size=len(sel))
+        v = rng.uniform(0, cam.height, size=len(sel))
+        d = np.linalg.solve(cam.K, np.stack([u, v, np.ones_like(u)]))  # camera rays
+        d = (cam.R.T @ d).T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        o = cam.center - center
+        b = d @ o
+        t = -b + np.sqrt(np.maximum(b * b - (o @ o - radius * radius), 0.0))  # far root
+        pts[sel] = cam.center + t[:, None] * d
+        px, py, _ = pixel_indices(np.stack([u, v], axis=1), cam.width, cam.height)
+        cols[sel] = img[py, px, :3]
+    return PointCloud(pts, np.clip(cols, 0, 1).astype(np.float32))
+
+
+def _source_cloud(cameras: Sequence[Camera], images: Sequence[np.ndarray],
+                  masks: Sequence[np.ndarray | None], config: InitConfig,
+                  capture_points: PointCloud | None) -> tuple[PointCloud | None, str]:
+    """The capture's points (carved by the masks) or triangulated ones, and a note; None when
+    neither gives MIN_POINTS (ValueError when the source asked for gives none)."""
+    cloud, what = None, ""
+    if config.source in ("auto", "points") and capture_points is not None:
+        cloud = capture_points.subset(in_visual_hull(capture_points.points, cameras, masks))
+        what = f"{len(cloud)} of the capture's {len(capture_points)} points"
+    elif config.source == "points":
+        raise ValueError("init.source: 'points' needs a points.ply in the capture; use auto")
+    if config.source in ("auto", "triangulate") and (cloud is None or len(cloud) < MIN_POINTS):
+        cloud, stats = triangulate_views(cameras, images, masks)
+        what = (f"{stats.points} points triangulated from the known poses ({stats.features} "
+                f"features, {stats.matches} matches in {stats.pairs} camera pairs)")
+    found = 0 if cloud is None else len(cloud)
+    if config.source == "random" or found >= MIN_POINTS:
+        return cloud, what
+    if config.source != "auto":
+        raise ValueError(f"init.source: {config.source!r} gave {found} points; use auto "
+                         "(random points as the last resort)")
+    return None, what
+
+
+def _background(cameras: Sequence[Camera], images: Sequence[np.ndarray],
+                masks: Sequence[np.ndarray | None], cloud: PointCloud, fraction: float,
+                seed: int) -> tuple[PointCloud, str]:
+    """The far shell of the views without masks: twice as far from the look-at centre as the
+    farther of the cameras and the seeds (99th percentile)."""
+    center = look_at_center(cameras)
+    reach = max(np.linalg.norm(np.stack([c.center for c in cameras]) - center, axis=1).max(),
+                float(np.percentile(np.linalg.norm(cloud.points - center, axis=1), 99)))
+    n = max(1, round(fraction * len(cloud)))
+    unmasked = [i for i, m in enumerate(masks) if m is None]
+    shell = shell_points([cameras[i] for i in unmasked], [images[i] for i in unmasked], n,
+                         center, 2.0 * reach, seed)
+    return shell, f"{n} background points on a shell of radius {2 * reach:.3g}"
+
+
+def seed_points(cameras: Sequence[Camera], images: Sequence[np.ndarray],
+                masks: Sequence[np.ndarray | None], config: InitConfig, *, n_random: int,
+                capture_points: PointCloud | None = None, seed: int = 0) -> Seed:
+    """The initial points of a key frame from its training views (cameras served at the
+    images' resolution, images (H, W, 3) and masks (H, W, 1) or None), following the module's
+    order; `n_random` is TrainConfig.init_points. ValueError when the source asked for
+    explicitly has nothing to give."""
+    cloud, what = _source_cloud(cameras, images, masks, config, capture_points)
+    masked = any(m is not None for m in masks)
+    parts, notes = ([cloud], [what]) if cloud is not None else ([], [])
+    if cloud is None or masked:  # random points, carved by the masks: all, or the hull's fill
+        n = n_random if cloud is None else max(0, n_random - len(cloud))
+        try:
+            pts, cols = sample_points(cameras, n, images=images, masks=masks, seed=seed) \
+                if n else (torch.zeros(0, 3), torch.zeros(0, 3))
+        except ValueError:
+            if cloud is None:  # nothing at all to start from
+                raise
+            pts, cols = torch.zeros(0, 3), torch.zeros(0, 3)  # the hull is too thin to sample
+        if len(pts):
+            parts.append(PointCloud(pts.double().numpy(), cols.numpy()))
+            where = "in the visual hull" if masked else "in the cameras' common view"
+            fallback = ""
+            if cloud is None and config.source != "random":
+                fallback = f" (a fallback: {what})"
+                log.warning("seeding %d random points %s, the last resort: %s", len(pts), where,
+                            what)
+            notes.append(f"{len(pts)} random points {where}{fallback}")
+    if not all(m is not None for m in masks) and config.background > 0 and cloud is not None:
+        shell, note = _background(cameras, images, masks, cloud, config.background, seed)
+        parts.append(shell)
+        notes.append(note)
+    pts = np.concatenate([p.points for p in parts])
+    cols = np.concatenate([p.colors if p.colors is not None else np.full((len(p), 3), 0.5)
+                           for p in parts])
+    return Seed(torch.from_numpy(pts).float(), torch.from_numpy(cols).float(),
+                "seeded with " + " + ".join(notes))

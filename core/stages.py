@@ -66,8 +66,9 @@ def plan(step: int, schedule: Schedule = Schedule()) -> StagePlan:
         t = min((step - s.stage2_start) / span, 1.0)
         beta = s.beta_max * 0.5 * (1.0 - math.cos(math.pi * t))
     sh = 0
-    if stage == 3:
-        sh = min(s.sh_max_degree, 1 + (step - s.stage3_start) // s.sh_interval)
+    sh_start = s.stage3_start if s.sh_start is None else s.sh_start
+    if step >= sh_start and (stage == 3 or s.sh_start is not None):
+        sh = min(s.sh_max_degree, 1 + (step - sh_start) // s.sh_interval)
     in_window = s.densify_from < step < s.densify_until
     return StagePlan(
         step=step, stage=stage, beta=beta, sh_degree=sh, tie_opacity=stage == 1,

@@ -6,8 +6,8 @@ Importing this package never builds the extension; the first native call does (s
 
 from native._backend import NativeBuildError
 from native.rasterize import Backend, rasterize
-from native.raytrace import gaussian_visibility, trace_visibility
+from native.raytrace import gaussian_rays, gaussian_visibility, trace_visibility
 from native.types import RasterOutput
 
 __all__ = ["rasterize", "RasterOutput", "NativeBuildError", "Backend", "trace_visibility",
-           "gaussian_visibility"]
+           "gaussian_rays", "gaussian_visibility"]

@@ -1,5 +1,11 @@
 """Argument checks shared by the native and the reference rasterizer: each error names the
-argument, what was expected and what arrived."""
+argument, what was expected and what arrived.
+
+Two levels: the structure (types, shapes, dtypes, devices, contiguity, scalar settings, K) costs
+microseconds and is checked on every call; the values (finite, positive scales, opacities in
+[0, 1], no zero quaternion) read every element and cost milliseconds per 100k Gaussians, so a
+training loop checks them once per run (`values=False` afterwards). The kernels stay safe on bad
+values: a non-finite Gaussian fails their range tests and is culled."""
 
 from __future__ import annotations
 
@@ -35,8 +41,10 @@ def _int(name: str, value: object) -> int:
 
 
 def check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K, width,
-                 height, beta, eps2d, near, far, background, require_contiguous: bool) -> None:
-    """Raise ValueError naming the first bad argument."""
+                 height, beta, eps2d, near, far, background, require_contiguous: bool,
+                 values: bool = True) -> None:
+    """Raise ValueError naming the first bad argument; `values=False` checks the structure
+    only (see the module doc)."""
     named = {"means": means, "quats": quats, "scales": scales, "opacity_c": opacity_c,
              "opacity_g": opacity_g, "colors": colors, "viewmat": viewmat, "K": K}
     if geometry is not None:
@@ -68,9 +76,20 @@ def check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, v
             raise ValueError(f"{name} is on {t.device} but means is on {device}")
         if require_contiguous and not t.is_contiguous():
             raise ValueError(f"{name} must be contiguous (call .contiguous() on it)")
-        _finite(name, t)
     _int("width", width)
     _int("height", height)
+    for name in ("viewmat", "K", "background"):  # a few numbers each: always
+        if name in named:
+            _finite(name, named[name])
+    _check_settings(beta, eps2d, near, far, K)
+    if values:
+        _check_values(named, scales, opacity_c, opacity_g, quats, n)
+
+
+def _check_values(named: dict[str, Tensor], scales: Tensor, opacity_c: Tensor,
+                  opacity_g: Tensor, quats: Tensor, n: int) -> None:
+    for name, t in named.items():
+        _finite(name, t)
     if n and bool((scales <= 0).any()):
         raise ValueError("scales must be positive (the activation is usually exp)")
     for name, t in (("opacity_c", opacity_c), ("opacity_g", opacity_g)):
@@ -78,6 +97,9 @@ def check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, v
             raise ValueError(f"{name} must lie in [0, 1] (the activation is usually sigmoid)")
     if n and bool((quats.norm(dim=-1) == 0).any()):
         raise ValueError("quats contains a zero quaternion, which is no rotation")
+
+
+def _check_settings(beta, eps2d, near, far, K: Tensor) -> None:
     if not 0.0 <= float(beta) <= 1.0:
         raise ValueError(f"beta must lie in [0, 1], got {beta}")
     if not float(eps2d) >= 0.0:
@@ -85,5 +107,5 @@ def check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, v
     if not 0.0 < float(near) < float(far):
         raise ValueError(f"near and far must satisfy 0 < near < far, got near={near}, far={far}")
     fx, fy = float(K[0, 0].detach()), float(K[1, 1].detach())
-    if fx <= 0 or fy <= 0:
+    if not (fx > 0 and fy > 0):
         raise ValueError(f"K must have positive focal lengths, got fx={fx}, fy={fy}")

@@ -47,8 +47,9 @@ def rasterize(
 
     `backend="reference"` runs the dense plain-PyTorch implementation (`native.reference`), which
     needs O(N * H * W) memory but works on any device. Every output is differentiable with
-    respect to every float input. `validate=False` skips the input checks (a hot training loop
-    that has already checked its tensors).
+    respect to every float input. Shapes, dtypes and devices are checked on every call;
+    `validate=False` skips the checks of the values (finite, positive scales, opacities in
+    [0, 1]), which read every element: a training loop checks them once per run.
     """
     if backend == "reference":
         return reference(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat,
@@ -56,9 +57,9 @@ def rasterize(
                          near=near, far=far, background=background, validate=validate)
     if backend != "native":
         raise ValueError(f"backend must be 'native' or 'reference', got {backend!r}")
-    if validate:
-        check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
-                     width, height, beta, eps2d, near, far, background, require_contiguous=True)
+    check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
+                 width, height, beta, eps2d, near, far, background, require_contiguous=True,
+                 values=validate)
     if means.device.type != "cpu":
         if means.device.type != "cuda" or not has_cuda():
             raise ValueError(

@@ -16,7 +16,7 @@ from torch import Tensor
 from native._backend import load
 from native.reference import trace_visibility as reference
 
-__all__ = ["trace_visibility", "gaussian_visibility"]
+__all__ = ["trace_visibility", "gaussian_rays", "gaussian_visibility"]
 
 
 def _check(name: str, t: object, shape: tuple[int | None, ...], dtype=None) -> Tensor:
@@ -98,14 +98,21 @@ def trace_visibility(origins: Tensor, normals: Tensor, means: Tensor, quats: Ten
                                    c(opacity), c(exclude), n_dirs)
 
 
+def gaussian_rays(means: Tensor, scales: Tensor) -> tuple[Tensor, Tensor]:
+    """Where the rays of `gaussian_visibility` start, as `trace_visibility` takes them: offset
+    (N,) three of each Gaussian's shortest standard deviations along its normal (out of the
+    shell of neighbours of the same thickness that overlap it on a surface) and exclude (N,)
+    the Gaussian itself."""
+    return (3 * scales.detach().amin(dim=-1),
+            torch.arange(means.shape[0], dtype=torch.int64, device=means.device))
+
+
 def gaussian_visibility(means: Tensor, quats: Tensor, scales: Tensor, opacity: Tensor,
                         normals: Tensor, *, n_dirs: int = 64,
                         backend: Literal["native", "reference"] = "native") -> Tensor:
-    """Per-Gaussian visibility (N,): rays about each Gaussian's normal, the Gaussian itself
-    excluded (the initialisation of the visibility attribute). Rays start three of its shortest
-    standard deviations off its centre along the normal: out of the shell of neighbours of the
-    same thickness that overlap it on a surface."""
-    n = means.shape[0]
+    """Per-Gaussian visibility (N,): rays about each Gaussian's normal from its centre, moved
+    and excluding itself as `gaussian_rays` says (the initialisation of the visibility
+    attribute)."""
+    offset, exclude = gaussian_rays(means, scales)
     return trace_visibility(means, normals, means, quats, scales, opacity, n_dirs=n_dirs,
-                            exclude=torch.arange(n, dtype=torch.int64, device=means.device),
-                            offset=3 * scales.detach().amin(dim=-1), backend=backend)
+                            exclude=exclude, offset=offset, backend=backend)

@@ -107,9 +107,9 @@ def rasterize(means, quats, scales, opacity_c, opacity_g, colors, geometry, view
               near: float = 0.01, far: float = 1e10, background: Tensor | None = None,
               validate: bool = True) -> RasterOutput:
     """Dense reference of `native.rasterize` (same arguments, same result)."""
-    if validate:
-        check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
-                     width, height, beta, eps2d, near, far, background, require_contiguous=False)
+    check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, viewmat, K,
+                 width, height, beta, eps2d, near, far, background, require_contiguous=False,
+                 values=validate)
     width, height = int(width), int(height)
     geometry_branch = geometry is not None
     if geometry is None:

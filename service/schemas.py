@@ -20,7 +20,7 @@ __all__ = [
     "ProgressOut", "ReadyOut", "RenderIn", "TusOut", "manifest_entries",
 ]
 
-Format = Literal["canonical", "transforms", "colmap", "actorshq", "auto"]
+Format = Literal["canonical", "transforms", "colmap", "actorshq", "idr", "auto"]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 CaptureState = Literal["uploading", "committing", "ready", "failed"]
 FileState = Literal["received", "missing", "corrupt"]

@@ -124,6 +124,8 @@ class ReconstructJob:
             if event.kind == "frame_start":
                 link.log(f"frame {event.frame} ({event.frame_index + 1}/{event.frames}) from "
                          f"step {event.step}")
+                for note in event.notes:  # e.g. where its initial points came from
+                    link.log(f"frame {event.frame}: {note}")
             elif event.kind == "step" and event.step // 100 != last_logged[0]:
                 last_logged[0] = event.step // 100
                 link.log(f"frame {event.frame} step {event.step}/{event.iterations} stage "

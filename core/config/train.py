@@ -11,7 +11,7 @@ from pydantic import Field
 
 from core.config.base import DEVICE_PATTERN, MAX_STEPS, Device, Fraction, Positive, Steps, Weight, section
 
-__all__ = ["AOConfig", "DEVICE_PATTERN", "DensifyConfig", "LearningRates", "LossWeights",
+__all__ = ["AOConfig", "DEVICE_PATTERN", "DensifyConfig", "InitConfig", "LearningRates", "LossWeights",
            "PRESETS", "Preset", "Schedule", "TrainConfig", "schedule_for", "train_config"]
 
 Preset = Literal["paper", "fast", "test"]
@@ -35,6 +35,10 @@ class Schedule:
     """SH degree reached in stage 3."""
     sh_interval: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 1_000
     """Steps per SH degree increase in stage 3 (3DGS oneupSHdegree every 1000)."""
+    sh_start: Steps | None = None
+    """Step at which the SH degree first rises (then one more every `sh_interval`); None: the
+    start of stage 3. A plain 3DGS (the appearance-only baseline) rises from `sh_interval`
+    on, whatever the stage."""
     densify_from: Steps = 500
     """Densification runs at steps > densify_from (3DGS densify_from_iter)."""
     densify_until: Steps = 15_000
@@ -61,6 +65,8 @@ class Schedule:
             "stage2_start", "stage3_start", "sh_interval", "densify_from", "densify_until",
             "densify_interval", "reset_interval")}
         counts["stage3_start"] = max(counts["stage3_start"], counts["stage2_start"])
+        if self.sh_start is not None:
+            counts["sh_start"] = round(self.sh_start * f)
         return replace(self, iterations=iterations, **counts)
 
 
@@ -182,6 +188,18 @@ class AOConfig:
     """Joint bilateral filter: spatial sigma in full-resolution pixels."""
 
 
+@section
+class InitConfig:
+    """Where a key frame's initial Gaussians come from (`core.seeding.seed_points`)."""
+
+    source: Literal["auto", "points", "triangulate", "random"] = "auto"
+    """auto: the capture's points.ply, else points triangulated from the known poses, else
+    (with a warning) random points; `points`, `triangulate` or `random` ask for one alone."""
+    background: Annotated[float, Field(ge=0, le=10)] = 0.1
+    """Views without masks: points on a far shell along the cameras' pixel rays, this fraction
+    of the other seeds (0: none), for the distant background that triangulation misses."""
+
+
 Color = Annotated[float, Field(ge=0, le=1)]
 
 
@@ -200,7 +218,10 @@ class TrainConfig:
     ao: AOConfig = field(default_factory=AOConfig)
     """Ambient-occlusion baking."""
     init_points: Annotated[int, Field(ge=1, le=10_000_000)] = 100_000
-    """Random initial points (carved by masks when present)."""
+    """Random initial points where neither the capture nor triangulation gives any; with masks,
+    the visual hull is filled with random points up to this many seeds."""
+    init: InitConfig = field(default_factory=InitConfig)
+    """Where the initial points come from (the capture's points.ply, triangulation, random)."""
     eps2d: Annotated[float, Field(ge=0, le=10)] = 0.1
     """Screen-space blur of the Mip-Splatting 2D filter."""
     antialiased: bool = True

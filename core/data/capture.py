@@ -17,6 +17,7 @@ from typing import Any, Literal
 import numpy as np
 
 from core.files import write_text
+from core.data.points import POINTS_PLY
 
 __all__ = [
     "CAPTURE_JSON",
@@ -185,6 +186,11 @@ class Capture:
 
     def normal_path(self, frame: str, camera_id: str) -> Path | None:
         return _find(self.root / "normals" / frame, camera_id, NORMAL_EXTS)
+
+    def points_path(self) -> Path | None:
+        """The optional ``points.ply`` that seeds training (core.data.points), or None."""
+        path = self.root / POINTS_PLY
+        return path if path.is_file() and not path.is_symlink() else None
 
     def view(self, frame: str, camera_id: str) -> View:
         return View(

@@ -23,10 +23,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     imp = csub.add_parser(
         "import", help="convert a capture from another format into the canonical layout"
     )
-    imp.add_argument("src", help="source folder (or transforms.json / calibration.csv)")
+    imp.add_argument("src", help="source folder (or transforms.json / calibration.csv / cameras.npz)")
     imp.add_argument("--out", required=True, help="new capture folder (must not exist or be empty)")
     imp.add_argument(
-        "--format", default="auto", choices=["auto", "transforms", "colmap", "actorshq"]
+        "--format", default="auto", choices=["auto", "transforms", "colmap", "actorshq", "idr"]
     )
     imp.add_argument(
         "--link",

@@ -6,7 +6,8 @@ type, and that nothing is a symlink or resolves outside the capture folder. ``gt
 ``source/`` (ground truth and verbatim import sources) are not capture content and are skipped.
 
 Problems name files relative to the capture folder (``images/000000/cam03.png``), the way the
-capture's author knows them, never by where it happens to be on this machine.
+capture's author knows them, never by where it happens to be on this machine. An optional
+``points.ply`` must be a readable point cloud with finite coordinates.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ from core.data.capture import (
     valid_name,
 )
 from core.data.images import ImageReadError, verify_image
+from core.data.points import POINTS_PLY, read_points_ply
 from core.data.schema import parse_capture_json, read_json
 
 __all__ = ["check_capture", "validate_capture"]
@@ -78,6 +80,7 @@ def _collect(root: Path, max_pixels: int | None) -> tuple[Capture | None, list[P
     names = (set(capture.frames), set(sizes)) if capture is not None else None
     for sub, exts in _CONTENT_DIRS.items():
         problems += _scan_tree(root, sub, exts, names)
+    problems += _check_points(root)
     if capture is None:
         return None, problems
     if not (root / "images").is_dir() or (root / "images").is_symlink():
@@ -87,6 +90,23 @@ def _collect(root: Path, max_pixels: int | None) -> tuple[Capture | None, list[P
         for cam_id, size in sizes.items():
             problems += _check_view(root, frame, cam_id, size, max_pixels)
     return capture, problems
+
+
+def _check_points(root: Path) -> list[Problem]:
+    path = root / POINTS_PLY
+    if path.is_symlink():
+        return [Problem(str(path), "is a symlink; captures must contain real files")]
+    if not path.exists():
+        return []
+    if not path.is_file():
+        return [Problem(str(path), "must be a PLY file, not a folder")]
+    try:
+        cloud = read_points_ply(path)
+    except ValueError as exc:
+        return [Problem(str(path), str(exc).removeprefix(f"{path}: "))]
+    if not len(cloud):
+        return [Problem(str(path), "has no points; leave it out to triangulate instead")]
+    return []
 
 
 def _check_json(root: Path) -> tuple[Capture | None, list[Problem], dict]:

@@ -41,6 +41,9 @@ class Progress:
     phase: Literal["key", "deform", "refine"] = "key"
     """How the frame is made: static stages (a group's key frame), or the deform / refine stage
     of a frame deformed from its predecessor."""
+    notes: tuple[str, ...] = ()
+    """kind 'frame_start': what the fitter noted while it was made (where its initial points
+    came from, a fallback to random points), for the job's log."""
 
 
 class Stopped(Exception):
@@ -86,7 +89,7 @@ class Hooks(Callback):
             kind=kind, frame=self.frame, frame_index=self.index, frames=self.frames,
             step=trainer.step, iterations=trainer.iterations, stage=self.stage,
             gaussians=len(trainer.model), loss=self.loss if kind == "step" else None, path=path,
-            phase=trainer.phase))
+            phase=trainer.phase, notes=tuple(trainer.notes) if kind == "frame_start" else ()))
 
     def on_train_start(self, trainer: FrameFitter) -> None:
         self.trainer = trainer

@@ -80,6 +80,7 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
     record = FrameRecord(
         iterations=fitter.iterations, renders=fitter.renders,
         seconds=round(time.perf_counter() - start, 3), resumed_at=resumed_at,
+        ao_bake_seconds=None if fitter.ao_seconds is None else round(fitter.ao_seconds, 3),
         gaussians=len(fitter.model), train_psnr=round(fitter.evaluate(), 4),
         normal_prior=priors, stages="deform + refine" if tracked else "static (key frame)",
         gop=role.gop, position=role.position,

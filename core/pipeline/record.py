@@ -20,6 +20,8 @@ class FrameRecord:
     """Images rendered and back-propagated (a tracked frame's cost in key-frame steps)."""
     seconds: float
     """Wall time of the frame, its outputs included."""
+    ao_bake_seconds: float | None
+    """Seconds its AO bake took (None: no bake)."""
     resumed_at: int
     """The step it resumed from (0: not resumed)."""
     gaussians: int

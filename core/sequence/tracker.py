@@ -13,6 +13,7 @@ render with the key frame's last-step plan (full SH degree, final beta, geometry
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import asdict, replace
 
@@ -227,9 +228,11 @@ class FrameTracker(FrameFitter):
                                   rho=cfg.densify.rho, resets=1, ids=self.prev_ids.clone(),
                                   anchor=anchors_of(self.model), next_id=self.next_id)
         if bake and self.ao_baker is not None:
+            start = time.perf_counter()
             self.ao_targets = to_device(list(self.ao_baker(self.model, self.cameras,
                                                            self.optimizer, self.plan.beta)),
                                         self.device)
+            self.ao_seconds = time.perf_counter() - start
 
     # -- FrameFitter ---------------------------------------------------------------------------
     @property

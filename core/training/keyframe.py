@@ -6,6 +6,7 @@ ray tracer; with `bake_ao` off the visibility loss stays off and a note says so)
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from dataclasses import asdict
 from typing import Protocol
@@ -23,9 +24,10 @@ from core.losses import (
     photometric_loss,
     visibility_loss,
 )
+from core.data.points import PointCloud, read_points_ply
 from core.model import GaussianModel, means_lr
 from core.render import RenderCamera, seen_directions
-from core.seeding import sample_points
+from core.seeding import seed_points
 from core.stages import StagePlan, plan
 from core.strategy import DensifyStrategy, StrategyState
 from core.training.callbacks import Callback
@@ -48,12 +50,13 @@ class Trainer(FrameFitter):
 
     def __init__(self, views: Sequence[View], config: TrainConfig = TrainConfig(), *,
                  model: GaussianModel | None = None, callbacks: Sequence[Callback] = (),
-                 ao_baker: AOBaker | None = None):
+                 ao_baker: AOBaker | None = None, points: PointCloud | None = None):
         super().__init__(views, config, callbacks=callbacks)
         if ao_baker is None and config.bake_ao:
             ao_baker = GaussianAOBaker(config.ao)
         self.ao_baker = ao_baker if config.bake_ao else None
-        self.model = model.to(self.device) if model is not None else self._initial_model()
+        self.model = (model.to(self.device) if model is not None
+                      else self._initial_model(points))
         self.optimizer = self.model.make_optimizer(config.rates, self.extent)
         self.strategy = DensifyStrategy(config.densify, self.extent)
         self.state = self.strategy.initialize_state(len(self.model), device=self.device)
@@ -61,17 +64,24 @@ class Trainer(FrameFitter):
     @classmethod
     def from_capture(cls, capture, frame: str, config: TrainConfig = TrainConfig(), *,
                      downscale: float = 1.0, **kwargs) -> Trainer:
-        """A trainer on the training cameras of one frame of a `core.data.Capture`; `kwargs`
-        go to the constructor (model, callbacks, ao_baker)."""
+        """A trainer on the training cameras of one frame of a `core.data.Capture`, seeded
+        from its points.ply when it has one; `kwargs` go to the constructor (model, callbacks,
+        ao_baker)."""
+        path = capture.points_path()
+        if path is not None and config.init.source in ("auto", "points") \
+                and kwargs.get("model") is None:
+            kwargs["points"] = read_points_ply(path)
         return cls(frame_views(capture, frame, downscale), config, **kwargs)
 
-    def _initial_model(self) -> GaussianModel:
-        pts, cols = sample_points(
-            [v.camera for v in self.views], self.config.init_points,
-            images=[v.image.cpu().numpy() for v in self.views],
-            masks=[None if v.mask is None else v.mask.cpu().numpy() for v in self.views],
+    def _initial_model(self, points: PointCloud | None) -> GaussianModel:
+        seed = seed_points(
+            [v.camera for v in self.views], [v.image.cpu().numpy() for v in self.views],
+            [None if v.mask is None else v.mask.cpu().numpy() for v in self.views],
+            self.config.init, n_random=self.config.init_points, capture_points=points,
             seed=self.config.seed)
-        return GaussianModel.from_points(pts.to(self.device), cols.to(self.device))
+        self.notes.append(seed.note)
+        return GaussianModel.from_points(seed.points.to(self.device),
+                                         seed.colors.to(self.device))
 
     @property
     def iterations(self) -> int:
@@ -97,8 +107,10 @@ class Trainer(FrameFitter):
                 self.notes.append(f"step {p.step}: AO baking skipped (bake_ao is off); "
                                   "visibility loss off")
             else:
+                start = time.perf_counter()
                 targets = self.ao_baker(self.model, self.cameras, self.optimizer, p.beta)
                 self.ao_targets = to_device(list(targets), self.device)  # a baker's own device
+                self.ao_seconds = time.perf_counter() - start
         lr = means_lr(self.config.rates, self.extent, p.step)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
@@ -134,10 +146,12 @@ class Trainer(FrameFitter):
         """Parameters, densification statistics and the baked AO targets (so a resumed
         stage 3 keeps its visibility loss)."""
         return {"params": {k: v.detach() for k, v in self.model.params.items()},
-                "strategy": asdict(self.state), "ao_targets": self.ao_targets}
+                "strategy": asdict(self.state), "ao_targets": self.ao_targets,
+                "ao_seconds": self.ao_seconds}
 
     def load_state_blob(self, blob: dict) -> None:
         self.model = GaussianModel(blob["params"]).to(self.device)
         self.optimizer = self.model.make_optimizer(self.config.rates, self.extent)
         self.state = StrategyState(**to_device(blob["strategy"], self.device))
         self.ao_targets = to_device(blob.get("ao_targets"), self.device)
+        self.ao_seconds = blob.get("ao_seconds")

@@ -2,7 +2,7 @@
 // depth-sorted list is evaluated only inside its pixel box. The backward pass walks the same list
 // front to back, recomputing transmittance by multiplication (no division back through alphas),
 // and accumulates per-Gaussian gradients in per-thread buffers that are summed at the end, so no
-// atomics are needed.
+// atomics are needed. The thread count follows the image size (`raster_parts`).
 #include "rasterize.h"
 
 #include <ATen/Parallel.h>
@@ -27,6 +27,26 @@ struct TileBox {
   int64_t x0, y0, w, h;
 };
 
+// Tiles per thread below which a second thread costs more than it saves: each thread adds a
+// per-Gaussian buffer to zero and sum (O(N), whatever the image size) and a share of every
+// synchronisation, which a small image's tiles do not repay (135x240 is 135 tiles).
+constexpr int64_t kTilesPerThread = 192;
+
+// How many contiguous parts (one thread each, each with its own buffers) the tiles are split in.
+inline int64_t raster_parts(const Tiling& t) {
+  return std::max<int64_t>(1, std::min<int64_t>(at::get_num_threads(),
+                                                t.count() / kTilesPerThread));
+}
+
+// Runs body(part, first tile, end tile) for each part in parallel; part indexes the buffers.
+template <typename F> void for_parts(const Tiling& t, int64_t parts, const F& body) {
+  const int64_t per = (t.count() + parts - 1) / parts;
+  at::parallel_for(0, parts, 1, [&](int64_t begin, int64_t end) {
+    for (int64_t p = begin; p < end; ++p)
+      body(p, p * per, std::min(t.count(), (p + 1) * per));
+  });
+}
+
 inline TileBox tile_box(const Tiling& t, int64_t tile) {
   const int64_t x0 = (tile % t.tiles_x) * t.size, y0 = (tile / t.tiles_x) * t.size;
   return {x0, y0, std::min(t.size, t.width - x0), std::min(t.size, t.height - y0)};
@@ -48,7 +68,7 @@ template <typename T> struct FwdArgs {
   int64_t n, C, G;
   T *out_color, *out_geo, *out_depth, *trans;
   int32_t* stops;
-  T* contrib;  // (threads, N)
+  T* contrib;  // (parts, N)
   bool geometry_branch;  // false: appearance only (a plain single-opacity RGB pass)
 };
 
@@ -191,7 +211,7 @@ inline T backward_branch(BranchState<T>& s, int64_t l, T o, T vis, const T* feat
 
 template <typename T> void backward_tile(const BwdArgs<T>& a, const Tiling& tl, int64_t tile,
                                          BranchState<T>& sc, BranchState<T>& sg,
-                                         std::vector<T>& acc, int tid) {
+                                         std::vector<T>& acc, int part) {
   const TileBox b = tile_box(tl, tile);
   const int64_t start = a.offsets[tile];
   const int64_t C = a.C, G = a.G, W = tl.width, S = tl.size, N = a.n;
@@ -211,10 +231,10 @@ template <typename T> void backward_tile(const BwdArgs<T>& a, const Tiling& tl, 
       sc.stop[l] = a.stops[2 * pix]; sg.stop[l] = a.stops[2 * pix + 1];
       max_stop = std::max(max_stop, std::max(sc.stop[l], sg.stop[l]));
     }
-  T* gp_base = a.g_param + int64_t(tid) * N * 8;
-  T* ga_base = a.g_abs + int64_t(tid) * N * 4;
-  T* gc_base = a.g_color + int64_t(tid) * N * C;
-  T* gg_base = a.g_geo + int64_t(tid) * N * G;
+  T* gp_base = a.g_param + int64_t(part) * N * 8;
+  T* ga_base = a.g_abs + int64_t(part) * N * 4;
+  T* gc_base = a.g_color + int64_t(part) * N * C;
+  T* gg_base = a.g_geo + int64_t(part) * N * G;
   for (int32_t k = 0; k < max_stop; ++k) {
     const int32_t gid = a.ids[start + k];
     int64_t u0, u1, v0, v1;
@@ -327,8 +347,8 @@ rasterize_fwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
   at::Tensor out_depth = at::zeros({height, width, 1}, opts);
   at::Tensor trans = at::ones({height, width, 2}, opts);
   at::Tensor stops = at::zeros({height, width, 2}, opts.dtype(at::kInt));
-  const int nthreads = at::get_num_threads();
-  at::Tensor contrib = at::zeros({nthreads, n}, opts);
+  const int64_t parts = raster_parts(tl);
+  at::Tensor contrib = at::zeros({parts, n}, opts);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_fwd", [&] {
     using T = scalar_t;
     FwdArgs<T> a{means2d.data_ptr<T>(), conics.data_ptr<T>(), opacities.data_ptr<T>(),
@@ -337,12 +357,12 @@ rasterize_fwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
                  tile_offsets.data_ptr<int64_t>(), n, C, G, out_color.data_ptr<T>(),
                  out_geo.data_ptr<T>(), out_depth.data_ptr<T>(), trans.data_ptr<T>(),
                  stops.data_ptr<int32_t>(), contrib.data_ptr<T>(), geometry_branch};
-    at::parallel_for(0, tl.count(), 1, [&](int64_t begin, int64_t end) {
+    for_parts(tl, parts, [&](int64_t part, int64_t begin, int64_t end) {
       const int64_t np = tl.size * tl.size;
       std::vector<T> tcs(np), tgs(np);
       std::vector<int32_t> stop_c(np), stop_g(np);
       std::vector<uint8_t> done(np);
-      T* my_contrib = a.contrib + int64_t(at::get_thread_num()) * n;
+      T* my_contrib = a.contrib + part * n;
       for (int64_t t = begin; t < end; ++t)
         forward_tile(a, tl, t, tcs, tgs, stop_c, stop_g, done, my_contrib);
     });
@@ -379,12 +399,12 @@ rasterize_bwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
   check_cpu_input(v_geometry, "v_geometry", {height, width, G});
   check_cpu_input(v_depth, "v_depth", {height, width, 1});
   check_cpu_input(v_alpha, "v_alpha", {height, width, 2});
-  const int nthreads = at::get_num_threads();
+  const int64_t parts = raster_parts(tl);
   auto opts = means2d.options();
-  at::Tensor g_param = at::zeros({nthreads, n, 8}, opts);
-  at::Tensor g_abs = at::zeros({nthreads, n, 4}, opts);
-  at::Tensor g_color = at::zeros({nthreads, n, C}, opts);
-  at::Tensor g_geo = at::zeros({nthreads, n, G}, opts);
+  at::Tensor g_param = at::zeros({parts, n, 8}, opts);
+  at::Tensor g_abs = at::zeros({parts, n, 4}, opts);
+  at::Tensor g_color = at::zeros({parts, n, C}, opts);
+  at::Tensor g_geo = at::zeros({parts, n, G}, opts);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "rasterize_bwd", [&] {
     using T = scalar_t;
     BwdArgs<T> a{means2d.data_ptr<T>(), conics.data_ptr<T>(), opacities.data_ptr<T>(),
@@ -396,18 +416,17 @@ rasterize_bwd(const at::Tensor& means2d, const at::Tensor& conics, const at::Ten
                  v_geometry.data_ptr<T>(), v_depth.data_ptr<T>(), v_alpha.data_ptr<T>(),
                  g_param.data_ptr<T>(), g_abs.data_ptr<T>(), g_color.data_ptr<T>(),
                  g_geo.data_ptr<T>(), geometry_branch};
-    at::parallel_for(0, tl.count(), 1, [&](int64_t begin, int64_t end) {
+    for_parts(tl, parts, [&](int64_t part, int64_t begin, int64_t end) {
       const int64_t np = tl.size * tl.size;
       BranchState<T> sc(np), sg(np);
       std::vector<T> acc(C + G);
-      const int tid = at::get_thread_num();
-      for (int64_t t = begin; t < end; ++t) backward_tile(a, tl, t, sc, sg, acc, tid);
+      for (int64_t t = begin; t < end; ++t) backward_tile(a, tl, t, sc, sg, acc, int(part));
     });
   });
-  at::Tensor gp = nthreads > 1 ? g_param.sum(0) : g_param[0];
-  at::Tensor ga = nthreads > 1 ? g_abs.sum(0) : g_abs[0];
-  at::Tensor gc = nthreads > 1 ? g_color.sum(0) : g_color[0];
-  at::Tensor gg = nthreads > 1 ? g_geo.sum(0) : g_geo[0];
+  at::Tensor gp = parts > 1 ? g_param.sum(0) : g_param[0];
+  at::Tensor ga = parts > 1 ? g_abs.sum(0) : g_abs[0];
+  at::Tensor gc = parts > 1 ? g_color.sum(0) : g_color[0];
+  at::Tensor gg = parts > 1 ? g_geo.sum(0) : g_geo[0];
   return {gp.slice(1, 0, 2).contiguous(), gp.slice(1, 2, 5).contiguous(),
           gp.slice(1, 5, 7).contiguous(), gp.select(1, 7).contiguous(), gc, gg, ga};
 }

@@ -1,4 +1,4 @@
-// Gaussian ray tracer on the CPU: the BVH of raytrace_bvh.h (median splits, built on the host),
+// Gaussian ray tracer on the CPU: the BVH of raytrace_bvh.h (binned SAH, built on the host),
 // traversal with an explicit stack, parallel over origins.
 #include "raytrace.h"
 

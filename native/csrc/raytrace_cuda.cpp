@@ -58,19 +58,15 @@ at::Tensor trace_visibility_cuda(const at::Tensor& origins, const at::Tensor& no
     const BvhArrays<T> g = build_bvh<T>(h_means.data_ptr<T>(), h_quats.data_ptr<T>(),
                                         h_scales.data_ptr<T>(), h_opacity.data_ptr<T>(), n,
                                         parallel);
-    const at::ScalarType st = origins.scalar_type();
-    // Nodes travel as raw bytes: Node<T> has one layout on the host and the device.
+    // Nodes and prims travel as raw bytes: Node<T> and Prim<T> have one layout on the host and
+    // the device.
     const at::Tensor d_nodes = to_device(g.nodes, at::kByte, device);
     const at::Tensor d_order = to_device(g.order, at::kInt, device);
-    const at::Tensor d_mean = to_device(g.mean, st, device);
-    const at::Tensor d_inv_cov = to_device(g.inv_cov, st, device);
-    const at::Tensor d_lo = to_device(g.lo, st, device);
-    const at::Tensor d_hi = to_device(g.hi, st, device);
-    const at::Tensor d_opacity = to_device(g.opacity, st, device);
+    const at::Tensor d_prims = to_device(g.prims, at::kByte, device);
     const BvhView<T> bvh = {reinterpret_cast<const Node<T>*>(d_nodes.data_ptr<uint8_t>()),
-                            d_order.data_ptr<int32_t>(), d_mean.data_ptr<T>(),
-                            d_inv_cov.data_ptr<T>(), d_lo.data_ptr<T>(), d_hi.data_ptr<T>(),
-                            d_opacity.data_ptr<T>(), n};
+                            d_order.data_ptr<int32_t>(),
+                            reinterpret_cast<const Prim<T>*>(d_prims.data_ptr<uint8_t>()),
+                            g.traced()};
     // The device arrays are freed when this scope ends, before the kernel has run: the caching
     // allocator hands their memory out again only to work queued after it on this stream.
     C10_CUDA_CHECK(cuda::launch_trace_visibility<T>(

@@ -12,6 +12,7 @@ from service.settings import ServiceSettings
 __all__ = ["CANONICAL_DIRS", "check_manifest", "check_path", "path_problem"]
 
 CANONICAL_DIRS = ("images", "masks", "normals")
+CANONICAL_FILES = ("capture.json", "points.ply")  # points.ply: optional seed points
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 _DRIVE = re.compile(r"^[A-Za-z]:")
 MAX_PART_BYTES = 255  # a file name on every common file system
@@ -52,13 +53,13 @@ def check_path(path: object, where: str, max_bytes: int = 1024) -> str:
 
 
 def _canonical_problem(path: str) -> str | None:
-    if path == "capture.json":
+    if path in CANONICAL_FILES:
         return None
     top, _, rest = path.partition("/")
     if top in CANONICAL_DIRS and rest:
         return None
-    return ("is not part of a canonical capture (capture.json, images/, masks/, normals/); "
-            "leave it out or use format auto or an importer's format")
+    return ("is not part of a canonical capture (capture.json, points.ply, images/, masks/, "
+            "normals/); leave it out or use format auto or an importer's format")
 
 
 def check_manifest(files: Iterable[tuple[str, int]], fmt: str,

@@ -99,3 +99,24 @@ def test_scaled_camera_keeps_pixel_centres():
     full = (K @ p / p[2])[:2]
     part = (small.K @ p / p[2])[:2]
     assert torch.allclose(part, full * 0.25, atol=1e-5)
+
+
+def test_baker_traces_everything_at_once_like_its_parts():
+    """The baker traces the Gaussians' rays and every view's map in one call (one tree); that
+    gives what `init_visibility` and `ao_map` give one at a time."""
+    from core.ao import GaussianAOBaker
+
+    w = h = 48
+    K = torch.tensor([[30.0, 0.0, w / 2], [0.0, 30.0, h / 2], [0.0, 0.0, 1.0]])
+    cams = [RenderCamera(_look_at(eye, (0.5, 0.0, 0.2)), K, w, h)
+            for eye in ((2.2, 0.0, 1.2), (1.5, 1.5, 1.0), (2.0, -1.0, 0.6))]
+    cfg = AOConfig(n_dirs=16)
+    apart = _corner_model()
+    own = init_visibility(apart, None, cfg)
+    maps = [ao_map(apart, cam, beta=0.3, config=cfg) for cam in cams]
+    together = _corner_model()
+    baked = GaussianAOBaker(cfg)(together, cams, None, beta=0.3)
+    torch.testing.assert_close(together.visibility[:, 0], own.clamp(1e-4, 1 - 1e-4), atol=1e-6,
+                               rtol=0)
+    for a, b in zip(maps, baked):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=0)

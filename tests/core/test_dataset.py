@@ -128,11 +128,40 @@ def test_undistortion_moves_features_to_pinhole_position(tmp_path: Path) -> None
     save_capture(Capture(tmp_path / "cap", (cam,), ("f0",), (0, -1, 0)))
     s = CaptureDataset(load_capture(tmp_path / "cap"))[0]
     assert s.camera.distortion is None
+    # Barrel distortion (k1 < 0): every ideal pixel samples inside the source, nothing is
+    # cropped (pincushion crops: the next test); a crop would move the principal point only.
+    x0, y0 = K[0, 2] - s.camera.K[0, 2], K[1, 2] - s.camera.K[1, 2]
+    assert (s.camera.width, s.camera.height) == tuple(s.image.shape[1::-1]) == (W, H)
+    assert x0 == y0 == 0 and s.camera.K[0, 0] == K[0, 0]
     img = s.image[:, :, 0].numpy()
+    yy, xx = np.mgrid[0:img.shape[0], 0:img.shape[1]] + 0.5
     centroid = np.array([(img * xx).sum(), (img * yy).sum()]) / img.sum()
-    assert np.linalg.norm(centroid - ideal) < 0.3, (centroid, ideal, distorted)
+    assert np.linalg.norm(centroid + [x0, y0] - ideal) < 0.3, (centroid, ideal, distorted)
+    assert np.allclose(s.camera.project(point)[0][0], ideal - [x0, y0])
     raw = CaptureDataset(load_capture(tmp_path / "cap"), undistort=False)[0]
     assert raw.camera.distortion == dist
+
+
+def test_undistorted_views_have_no_rim_from_outside_the_source(tmp_path: Path) -> None:
+    """A white image seen through strong distortion: after undistortion and downscaling every
+    served pixel is white (no black rim from samples outside the source, which a model cannot
+    fit and which dominated the fox's held-out error)."""
+    from core.data import Camera, Capture, save_capture
+
+    W, H = 96, 64
+    K = np.array([[70.0, 0, 48.0], [0, 70.0, 32.0], [0, 0, 1]])
+    for k1 in (-0.3, 0.2):  # barrel, pincushion (which samples outside the source: cropped)
+        cam = Camera("c0", W, H, K, np.eye(4), (k1, 0.02, 0.001, 0.0, 0.0))
+        root = tmp_path / f"cap{k1}"
+        write_png(root / "images/f0/c0.png", np.full((H, W, 3), 255, np.uint8))
+        save_capture(Capture(root, (cam,), ("f0",), (0, -1, 0)))
+        for downscale in (1.0, 2.0):
+            s = CaptureDataset(load_capture(root), downscale=downscale)[0]
+            assert float(s.image.min()) > 0.999, (k1, downscale)
+            assert s.image.shape[1] * s.image.shape[0] > 0.5 * W * H / downscale**2
+            if k1 > 0 and downscale == 1.0:
+                assert s.image.shape[1] < W and s.image.shape[0] < H
+                assert (s.camera.width, s.camera.height) == tuple(s.image.shape[1::-1])
 
 
 def test_camera_space_normals_are_rotated_to_world(synth_capture: Path, tmp_path: Path) -> None:

@@ -16,6 +16,7 @@ from core.losses import (
     normal_prior_loss,
     photometric_loss,
     ssim,
+    ssim_reference,
     visibility_loss,
 )
 from core.model import GaussianModel
@@ -51,6 +52,27 @@ def test_ssim_matches_direct_formula():
     assert ssim(a, a).item() == pytest.approx(1.0, abs=1e-9)
     with pytest.raises(ValueError, match="a, b"):
         ssim(a, b[:, :5])
+
+
+@pytest.mark.parametrize("shape", [(9, 12, 3), (31, 17, 1), (4, 5, 3)])
+def test_separable_ssim_matches_the_2d_window_forward_and_backward(shape):
+    """`ssim` blurs with two 1D passes over the five stacked maps; `ssim_reference` with the
+    11x11 window (five 2D convolutions). Zero padding keeps them equal: forward and gradients
+    to float64 rounding (also on images smaller than the window), float32 within 1e-6."""
+    g = torch.Generator().manual_seed(sum(shape))
+    a = torch.rand(shape, generator=g, dtype=torch.float64, requires_grad=True)
+    b = torch.rand(shape, generator=g, dtype=torch.float64, requires_grad=True)
+    fast, ref = ssim(a, b), ssim_reference(a, b)
+    assert abs(float(fast - ref)) < 1e-12
+    ga = torch.autograd.grad(fast, (a, b))
+    gr = torch.autograd.grad(ref, (a, b))
+    for x, y in zip(ga, gr):
+        torch.testing.assert_close(x, y, atol=1e-13, rtol=0)
+    a32, b32 = a.detach().float().requires_grad_(), b.detach().float()
+    torch.testing.assert_close(ssim(a32, b32), ssim_reference(a32, b32), atol=1e-6, rtol=0)
+    small = (a.detach()[:4, :5, :1].clone().requires_grad_(),
+             b.detach()[:4, :5, :1].clone().requires_grad_())
+    assert torch.autograd.gradcheck(ssim, small)
 
 
 def test_photometric_loss_known_values():

@@ -153,3 +153,30 @@ def test_contribution_is_max_weight():
     out = rasterize(*scene.args())
     assert float(out.contribution.min()) >= 0.0 and float(out.contribution.max()) <= 0.99
     assert bool((out.contribution[out.radii == 0] == 0).all())
+
+
+def test_thread_count_follows_image_size_and_keeps_results():
+    """Images of fewer than 384 tiles run on one thread (a second costs more than it saves);
+    larger ones are split in contiguous parts with their own gradient buffers. Outputs are the
+    same either way, gradients to the summation order (float64: 1e-12)."""
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            # 25 x 20 = 500 tiles: two parts with two threads
+            s = random_scene(400, 400, 320, seed=5).to(torch.float64).requires_grad_()
+            out = rasterize(*s.args(), beta=0.4, antialiased=True)
+            loss = (out.color * torch.linspace(0, 1, 3, dtype=torch.float64)).sum() \
+                + out.geometry.sum() + out.depth.sum() + out.alpha_g.sum()
+            loss.backward()
+            results.append((out, {k: v.grad.clone() for k, v in s.float_tensors().items()
+                                  if v.grad is not None}))
+    finally:
+        torch.set_num_threads(before)
+    (a, ga), (b, gb) = results
+    for name in ("color", "geometry", "depth", "alpha_c", "alpha_g", "contribution"):
+        torch.testing.assert_close(getattr(a, name), getattr(b, name), atol=0, rtol=0)
+    assert ga.keys() == gb.keys() and ga
+    for name in ga:
+        torch.testing.assert_close(ga[name], gb[name], atol=1e-12, rtol=1e-10)

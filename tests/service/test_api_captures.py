@@ -296,3 +296,29 @@ def test_default_retention(tmp_path):
     expires = dt.datetime.fromisoformat(r.json()["expires_at"])
     left = expires - dt.datetime.now(dt.UTC)
     assert dt.timedelta(days=1, hours=23) < left <= dt.timedelta(days=2)
+
+
+def test_canonical_points_ply_is_uploaded_checked_and_kept(client, services, new_capture,
+                                                          synth_capture, tmp_path):
+    import numpy as np
+
+    from core.data.points import PointCloud, write_points_ply
+
+    write_points_ply(tmp_path / "points.ply", PointCloud(np.random.default_rng(0).normal(
+        size=(40, 3))))
+    files = {**capture_files(synth_capture), "points.ply": (tmp_path / "points.ply").read_bytes()}
+    broken = {**files, "points.ply": b"ply\nformat ascii 1.0\nend_header\n"}
+    for content, ok in ((broken, False), (files, True)):
+        capture = new_capture(content)
+        for path, data in content.items():
+            upload_file(client, capture["id"], path, data)
+        r = client.post(f"/v1/captures/{capture['id']}/commit")
+        if not ok:  # the problem names the file; the capture stays uploading
+            assert r.status_code == 422, r.text
+            error = r.json()["error"]
+            assert error["code"] == "invalid_capture" and "points.ply" in error["message"]
+            assert "no 'vertex' element" in error["message"]
+            continue
+        assert r.status_code == 200 and r.json()["state"] == "ready", r.text
+        root = services.blobs.local_path(f"captures/{capture['id']}")
+        assert (root / "points.ply").read_bytes() == files["points.ply"]

@@ -10,6 +10,7 @@ from core.data.capture import Capture, CaptureError, Problem
 from core.data.importers.actorshq import find_calibration, read_actorshq
 from core.data.importers.colmap import find_model, read_colmap
 from core.data.importers.common import ImportedCapture, SourceView, write_canonical
+from core.data.importers.idr import find_cameras_npz, read_idr
 from core.data.importers.transforms import find_transforms, read_transforms
 
 __all__ = [
@@ -22,8 +23,8 @@ __all__ = [
     "write_canonical",
 ]
 
-Format = Literal["transforms", "colmap", "actorshq"]
-FORMATS: tuple[str, ...] = ("transforms", "colmap", "actorshq")
+Format = Literal["transforms", "colmap", "actorshq", "idr"]
+FORMATS: tuple[str, ...] = ("transforms", "colmap", "actorshq", "idr")
 
 
 def detect_format(src: str | os.PathLike[str]) -> Format:
@@ -38,9 +39,11 @@ def detect_format(src: str | os.PathLike[str]) -> Format:
         found.append("colmap")
     if find_calibration(src) is not None:
         found.append("actorshq")
+    if find_cameras_npz(src) is not None:
+        found.append("idr")
     if len(found) != 1:
         what = "no known format" if not found else f"several formats ({', '.join(found)})"
-        raise CaptureError([Problem(str(src), f"{what}: pass --format transforms|colmap|actorshq")])
+        raise CaptureError([Problem(str(src), f"{what}: pass --format " + "|".join(FORMATS))])
     return found[0]
 
 
@@ -54,6 +57,8 @@ def read_source(src: str | os.PathLike[str], fmt: str = "auto") -> ImportedCaptu
         return read_colmap(Path(src))
     if fmt == "actorshq":
         return read_actorshq(Path(src))
+    if fmt == "idr":
+        return read_idr(Path(src))
     raise ValueError(f"fmt: expected auto or one of {FORMATS}, got {fmt!r}")
 
 

@@ -5,7 +5,8 @@ centres at +0.5, so poses and intrinsics carry over unchanged. Every image becom
 Multi-frame: when every image name is ``<frame>/<camera>.<ext>``, every frame has the same
 cameras and each camera keeps its pose, names group into frames; otherwise (a rig stored as
 ``<camera>/<shot>.jpg``, say) all images form one frame, ids from the full name.
-``points3D`` and the other model files stay verbatim in ``source/``.
+``points3D`` (text or binary) becomes the capture's ``points.ply`` (the seed of training); it and
+the other model files also stay verbatim in ``source/``.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from core.data.capture import (
     Problem,
 )
 from core.data.importers.common import ImportedCapture, SourceView, safe_name, source_transform
+from core.data.points import PointCloud, read_colmap_points, read_points_ply, write_colmap_points
 from core.data.schema import extrinsics_problems, intrinsics_problems
 
 __all__ = ["export_colmap", "find_model", "qvec_to_rotation", "read_colmap", "rotation_to_qvec"]
@@ -232,9 +234,14 @@ def read_colmap(src: str | Path) -> ImportedCapture:
         ),
         "views": record_views,
     }
+    try:
+        points = read_colmap_points(model)
+    except ValueError as exc:
+        raise CaptureError([Problem(str(model), f"cannot parse COLMAP points3D: {exc}")]) from None
+    record["points"] = 0 if points is None else len(points)
     frames = sorted({v.frame for v in views})
     cam_list = list(cameras.values())
-    return ImportedCapture(cam_list, frames, _estimate_up(cam_list), views, record, meta)
+    return ImportedCapture(cam_list, frames, _estimate_up(cam_list), views, record, meta, points)
 
 
 def _pose_images(model: Path, ext: str, cams: dict, images: list, problems: list[Problem]) -> list:
@@ -306,8 +313,10 @@ def _model_of(cam: Camera) -> tuple[str, list[float]]:
     return "FULL_OPENCV", [fx, fy, cx, cy, *cam.distortion, 0.0, 0.0, 0.0]
 
 
-def export_colmap(capture: Capture, dst: str | Path, *, binary: bool = False) -> Path:
-    """Write ``capture`` as ``dst/sparse/0`` (text or binary) + ``dst/images``; returns sparse/0."""
+def export_colmap(capture: Capture, dst: str | Path, *, binary: bool = False,
+                  points: PointCloud | None = None) -> Path:
+    """Write ``capture`` as ``dst/sparse/0`` (text or binary) + ``dst/images``; returns sparse/0.
+    ``points3D`` holds `points` (default: the capture's points.ply; empty without one)."""
     dst = Path(dst)
     model = dst / "sparse" / "0"
     model.mkdir(parents=True, exist_ok=True)
@@ -324,6 +333,9 @@ def export_colmap(capture: Capture, dst: str | Path, *, binary: bool = False) ->
             images.append((len(images) + 1, rotation_to_qvec(cam.R), cam.t, ci + 1, name))
     cams = {i + 1: (*_model_of(c), c.width, c.height) for i, c in enumerate(capture.cameras)}
     (_write_bin if binary else _write_txt)(model, cams, images)
+    if points is None and capture.points_path() is not None:
+        points = read_points_ply(capture.points_path())
+    write_colmap_points(model, points, binary=binary)
     return model
 
 
@@ -338,7 +350,6 @@ def _write_txt(model: Path, cams: dict, images: list) -> None:
         out.append(f"{iid} " + " ".join(repr(float(x)) for x in (*q, *t)) + f" {cid} {name}")
         out.append("")
     (model / "images.txt").write_text("\n".join(out) + "\n")
-    (model / "points3D.txt").write_text("# 3D point list (empty)\n")
 
 
 def _write_bin(model: Path, cams: dict, images: list) -> None:
@@ -353,4 +364,3 @@ def _write_bin(model: Path, cams: dict, images: list) -> None:
             fh.write(struct.pack("<i7di", iid, *q, *t, cid))
             fh.write(name.encode() + b"\x00")
             fh.write(struct.pack("<Q", 0))
-    (model / "points3D.bin").write_bytes(struct.pack("<Q", 0))

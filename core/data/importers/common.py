@@ -28,6 +28,7 @@ from core.data.capture import (
     valid_name,
 )
 from core.data.headers import HeaderError, ImageHeader, check_pixels, read_other_header
+from core.data.points import POINTS_PLY, PointCloud, write_points_ply
 from core.data.validate import validate_capture
 
 __all__ = [
@@ -69,6 +70,8 @@ class ImportedCapture:
     """The import record kept in capture.json: format, source, transform back, unused keys."""
     metadata_files: list[Path] = field(default_factory=list)
     """Source files copied verbatim into ``source/`` so nothing is lost."""
+    points: PointCloud | None = None
+    """The source's point cloud (COLMAP points3D, a nerfstudio PLY), written as points.ply."""
 
 
 def source_transform(camera_axes: np.ndarray, pose: str) -> dict[str, Any]:
@@ -211,6 +214,8 @@ def _write_files(
             if src is not None:
                 dst = _place(src, root / sub / v.frame / v.camera, link, max_pixels)
                 placed[dst.relative_to(root).as_posix()] = str(src)
+    if imported.points is not None and len(imported.points):
+        write_points_ply(root / POINTS_PLY, imported.points)
     seen: set[str] = set()
     for meta in imported.metadata_files:
         name = meta.name if meta.name not in seen else f"{len(seen)}_{meta.name}"

@@ -35,6 +35,7 @@ from core.data.importers.common import (
     safe_name,
     source_transform,
 )
+from core.data.points import PointCloud, read_points_ply
 from core.data.schema import extrinsics_problems, intrinsics_problems, read_json
 
 __all__ = ["export_transforms", "find_transforms", "read_transforms"]
@@ -84,6 +85,7 @@ def read_transforms(src: str | Path) -> ImportedCapture:
     for path in files:
         prefix = path.stem.removeprefix("transforms_") + "_" if len(files) > 1 else ""
         entries += _read_file(path, prefix, problems, top_extra)
+    points = _points(files, top_extra, problems)
     if problems:
         raise CaptureError(problems)
     cameras, frames, views, view_extra = _group(entries, problems)
@@ -102,7 +104,31 @@ def read_transforms(src: str | Path) -> ImportedCapture:
         "extra": top_extra,
         "views": view_extra,
     }
-    return ImportedCapture(cameras, frames[0], (0.0, 0.0, 1.0), views, record, list(files))
+    record["points"] = 0 if points is None else len(points)
+    return ImportedCapture(cameras, frames[0], (0.0, 0.0, 1.0), views, record, list(files),
+                           points)
+
+
+def _points(files: list[Path], top_extra: dict[str, Any],
+            problems: list[Problem]) -> PointCloud | None:
+    """The point clouds named by ``ply_file_path`` (nerfstudio), merged; None without any."""
+    clouds = []
+    for path in files:
+        rel = top_extra.get(path.name, {}).get("ply_file_path")
+        if rel is None:
+            continue
+        if not isinstance(rel, str) or not rel:
+            problems.append(Problem(str(path), f"ply_file_path must be a path, got {rel!r}"))
+            continue
+        try:
+            clouds.append(read_points_ply(path.parent / rel))
+        except ValueError as exc:
+            problems.append(Problem(str(path), f"ply_file_path: {exc}"))
+    if not clouds:
+        return None
+    colored = all(c.colors is not None for c in clouds)
+    return PointCloud(np.concatenate([c.points for c in clouds]),
+                      np.concatenate([c.colors for c in clouds]) if colored else None)
 
 
 def _read_file(

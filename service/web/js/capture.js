@@ -6,7 +6,7 @@ import { sha256File } from './sha256.js';
 import { TusUpload, terminate } from './tus.js';
 import { $, el, emit, on, showError, showStatus } from './ui.js';
 
-const CANONICAL = /^(capture\.json$|images\/|masks\/|normals\/)/;
+const CANONICAL = /^(capture\.json$|points\.ply$|images\/|masks\/|normals\/)/;
 const state = { files: new Map(), captureId: null, upload: null, paused: false, busy: false };
 
 /** path -> File for the picked folder: relative to its top folder, hidden files left out. */

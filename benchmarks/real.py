@@ -1,0 +1,91 @@
+"""A real capture, our method beside a plain 3DGS on the same images, views, seeds and steps
+(issue 23).
+
+- method: `dgs reconstruct` with the preset (disentangled stages, AO bake, every loss);
+- plain 3DGS: the same trainer in appearance-only mode (stage 1 for the whole budget: one
+  opacity, photometric loss only, no geometry branch, no AO) raising the SH degree from
+  `sh_interval` on as 3DGS does (`Schedule.sh_start`), with the same initial points.
+Both from the same capture at the same downscale, then `dgs eval` (held-out views, every 8th
+camera): PSNR over the whole image and SSIM. Meshes are skipped (not scored here).
+
+    nice python benchmarks/real.py CAPTURE --out DIR [--downscale 4] [--preset fast]
+                                   [--variants method plain] [--threads 1]
+
+Finished variants in DIR are scored again, not trained again; an interrupted one resumes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+VARIANTS = ("method", "plain")
+
+
+def overrides(variant: str, preset: str, downscale: float) -> dict:
+    from core.config import train_config
+
+    out = {"downscale": downscale, "mesh": {"enabled": False}}
+    if variant == "plain":
+        s = train_config(preset).schedule
+        out["train"] = {"schedule": {"stage2_start": s.iterations, "stage3_start": s.iterations,
+                                     "sh_start": s.sh_interval}, "bake_ao": False}
+    return out
+
+
+def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: float) -> dict:
+    from core.evaluation import evaluate_run
+    from core.pipeline import reconstruct
+
+    done = (out / "metrics.json").is_file() and not any((out / "checkpoints").glob("*.pt"))
+    if done:
+        metrics = json.loads((out / "metrics.json").read_text())
+    else:
+        metrics = reconstruct(capture, out, preset=preset, resume=True, progress=True,
+                              overrides=overrides(variant, preset, downscale))
+    ev = evaluate_run(out)
+    frame = next(iter(metrics["frames"].values()))
+    steps = frame["iterations"]
+    return {"variant": variant, "psnr": ev["psnr_full"], "ssim": ev["ssim"],
+            "train_psnr": frame["train_psnr"], "gaussians": frame["gaussians"],
+            "seconds": frame["seconds"], "ao_bake_seconds": frame.get("ao_bake_seconds"),
+            "s_per_step": frame["seconds"] / steps, "seeds": frame["notes"][0]
+            if frame["notes"] else ""}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("capture", type=Path)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--downscale", type=float, default=4.0)
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
+    args = ap.parse_args()
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
+    rows = []
+    for variant in args.variants:
+        rows.append(run_variant(args.capture, args.out / variant, variant, args.preset,
+                                args.downscale))
+        (args.out / f"{variant}.json").write_text(json.dumps(rows[-1], indent=2))
+    print(f"\n{args.capture} at 1/{args.downscale:g}, preset {args.preset}\n")
+    print("| variant | held-out PSNR | SSIM | train PSNR | Gaussians | s | s/step | AO bake s |")
+    print("|---|---|---|---|---|---|---|---|")
+    for r in rows:
+        bake = "-" if r["ao_bake_seconds"] is None else f"{r['ao_bake_seconds']:.0f}"
+        print(f"| {r['variant']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['train_psnr']:.2f} | "
+              f"{r['gaussians']} | {r['seconds']:.0f} | {r['s_per_step']:.3f} | {bake} |")
+    for r in rows:
+        print(f"- {r['variant']}: {r['seeds']}")
+
+
+if __name__ == "__main__":
+    main()
