@@ -12,10 +12,10 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from service.auth import TenantDep
-from service.deps import ServicesDep, default_expiry
-from service.errors import COMMON, ApiError, error_responses
+from service.deps import ServicesDep
+from service.errors import COMMON, error_responses
 from service.records import get_job
-from service.routers.jobs import accepted, send
+from service.routers.jobs import queue_on_source
 from service.schemas import ExportIn, JobOut
 
 __all__ = ["router"]
@@ -30,18 +30,5 @@ def request_export(body: ExportIn, request: Request, services: ServicesDep,
     """Queue an export of a succeeded reconstruction (404 for a job that is not yours; 409 when
     it is not a succeeded reconstruction)."""
     source = get_job(services.store, body.job_id, tenant)
-    if source.pipeline != "reconstruct":
-        raise ApiError(409, f"job {source.id} is a {source.pipeline} job; exports are made "
-                            "from a reconstruct job")
-    if source.state != "succeeded":
-        running = source.state in ("queued", "running")
-        raise ApiError(409, f"job {source.id} is {source.state}; exports are made from a "
-                            "succeeded reconstruction" + (" (wait for it to end)" if running
-                                                          else ""), retryable=running)
-    job = services.store.create_render(
-        tenant, source.id, "export", body.params(), name=body.name,
-        expires_at=default_expiry(services, body.expires_at))
-    if job is None:  # deleted meanwhile
-        raise ApiError(404, f"no job {body.job_id!r}")
-    send(services, job)
-    return accepted(request, services, job)
+    return queue_on_source(request, services, tenant, source, "export", body.params(),
+                           "exports", body)

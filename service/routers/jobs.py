@@ -26,7 +26,7 @@ from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.store import ACTIVE, TERMINAL, JobStore, progress_of
 
-__all__ = ["accepted", "job_out", "router", "send"]
+__all__ = ["accepted", "job_out", "queue_on_source", "router", "send"]
 
 log = logging.getLogger("dgs.service")
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=error_responses(*COMMON))
@@ -63,6 +63,27 @@ def send(services: Services, job: Job) -> None:
         log.exception("job %s: the broker refused it; the sweeper will send it again", job.id)
         with services.store.session() as s:
             s.execute(update(Job).where(Job.id == job.id).values(dispatched_at=None))
+
+
+def queue_on_source(request: Request, services: Services, tenant: str, source: Job,
+                    pipeline: str, params: dict, what: str, body) -> JSONResponse:
+    """Queue a `pipeline` job on the results of `source`, a succeeded reconstruction of
+    `tenant` (409 otherwise, retryable while it runs; 404 when it is deleted meanwhile):
+    renders and exports (`what`: "renders", "exports")."""
+    if source.pipeline != "reconstruct":
+        raise ApiError(409, f"job {source.id} is a {source.pipeline} job; {what} are made from "
+                            "a reconstruct job")
+    if source.state != "succeeded":
+        running = source.state in ("queued", "running")
+        raise ApiError(409, f"job {source.id} is {source.state}; {what} are made from a "
+                            "succeeded reconstruction" + (" (wait for it to end)" if running
+                                                          else ""), retryable=running)
+    job = services.store.create_render(tenant, source.id, pipeline, params, name=body.name,
+                                       expires_at=default_expiry(services, body.expires_at))
+    if job is None:  # deleted meanwhile
+        raise ApiError(404, f"no job {body.job_id!r}")
+    send(services, job)
+    return accepted(request, services, job)
 
 
 def _params(pipeline_name: str, params: dict) -> BaseModel:

@@ -13,10 +13,10 @@ from fastapi.responses import JSONResponse
 
 from service.auth import TenantDep
 from service.checks import check_render
-from service.deps import ServicesDep, default_expiry
+from service.deps import ServicesDep
 from service.errors import COMMON, ApiError, error_responses
 from service.records import get_asset, get_job
-from service.routers.jobs import accepted, send
+from service.routers.jobs import queue_on_source
 from service.schemas import JobOut, RenderIn
 
 __all__ = ["router"]
@@ -38,19 +38,7 @@ def request_render(body: RenderIn, request: Request, services: ServicesDep,
         if asset.kind != "envmap":
             raise ApiError(422, f"envmap: asset {asset.id} is a {asset.kind}, not an envmap",
                            details=[{"path": "envmap", "message": "not an envmap asset"}])
-    if source.pipeline != "reconstruct":
-        raise ApiError(409, f"job {source.id} is a {source.pipeline} job; renders are made "
-                            "from a reconstruct job")
-    if source.state != "succeeded":
-        raise ApiError(409, f"job {source.id} is {source.state}; renders are made from a "
-                            "succeeded reconstruction" + (
-                                " (wait for it to end)" if source.state in ("queued", "running")
-                                else ""), retryable=source.state in ("queued", "running"))
-    check_render(services, source, body)
-    job = services.store.create_render(
-        tenant, source.id, "relight", body.params(), name=body.name,
-        expires_at=default_expiry(services, body.expires_at))
-    if job is None:  # deleted meanwhile
-        raise ApiError(404, f"no job {body.job_id!r}")
-    send(services, job)
-    return accepted(request, services, job)
+    if source.pipeline == "reconstruct" and source.state == "succeeded":
+        check_render(services, source, body)
+    return queue_on_source(request, services, tenant, source, "relight", body.params(),
+                           "renders", body)
