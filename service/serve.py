@@ -16,22 +16,11 @@ from service.app import create_app
 from service.auth import BindRefused, check_bind, has_active_key
 from service.settings import ServiceSettings
 from worker.db import migrate
-from worker.settings import WorkerSettings
 from worker.supervise import EmbeddedWorker, make_sweeper
 
-__all__ = ["serve", "worker_env"]
+__all__ = ["serve"]
 
 log = logging.getLogger("dgs.service")
-
-
-def worker_env(settings: ServiceSettings) -> dict[str, str]:
-    """DGS_* variables that give a worker subprocess this process's settings."""
-    env = {}
-    for name in WorkerSettings.model_fields:
-        value = getattr(settings, name)
-        if value is not None:
-            env[f"DGS_{name.upper()}"] = str(value)
-    return env
 
 
 def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
@@ -50,7 +39,7 @@ def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
                            blobs=services.blobs).start()
     embedded = None
     if worker and settings.embedded_broker:
-        embedded = EmbeddedWorker(settings, env=worker_env(settings)).start()
+        embedded = EmbeddedWorker(settings).start()
     _announce(settings, embedded is not None)
     # Uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler
     # it found installed: this one, so the embedded worker is stopped below instead of being

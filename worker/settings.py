@@ -9,6 +9,7 @@ and the same code runs distributed (docs/design.md section 4).
 from __future__ import annotations
 
 import functools
+import json
 import os
 import re
 from pathlib import Path
@@ -120,6 +121,15 @@ class WorkerSettings(BaseSettings):
             raise ValueError(f"model names: letters, digits, '_', '-' and '.', not starting "
                              f"like an asset id (ast_...); got {bad}")
         return {n: p.expanduser().resolve() for n, p in value.items()}
+
+    def to_env(self) -> dict[str, str]:
+        """DGS_* variables that give a subprocess (an embedded worker) these settings."""
+        env = {}
+        for name, value in self.model_dump(mode="json").items():
+            if name in WorkerSettings.model_fields and value is not None:
+                env[f"DGS_{name.upper()}"] = (json.dumps(value) if isinstance(value, (dict, list))
+                                              else str(value))
+        return env
 
     @property
     def offered_devices(self) -> list[str]:

@@ -132,11 +132,12 @@ def _embedded_child() -> None:
 
 class EmbeddedWorker:
     """Keeps one `dgs worker` subprocess running (restarted with back-off if it dies), with
-    the same DGS_* settings as this process; its output goes to <data_dir>/logs/worker.log."""
+    `settings` (as DGS_* variables, over this process's environment, then `env`); its output
+    goes to <data_dir>/logs/worker.log."""
 
     def __init__(self, settings: WorkerSettings, env: dict[str, str] | None = None):
         self.settings = settings
-        self.env = {**os.environ, **(env or {})}
+        self.env = {**os.environ, **settings.to_env(), **(env or {})}
         self.proc: subprocess.Popen | None = None
         self.restarts = 0
         self._stop = threading.Event()
