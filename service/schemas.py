@@ -10,7 +10,7 @@ from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, WithJsonSchema
 
 from core.config import schema
 from service.errors import ErrorInfo
-from worker.pipelines import ExportJobParams, LightParams, ReconstructParams, RelightJobParams
+from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJobParams
 
 __all__ = [
     "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
@@ -227,7 +227,7 @@ class AssetPage(BaseModel):
     next_cursor: str | None
 
 
-class LightIn(LightParams):
+class LightIn(Light):
     """A light: directional (`direction` towards it) or point (`position`), intensity > 0."""
 
 
@@ -237,8 +237,7 @@ class RenderIn(RelightJobParams):
     job_id: str = Field(min_length=1, max_length=64, description=(
         "A succeeded reconstruct job of yours; it cannot be deleted while this render is "
         "queued or running."))
-    lights: list[LightIn] = Field(default_factory=list, max_length=64,
-                                  description="Lights added to the map.")
+    lights: tuple[LightIn, ...] = Field((), max_length=64, description="Lights added to the map.")
     name: str = Field("", max_length=256)
     expires_at: AwareDatetime | None = None
 

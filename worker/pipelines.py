@@ -16,22 +16,15 @@ from pydantic import (
     ConfigDict,
     Field,
     WithJsonSchema,
-    field_validator,
-    model_serializer,
-    model_validator,
 )
-from pydantic_core import PydanticCustomError
 
 from core.config import RunConfig, load_config, schema
+from core.config.relight import BUILTIN_ENVMAPS, FRAMES, Light, RelightSettings
 from worker.settings import WorkerSettings
 
-__all__ = ["BUILTIN_ENVMAPS", "ExportJobParams", "LightParams", "MODEL_KIND", "PIPELINES",
+__all__ = ["BUILTIN_ENVMAPS", "ExportJobParams", "Light", "MODEL_KIND", "PIPELINES",
            "Pipeline", "ReconstructParams", "RelightJobParams", "get_pipeline"]
 
-FRAMES = r"^-?\d*(:-?\d*){0,2}$"
-# core.relight.presets.PRESETS, named here so that the API needs no core import (a test keeps
-# the two lists equal).
-BUILTIN_ENVMAPS = ("studio", "sunset", "neon")
 # The asset kind of a tenant's own normal-prior model (TorchScript or ONNX), which a
 # reconstruction names by id as `config.normal_estimator`.
 MODEL_KIND = "normal_model"
@@ -70,128 +63,16 @@ class ReconstructParams(BaseModel):
         return load_config(self.preset, overrides=overrides, gop=self.gop, where="config")
 
 
-Coordinate = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
-Channel = Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)]
+class RelightJobParams(RelightSettings):
+    """Parameters of `relight` (`dgs relight`'s, `core.config.relight.RelightSettings`, less
+    what names a file on the server): relit renders of a succeeded reconstruction under an
+    environment map and added lights. `envmap` is an envmap asset id (POST /v1/assets) or a
+    built-in map."""
 
-
-class LightParams(BaseModel):
-    """A light added to the environment map (core.relight.LightSpec): it adds
-    `intensity * color * max(0, n . l)` of irradiance, a point light's falling off as 1/d^2."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    kind: Literal["directional", "point"] = Field(
-        "directional", description="directional (infinitely far) or point.")
-    direction: list[Coordinate] | None = Field(
-        None, min_length=3, max_length=3,
-        description="Directional lights: the direction towards the light, capture world "
-                    "coordinates (need not be unit length; not zero).")
-    position: list[Coordinate] | None = Field(
-        None, min_length=3, max_length=3,
-        description="Point lights: the light's position, capture world coordinates.")
-    color: list[Channel] = Field([1.0, 1.0, 1.0], min_length=3, max_length=3,
-                                 description="Linear RGB tint (not all zero).")
-    intensity: float = Field(
-        1.0, le=1e6, allow_inf_nan=False, json_schema_extra={"exclusiveMinimum": 0},
-        description="Irradiance scale, > 0 (pi lights a surface facing the light as brightly "
-                    "as a uniform environment of radiance 1); at distance 1 for a point light.")
-
-    @field_validator("intensity")
-    @classmethod
-    def _positive(cls, value: float) -> float:
-        if not value > 0:
-            raise PydanticCustomError(
-                "light_intensity", "a light needs an intensity > 0 (one of {value} adds "
-                "nothing; leave the light out instead)", {"value": value})
-        return value
-
-    @field_validator("color")
-    @classmethod
-    def _some_color(cls, value: list[float]) -> list[float]:
-        if max(value) <= 0:
-            raise PydanticCustomError("light_color", "a light's color must not be all zero "
-                                      "(it would add nothing)")
-        return value
-
-    @model_serializer(mode="wrap")
-    def _without_unused(self, handler) -> dict[str, Any]:
-        """The stored form names only the direction or the position it uses."""
-        return {k: v for k, v in handler(self).items() if v is not None}
-
-    @model_validator(mode="after")
-    def _placed(self) -> LightParams:
-        need, other = (("direction", "position") if self.kind == "directional"
-                       else ("position", "direction"))
-        if getattr(self, need) is None:
-            raise PydanticCustomError("light_placement", "a {kind} light needs '{need}'",
-                                      {"kind": self.kind, "need": need})
-        if getattr(self, other) is not None:
-            raise PydanticCustomError("light_placement", "a {kind} light takes '{need}', not "
-                                      "'{other}'", {"kind": self.kind, "need": need,
-                                                    "other": other})
-        if self.kind == "directional" and max(abs(x) for x in self.direction) < 1e-9:
-            raise PydanticCustomError("light_direction", "a directional light's direction "
-                                      "must not be zero")
-        return self
-
-
-class RelightJobParams(BaseModel):
-    """Parameters of `relight` (the `dgs relight` command line, docs/design.md 3.2): relit renders
-    of a succeeded reconstruction under an environment map and added lights."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    envmap: str | None = Field(
-        None, min_length=1, max_length=64,
-        description="An envmap asset id (POST /v1/assets: equirectangular .exr or .hdr), or a "
-                    "built-in map: " + ", ".join(f"builtin:{n}" for n in BUILTIN_ENVMAPS)
-                    + ". Without one the environment is black and the lights alone light the "
-                      "render (then at least one light is required).")
-    rotation_deg: float = Field(
-        0.0, ge=-360, le=360, allow_inf_nan=False,
-        description="Turn of the map about the capture's up axis, degrees (right-hand rule).")
-    exposure: float = Field(0.0, ge=-20, le=20, allow_inf_nan=False,
-                            description="Map exposure in stops (radiance x 2**exposure).")
-    lights: list[LightParams] = Field(default_factory=list, max_length=64,
-                                      description="Lights added to the map.")
-    cameras: str = Field(
-        "heldout", min_length=1, max_length=4096,
-        description="heldout (every 8th capture camera), all, or camera ids ID,ID,... "
-                    "(ignored with orbit).")
-    frames: str | None = Field(
-        None, pattern=FRAMES, max_length=32,
-        description="Python slice over the reconstruction's frames, e.g. '0:10' or '2'; "
-                    "all by default.")
-    orbit: int | None = Field(
-        None, ge=1, le=720,
-        description="Render this many views on an orbit around the subject instead of the "
-                    "capture's cameras, and an MP4 per frame (relit/<frame>.mp4).")
-    fps: float = Field(24.0, gt=0, le=240, allow_inf_nan=False,
-                       description="Frame rate of the orbit MP4s.")
-    ao: bool = Field(True, description="Shade with the learnt ambient occlusion (False: the "
-                                       "no-AO baseline).")
     capture_light: float | None = Field(
         None, gt=0, le=1e6, allow_inf_nan=False,
         description="Uniform irradiance the capture was lit with, which the albedo is divided "
                     "by; default pi (a white dome of radiance 1).")
-
-    @field_validator("envmap")
-    @classmethod
-    def _builtin_known(cls, value: str | None) -> str | None:
-        if value is not None and value.startswith("builtin:") and \
-                value.removeprefix("builtin:") not in BUILTIN_ENVMAPS:
-            raise PydanticCustomError(
-                "envmap_builtin", "envmap: no built-in map {name} (built-in: {known})",
-                {"name": value, "known": ", ".join(f"builtin:{n}" for n in BUILTIN_ENVMAPS)})
-        return value
-
-    @model_validator(mode="after")
-    def _something_lights(self) -> RelightJobParams:
-        if self.envmap is None and not self.lights:
-            raise PydanticCustomError(
-                "light_required", "envmap, lights: give an environment map (an asset id or "
-                "builtin:NAME) or at least one light; with neither nothing lights the render")
-        return self
 
     @property
     def envmap_asset(self) -> str | None:

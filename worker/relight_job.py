@@ -22,7 +22,6 @@ from sqlalchemy import select
 
 from core.config import parse_frames
 from core.files import write_json
-from core.relight.lights import LightSpec
 from core.relight.run import RelightParams, RelightStopped, run_params
 from worker.execution import JobStopped
 from worker.models import Asset, Job
@@ -149,14 +148,8 @@ class RelightJob:
     def _core_params(self, envmap: str | None):
         """core's RelightParams (its checks raise ValueError: the job fails as invalid_input).
         Frames are already selected: the run directory holds only those."""
-        p = self.params
-        lights = tuple(LightSpec.from_json(light.model_dump(exclude_none=True))
-                       for light in p.lights)
-        return RelightParams(
-            envmap=envmap, rotation_deg=p.rotation_deg, exposure=p.exposure, lights=lights,
-            cameras=p.cameras, frames=None, orbit=p.orbit,
-            capture_light=None if p.capture_light is None else repr(p.capture_light),
-            ao=p.ao, fps=p.fps)
+        shared = self.params.model_dump(exclude={"envmap", "frames"})
+        return RelightParams(**shared, envmap=envmap, frames=None)
 
     # -- progress and outputs -----------------------------------------------------------------
     def _on_progress(self, event) -> None:

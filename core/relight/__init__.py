@@ -18,12 +18,11 @@ from core.relight.envmap import (
     sh9_basis,
     up_frame,
 )
-from core.relight.lights import CaptureLight, LightSpec, load_capture_light, parse_light
+from core.relight.lights import CaptureLight, load_capture_light, parse_light
 
 __all__ = [
     "CaptureLight",
     "EnvMap",
-    "LightSpec",
     "RelightParams",
     "RelightProgress",
     "RelightStopped",

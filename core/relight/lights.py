@@ -14,13 +14,14 @@ import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
+from pydantic import ValidationError
 
+from core.config.relight import Light
 from core.relight.envmap import load_envmap
 
-__all__ = ["CaptureLight", "LightSpec", "load_capture_light", "parse_light"]
+__all__ = ["CaptureLight", "load_capture_light", "parse_light"]
 
 
 def _vec3(value, where: str, *, nonzero: bool = False) -> tuple[float, float, float]:
@@ -35,51 +36,9 @@ def _vec3(value, where: str, *, nonzero: bool = False) -> tuple[float, float, fl
     return v  # type: ignore[return-value]
 
 
-@dataclass(frozen=True)
-class LightSpec:
-    """One light added to the environment."""
-
-    kind: Literal["directional", "point"]
-    """'directional' (infinitely far, `vector` points towards it) or 'point' (at `vector`)."""
-    vector: tuple[float, float, float]
-    """Direction towards the light (directional) or its position (point), capture world
-    coordinates."""
-    intensity: float
-    """Irradiance scale (> 0): at distance 1 for a point light."""
-    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
-    """Linear RGB tint (>= 0, not all zero)."""
-
-    def __post_init__(self) -> None:
-        if self.kind not in ("directional", "point"):
-            raise ValueError(f"light kind: expected 'directional' or 'point', got {self.kind!r}")
-        _vec3(self.vector, f"{self.kind} light vector", nonzero=self.kind == "directional")
-        if not (math.isfinite(self.intensity) and self.intensity > 0):
-            raise ValueError(f"light intensity: expected a number > 0 (a light of intensity "
-                             f"{self.intensity!r} adds nothing), got {self.intensity!r}")
-        c = _vec3(self.color, "light color")
-        if min(c) < 0 or max(c) <= 0:
-            raise ValueError(f"light color: expected non-negative RGB, not all zero, got {c}")
-
-    @classmethod
-    def from_json(cls, data: dict) -> LightSpec:
-        """From {"kind", "direction" | "position", "intensity", "color"?} (the service's form)."""
-        if not isinstance(data, dict) or "kind" not in data:
-            raise ValueError(f"light: expected an object with 'kind', got {data!r}")
-        key = "direction" if data["kind"] == "directional" else "position"
-        if key not in data:
-            raise ValueError(f"light: a {data['kind']} light needs {key!r}, got {sorted(data)}")
-        return cls(data["kind"], _vec3(data[key], f"light {key}"),
-                   float(data.get("intensity", float("nan"))),
-                   _vec3(data.get("color", (1, 1, 1)), "light color"))
-
-    def to_json(self) -> dict:
-        key = "direction" if self.kind == "directional" else "position"
-        return {"kind": self.kind, key: list(self.vector), "intensity": self.intensity,
-                "color": list(self.color)}
-
-
-def parse_light(spec: str) -> LightSpec:
-    """`directional:X,Y,Z:INTENSITY[:R,G,B]` or `point:X,Y,Z:INTENSITY[:R,G,B]` (the CLI form)."""
+def parse_light(spec: str) -> Light:
+    """`directional:X,Y,Z:INTENSITY[:R,G,B]` or `point:X,Y,Z:INTENSITY[:R,G,B]` (the CLI form);
+    ValueError saying what is wrong."""
     parts = spec.split(":")
     if len(parts) not in (3, 4) or parts[0] not in ("directional", "point"):
         raise ValueError(f"--light: expected directional:X,Y,Z:INTENSITY[:R,G,B] or "
@@ -89,8 +48,15 @@ def parse_light(spec: str) -> LightSpec:
     except ValueError:
         raise ValueError(f"--light: intensity must be a number, got {parts[2]!r}") from None
     color = _vec3(parts[3].split(","), "--light color") if len(parts) == 4 else (1.0, 1.0, 1.0)
-    return LightSpec(parts[0], _vec3(parts[1].split(","), f"--light {parts[0]} vector"),  # type: ignore[arg-type]
-                     intensity, color)
+    place = "direction" if parts[0] == "directional" else "position"
+    try:
+        return Light(kind=parts[0], intensity=intensity, color=color,
+                     **{place: _vec3(parts[1].split(","), f"--light {parts[0]} {place}")})
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(map(str, first["loc"]))
+        raise ValueError(f"--light {spec}: " + (f"{where}: " if where else "")
+                         + first["msg"].removeprefix("Value error, ")) from None
 
 
 @dataclass(frozen=True)

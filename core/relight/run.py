@@ -11,14 +11,16 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Literal
 
 import numpy as np
 import torch
+from pydantic import Field, ValidationError, model_validator
 
 from core.color import linear_to_srgb
+from core.config.relight import RelightSettings
 from core.config import parse_frames
 from core.data import load_capture
 from core.data.images import read_image
@@ -27,7 +29,7 @@ from core.model import GaussianModel
 from core.relight.cameras import load_camera_path, orbit_cameras, select_cameras
 from core.relight.envmap import load_envmap
 from core.relight.gbuffer import gbuffer, run_render
-from core.relight.lights import CaptureLight, LightSpec, load_capture_light
+from core.relight.lights import CaptureLight, load_capture_light
 from core.relight.output import Mp4Writer, to_uint8, write_views
 from core.relight.shade import shade
 from core.render import RenderCamera
@@ -42,55 +44,26 @@ __all__ = ["Plan", "RelightParams", "RelightProgress", "RelightStopped", "compos
            "view_gbuffer"]
 
 
-@dataclass(frozen=True)
-class RelightParams:
-    """What to relight and how (the service publishes this as its render job's JSON Schema)."""
+class RelightParams(RelightSettings):
+    """What `dgs relight` renders: the shared settings (`core.config.relight.RelightSettings`)
+    with what only a local user may name, files on this machine."""
 
-    envmap: str | None
-    """Environment map, equirectangular .exr or .hdr (linear radiance, width = 2 x height), or
-    builtin:NAME; None: a black environment, lit by `lights` alone."""
-    rotation_deg: float = 0.0
-    """Turn of the map about the capture's up axis, degrees (right-hand rule)."""
-    exposure: float = 0.0
-    """Map exposure in stops (radiance x 2**exposure)."""
-    lights: tuple[LightSpec, ...] = ()
-    """Directional and point lights added to the map."""
-    cameras: str = "heldout"
-    """'heldout' (every 8th camera), 'all', or camera ids 'ID,ID' (ignored with orbit or
-    camera_path)."""
-    frames: str | None = None
-    """Slice 'A:B' over the run's finished frames; None: all of them."""
-    orbit: int | None = None
-    """Render an orbit of this many views around the subject (and an MP4 per frame)."""
-    camera_path: str | None = None
-    """nerfstudio camera_path.json to render (and an MP4 per frame)."""
-    capture_light: str | None = None
-    """The capture's own lighting the albedo is divided by: None for a uniform irradiance of pi,
-    a number (uniform irradiance), a stage .exr/.hdr map, or a .json with sh9_radiance (9x3)."""
-    ao: bool = True
-    """Multiply the map's irradiance by the learnt visibility (False: the no-AO baseline)."""
-    fps: float = 24.0
-    """Frame rate of the MP4s (a camera path's own fps wins)."""
+    camera_path: str | None = Field(
+        None, min_length=1, max_length=4096,
+        description="A nerfstudio camera_path.json to render (and an MP4 per frame).")
+    capture_light: float | str | None = Field(
+        None, description="The capture's own lighting the albedo is divided by: None for a "
+                          "uniform irradiance of pi, a number (uniform irradiance), a stage "
+                          ".exr/.hdr map, or a .json with sh9_radiance (9x3).")
 
-    def __post_init__(self) -> None:
-        if self.envmap is None and not self.lights:
-            raise ValueError("envmap, lights: give an environment map or at least one light "
-                             "(with neither, nothing lights the subject)")
+    @model_validator(mode="after")
+    def _one_path(self) -> RelightParams:
         if self.orbit is not None and self.camera_path is not None:
             raise ValueError("orbit, camera_path: give one of them, not both")
-        if self.orbit is not None and (isinstance(self.orbit, bool) or not isinstance(
-                self.orbit, int) or self.orbit < 1):
-            raise ValueError(f"orbit: expected a number of views >= 1, got {self.orbit!r}")
-        if not self.fps > 0:
-            raise ValueError(f"fps: expected > 0, got {self.fps!r}")
-        for light in self.lights:
-            if not isinstance(light, LightSpec):
-                raise ValueError(f"lights: expected LightSpec entries, got {light!r}")
+        return self
 
     def to_json(self) -> dict:
-        out = asdict(self)
-        out["lights"] = [light.to_json() for light in self.lights]
-        return out
+        return self.model_dump(mode="json")
 
 
 @dataclass(frozen=True)
@@ -232,17 +205,21 @@ def relight_run(run_dir, out_dir, *, envmap=None, rotation_deg: float = 0.0, exp
                 should_stop: Callable[[], bool] | None = None, capture_light=None,
                 ao: bool = True, fps: float = 24.0) -> dict:
     """Relight the run's frames (see `RelightParams` for the parameters; `lights` may hold
-    LightSpec or their JSON dicts); returns the record also written to OUT/relight.json.
+    `Light`s or their JSON dicts); returns the record also written to OUT/relight.json.
 
     Every input is checked before anything is written (ValueError naming the argument).
     `on_progress` receives `RelightProgress` events; `should_stop` is asked before each view and
     when it returns True `RelightStopped` is raised (files already written stay)."""
-    lights = tuple(lt if isinstance(lt, LightSpec) else LightSpec.from_json(lt) for lt in lights)
-    params = RelightParams(
-        envmap=None if envmap is None else str(envmap), rotation_deg=float(rotation_deg), exposure=float(exposure),
-        lights=lights, cameras=cameras, frames=frames, orbit=orbit,
-        camera_path=None if camera_path is None else str(camera_path),
-        capture_light=None if capture_light is None else str(capture_light), ao=ao, fps=fps)
+    try:
+        params = RelightParams(
+            envmap=None if envmap is None else str(envmap), rotation_deg=rotation_deg,
+            exposure=exposure, lights=tuple(lights), cameras=cameras, frames=frames,
+            orbit=orbit, camera_path=None if camera_path is None else str(camera_path),
+            capture_light=None if capture_light is None else str(capture_light), ao=ao, fps=fps)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(map(str, first["loc"])) or "params"
+        raise ValueError(f"{where}: {first['msg'].removeprefix('Value error, ')}") from None
     return run_params(run_dir, out_dir, params, capture_dir=capture_dir,
                       on_progress=on_progress, should_stop=should_stop)
 

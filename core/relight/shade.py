@@ -22,7 +22,8 @@ from torch import Tensor
 
 from core.relight.envmap import A_HAT, irradiance_sh9
 from core.relight.gbuffer import GBuffer
-from core.relight.lights import CaptureLight, LightSpec
+from core.config.relight import Light
+from core.relight.lights import CaptureLight
 
 __all__ = ["MIN_VISIBILITY", "Shading", "capture_irradiance", "light_irradiance", "shade"]
 
@@ -56,7 +57,7 @@ def capture_irradiance(normal: Tensor, light: CaptureLight) -> Tensor:
     return torch.maximum(irradiance_sh9(normal, coeffs), floor)
 
 
-def light_irradiance(normal: Tensor, points: Tensor, lights: Sequence[LightSpec]) -> Tensor:
+def light_irradiance(normal: Tensor, points: Tensor, lights: Sequence[Light]) -> Tensor:
     """Sum over lights of intensity * colour * max(0, n . l) [/ d^2 for point lights] (H, W, 3)."""
     out = torch.zeros_like(normal)
     for light in lights:
@@ -75,7 +76,7 @@ def light_irradiance(normal: Tensor, points: Tensor, lights: Sequence[LightSpec]
 
 
 def shade(g: GBuffer, env_sh9: np.ndarray | Tensor, capture: CaptureLight,
-          lights: Sequence[LightSpec] = (), *, ao: bool = True) -> Shading:
+          lights: Sequence[Light] = (), *, ao: bool = True) -> Shading:
     """Relight one G-buffer under the environment's SH9 radiance (9, 3) plus `lights`."""
     env = torch.as_tensor(env_sh9, dtype=g.normal.dtype, device=g.normal.device)
     covered = (g.normal.abs().sum(-1, keepdim=True) > 0) & (g.alpha > 0)

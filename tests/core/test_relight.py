@@ -13,8 +13,8 @@ import pytest
 import torch
 
 from core.data.images import write_exr
+from core.config.relight import Light
 from core.relight import (
-    LightSpec,
     equirect_directions,
     irradiance_sh9,
     load_capture_light,
@@ -107,11 +107,12 @@ def test_synth_envmap_file_round_trips_to_its_coefficients(synth_capture: Path):
 def test_lights_irradiance():
     n = torch.tensor([[[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]])
     pts = torch.zeros(1, 2, 3)
-    sun = LightSpec("directional", (0.0, 0.0, 5.0), math.pi, (1.0, 0.5, 0.0))
+    sun = Light(kind="directional", direction=(0.0, 0.0, 5.0), intensity=math.pi,
+                color=(1.0, 0.5, 0.0))
     e = light_irradiance(n, pts, [sun])
     np.testing.assert_allclose(e[0, 0].numpy(), [math.pi, math.pi / 2, 0.0], rtol=1e-6)
     assert e[0, 1].abs().max() == 0  # perpendicular: no light
-    lamp = LightSpec("point", (0.0, 0.0, 2.0), 8.0)
+    lamp = Light(kind="point", position=(0.0, 0.0, 2.0), intensity=8.0)
     e = light_irradiance(n, pts, [lamp])
     np.testing.assert_allclose(e[0, 0].numpy(), [2.0] * 3, rtol=1e-6)  # 8 / 2^2
     both = light_irradiance(n, pts, [sun, lamp])
@@ -119,7 +120,7 @@ def test_lights_irradiance():
                                               + light_irradiance(n, pts, [lamp])).numpy())
     assert parse_light("point:0,0,2:8") == lamp
     assert parse_light("directional:0,0,5:3.14:1,0.5,0").color == (1.0, 0.5, 0.0)
-    assert LightSpec.from_json(lamp.to_json()) == lamp
+    assert Light.model_validate(lamp.model_dump(mode="json")) == lamp
 
 
 def _gbuffer(n: int = 256, seed: int = 0, capture_sh9=None):
@@ -219,11 +220,11 @@ def test_bad_environment_maps(tmp_path: Path):
 
 
 @pytest.mark.parametrize("spec, message", [
-    ("directional:0,0,1:0", "intensity: expected a number > 0"),
-    ("point:0,0,1:-2", "intensity: expected a number > 0"),
-    ("directional:0,0,0:1", "non-zero direction"),
+    ("directional:0,0,1:0", "needs an intensity > 0"),
+    ("point:0,0,1:-2", "needs an intensity > 0"),
+    ("directional:0,0,0:1", "direction must not be zero"),
     ("directional:0,0,1:nan", "intensity"),
-    ("directional:0,0,1:1:0,0,0", "not all zero"),
+    ("directional:0,0,1:1:0,0,0", "must not be all zero"),
     ("spot:0,0,1:1", "expected directional"),
     ("point:0,0:1", "3 finite numbers"),
 ])
@@ -233,10 +234,10 @@ def test_bad_lights(spec: str, message: str):
 
 
 def test_bad_light_json():
-    with pytest.raises(ValueError, match="intensity"):
-        LightSpec.from_json({"kind": "directional", "direction": [0, 0, 1], "intensity": 0})
+    with pytest.raises(ValueError, match="intensity > 0"):
+        Light.model_validate({"kind": "directional", "direction": [0, 0, 1], "intensity": 0})
     with pytest.raises(ValueError, match="needs 'position'"):
-        LightSpec.from_json({"kind": "point", "intensity": 1})
+        Light.model_validate({"kind": "point", "intensity": 1})
 
 
 def test_camera_path_round_trip_and_errors(tmp_path: Path, synth_capture: Path):

@@ -143,7 +143,7 @@ def _bad_map(tmp_path: Path, name: str, image: np.ndarray) -> Path:
     ("unreadable", "truncated or corrupt OpenEXR header"),
     ("square", "twice as wide"),
     ("nan", "NaN or Inf"),
-    ("zero light", "intensity: expected a number > 0"),
+    ("zero light", "needs an intensity > 0"),
     ("empty frames", "selects no frame"),
     ("unknown camera", "no camera camXX"),
     ("not a run", "not a run directory"),

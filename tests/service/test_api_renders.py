@@ -100,7 +100,7 @@ LIGHT = {"kind": "directional", "direction": [0, 1, 0], "intensity": 1}
     ({"fps": 0}, "fps"),
     ({"capture_light": 0}, "capture_light"),
     ({"frames": "a:b"}, "frames"),
-    ({"envmap": None}, "give an environment map (an asset id or builtin:NAME) or at least one"),
+    ({"envmap": None}, "give an environment map or at least one light"),
     ({"envmap": "builtin:moon"}, "no built-in map builtin:moon"),
     ({"unknown": 1}, "body.unknown"),
 ])
