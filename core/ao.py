@@ -24,7 +24,7 @@ from core.model import GaussianModel
 from core.render import RenderCamera, render
 from native import gaussian_rays, gaussian_visibility, trace_visibility
 
-__all__ = ["GaussianAOBaker", "init_visibility", "ao_map", "scaled_camera"]
+__all__ = ["GaussianAOBaker", "init_visibility", "ao_map", "filter_torch", "scaled_camera"]
 
 
 def scaled_camera(camera: RenderCamera, scale: float) -> RenderCamera:
@@ -52,13 +52,44 @@ def _assign(model: GaussianModel, vis: Tensor, optimizer) -> None:
     model.assign("visibility", torch.log(p / (1 - p))[:, None], optimizer)
 
 
+def _filter_size(config: AOConfig) -> int:
+    return max(3, int(2 * math.ceil(2 * config.sigma_space) + 1))
+
+
 def _filter(ao: np.ndarray, guide: np.ndarray, config: AOConfig) -> np.ndarray:
-    if not hasattr(cv2, "ximgproc"):
-        raise RuntimeError("AO baking needs OpenCV's contrib modules (ximgproc): install "
-                           "opencv-contrib-python-headless instead of opencv-python-headless")
-    d = max(3, int(2 * math.ceil(2 * config.sigma_space) + 1))
+    """OpenCV's joint bilateral filter (contrib's ximgproc) of (H, W) `ao` by the (H, W, 3)
+    normal `guide`."""
     return cv2.ximgproc.jointBilateralFilter(guide.astype(np.float32), ao.astype(np.float32),
-                                             d, config.sigma_color, config.sigma_space)
+                                             _filter_size(config), config.sigma_color,
+                                             config.sigma_space)
+
+
+def filter_torch(ao: Tensor, guide: Tensor, config: AOConfig) -> Tensor:
+    """The same joint bilateral filter as OpenCV's ximgproc (a disc of radius d // 2, spatial
+    weight exp(-r^2 / 2 sigma_space^2), range weight exp(-(L1 distance of the guides)^2 /
+    2 sigma_color^2), borders reflected without repeating the edge) in torch, on the tensors'
+    device: the bake stays on the GPU, and runs where OpenCV's contrib modules are missing.
+    `ao` (H, W), `guide` (H, W, 3); returns (H, W)."""
+    r = _filter_size(config) // 2
+    h, w = ao.shape
+    if min(h, w) <= r:  # too small to reflect: filter a repeated border instead
+        mode = "replicate"
+    else:
+        mode = "reflect"
+    g = guide.permute(2, 0, 1).float()
+    gp = torch.nn.functional.pad(g[None], (r, r, r, r), mode=mode)[0]
+    ap = torch.nn.functional.pad(ao.float()[None, None], (r, r, r, r), mode=mode)[0, 0]
+    acc, wsum = torch.zeros_like(ao, dtype=torch.float32), torch.zeros_like(ao, dtype=torch.float32)
+    cs, ss = -0.5 / config.sigma_color ** 2, -0.5 / config.sigma_space ** 2
+    for dy in range(-r, r + 1):
+        for dx in range(-r, r + 1):
+            if dx * dx + dy * dy > r * r:
+                continue
+            dist = (gp[:, r + dy:r + dy + h, r + dx:r + dx + w] - g).abs().sum(0)
+            weight = torch.exp(dist * dist * cs + (dx * dx + dy * dy) * ss)
+            acc += weight * ap[r + dy:r + dy + h, r + dx:r + dx + w]
+            wsum += weight
+    return acc / wsum
 
 
 @dataclass
@@ -95,7 +126,8 @@ def _origins(model: GaussianModel, camera: RenderCamera, beta: float,
 
 def _map(o: _Origins, vis: Tensor, camera: RenderCamera, config: AOConfig) -> Tensor:
     """(H, W, 1) AO at the camera's full resolution from the traced visibility of `o`'s rays:
-    upsampled, then joint-bilateral filtered by the normal map (OpenCV, on the CPU)."""
+    upsampled, then joint-bilateral filtered by the normal map (OpenCV on the CPU, where its
+    contrib modules are; else `filter_torch`, on the device)."""
     device = o.normal.device
     ao = torch.ones(o.covered.shape, device=device)
     inner = torch.ones(o.ok.shape[0], device=device)
@@ -106,8 +138,11 @@ def _map(o: _Origins, vis: Tensor, camera: RenderCamera, config: AOConfig) -> Te
                                          align_corners=False)[0, 0]
     guide = torch.nn.functional.interpolate(o.normal.permute(2, 0, 1)[None], size=size,
                                             mode="bilinear", align_corners=False)[0]
-    filtered = _filter(up.cpu().numpy(), guide.permute(1, 2, 0).cpu().numpy(), config)
-    return torch.from_numpy(np.clip(filtered, 0.0, 1.0)).float()[..., None].to(device)
+    if device.type == "cpu" and hasattr(cv2, "ximgproc"):
+        filtered = torch.from_numpy(_filter(up.numpy(), guide.permute(1, 2, 0).numpy(), config))
+    else:
+        filtered = filter_torch(up, guide.permute(1, 2, 0), config)
+    return filtered.clamp(0.0, 1.0).float()[..., None]
 
 
 def _trace(model: GaussianModel, origins: Tensor, normals: Tensor, offset: Tensor,
@@ -123,7 +158,7 @@ def _trace(model: GaussianModel, origins: Tensor, normals: Tensor, offset: Tenso
 def ao_map(model: GaussianModel, camera: RenderCamera, *, beta: float = 0.0,
            config: AOConfig = AOConfig()) -> Tensor:
     """(H, W, 1) ambient occlusion of one view at the camera's full resolution, on the model's
-    device (the joint bilateral filter runs on the CPU, OpenCV)."""
+    device."""
     camera = camera.to(model.means.device)
     o = _origins(model, camera, beta, config)
     return _map(o, _trace(model, o.points, o.normals, o.offset, None, config), camera, config)

@@ -72,7 +72,9 @@ class JobLink:
             t0, f0 = self._start
             done = self._fraction - f0
             eta = None
-            if done > 1e-3 and now - t0 > 2.0:
+            if self._fraction >= 1.0:
+                eta = 0.0
+            elif done > 1e-3 and now - t0 > 2.0:  # a rate over less is noise
                 eta = round((now - t0) / done * (1.0 - self._fraction), 1)
             self._pending = {**(self._pending or {}), **fields, "fraction": self._fraction,
                              "eta_s": eta}

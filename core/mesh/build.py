@@ -63,9 +63,11 @@ def scene_box(model, cameras, mode: str = "gaussians") -> tuple[np.ndarray, np.n
 
 @torch.no_grad()
 def _render(model, cam, settings, beta: float):
-    return render(model, RenderCamera.from_camera(cam), sh_degree=settings.sh_degree, beta=beta,
-                  geometry=True, background=torch.zeros(3), eps2d=settings.eps2d,
-                  antialiased=settings.antialiased)
+    """One view rendered where the model lives (the GPU when it is there)."""
+    dev = model.device
+    return render(model, RenderCamera.from_camera(cam, device=dev), sh_degree=settings.sh_degree,
+                  beta=beta, geometry=True, background=torch.zeros(3, device=dev),
+                  eps2d=settings.eps2d, antialiased=settings.antialiased)
 
 
 def _fuse(model, cameras, settings, config: MeshConfig, lo, hi, voxel, device) -> TSDFVolume:

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
+import pytest
 import torch
 
-from core.ao import ao_map, init_visibility, scaled_camera
+from core.ao import _filter, ao_map, filter_torch, init_visibility, scaled_camera
 from core.config import AOConfig
 from core.config import LearningRates
 from core.model import GaussianModel
@@ -120,3 +122,22 @@ def test_baker_traces_everything_at_once_like_its_parts():
                                rtol=0)
     for a, b in zip(maps, baked):
         torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
+
+
+@pytest.mark.parametrize("shape,sigmas", [((37, 53), (0.2, 2.0)), ((64, 48), (0.5, 1.0)),
+                                          ((5, 40), (0.2, 2.0))])
+def test_torch_joint_bilateral_filter_is_opencvs(shape, sigmas):
+    """The device's filter (no OpenCV contrib needed, runs on the GPU) is OpenCV's, border and
+    disc included, on random AO and a guide with flat and noisy parts."""
+    cv2 = pytest.importorskip("cv2")
+    if not hasattr(cv2, "ximgproc"):
+        pytest.skip("OpenCV without its contrib modules")
+    rng = np.random.default_rng(sum(shape))
+    ao = rng.random(shape).astype(np.float32)
+    guide = rng.normal(size=shape + (3,)).astype(np.float32)
+    guide /= np.linalg.norm(guide, axis=-1, keepdims=True)
+    guide[: shape[0] // 2] = guide[0, 0]
+    cfg = AOConfig(sigma_color=sigmas[0], sigma_space=sigmas[1])
+    ref = _filter(ao, guide, cfg)
+    out = filter_torch(torch.from_numpy(ao), torch.from_numpy(guide), cfg).numpy()
+    assert np.abs(out - ref).max() < 1e-5

@@ -170,10 +170,14 @@ def test_checkpoint_holds_cpu_tensors_and_round_trips(views: list[View], tmp_pat
     resumed = Trainer(views, replace(cfg, device="cpu"))
     resumed.load_checkpoint(tmp_path / "ckpt.pt")
     assert resumed.step == 7 and resumed.state.history == trainer.state.history
+    moments = 0
     for name, p in trainer.model.params.items():
         assert torch.equal(resumed.model.params[name].cpu(), p.detach().cpu()), name
         state = resumed.optimizer.state[resumed.model.params[name]]
-        assert state["exp_avg"].device == resumed.model.params[name].device
+        if state:  # a parameter no loss has reached yet (visibility before stage 3) has none
+            assert state["exp_avg"].device == resumed.model.params[name].device
+            moments += 1
+    assert moments >= 5
     assert resumed.state.grad_c.device.type == "cpu"
 
 

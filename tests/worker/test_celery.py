@@ -123,8 +123,10 @@ def test_job_runs_to_published_artifacts(stack, tiny_capture: Path, worker_facto
     fractions = [e.data["fraction"] for e in h.store.events_after(job_id, 0)
                  if e.kind == "progress"]
     assert len(fractions) >= 3 and fractions == sorted(fractions)
-    assert any(e.data.get("eta_s") for e in h.store.events_after(job_id, 0)
-               if e.kind == "progress")
+    # An ETA is published (a rate needs 2 s of progress, so a fast job's may be only the 0 of
+    # its end: no test may depend on the machine's speed).
+    etas = [e.data.get("eta_s") for e in h.store.events_after(job_id, 0) if e.kind == "progress"]
+    assert etas[-1] == 0.0 and all(x is None or x >= 0 for x in etas)
     assert h.artifact_json(job_id, "eval.json")["psnr"] > 10
     assert "published" in h.log(job_id)
 
