@@ -12,16 +12,19 @@ import shutil
 import signal
 import threading
 import traceback
+from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
 from billiard.exceptions import SoftTimeLimitExceeded
 from pydantic import ValidationError
 
 from core.data.headers import set_default_max_pixels
 from core.files import sha256_file
 from core.rundir import classify
+from worker.assemble_job import AssembleJob
 from worker.blobs import BlobStore, open_store
 from worker.execution import Execution, JobStopped
 from worker.export_job import ExportJob
@@ -55,6 +58,8 @@ _DROPPED = {
     "terminal": "it has ended ({job.state}); this duplicate message is dropped",
     "missing": "it was deleted; its message is dropped",
     "exhausted": "its worker was lost {job.attempts} times; it failed (worker_lost)",
+    "waiting": "its parts are queued or running (it is assembled after them); this message "
+               "is dropped",
 }
 
 
@@ -81,9 +86,13 @@ class Runner:
     """Runs jobs from the job store with the settings' storage."""
 
     def __init__(self, settings: WorkerSettings, store: JobStore | None = None,
-                 blobs: BlobStore | None = None):
+                 blobs: BlobStore | None = None, send: Callable[[str], None] | None = None):
         set_default_max_pixels(settings.max_image_pixels)  # every image core decodes here
-        self.settings = settings
+        if settings.torch_threads is not None:  # N workers on one machine share its cores
+            torch.set_num_threads(settings.torch_threads)
+        self.settings, self.send = settings, send
+        """`send(job_id)` hands a job to the broker: a parted job once its last part has
+        succeeded (without it, the sweeper sends it at its next pass)."""
         self.store = store or JobStore(settings.database)
         self.blobs = blobs or open_store(settings.storage, endpoint_url=settings.s3_endpoint_url,
                                          region=settings.s3_region)
@@ -110,11 +119,24 @@ class Runner:
             link.close()
         if outcome.status in ("succeeded", "failed", "cancelled"):
             shutil.rmtree(job_folder(s.scratch, job_id), ignore_errors=True)
+        if outcome.status == "succeeded" and claim.job.parent_id is not None:
+            self._send_assembly(claim.job.parent_id)
         return outcome
+
+    def _send_assembly(self, parent_id: str) -> None:
+        """The last part of a parted job has succeeded: send the job for its assembly."""
+        parent = self.store.get(parent_id)
+        if (self.send is None or parent is None or parent.state != "running"
+                or parent.lease_owner is not None or parent.dispatched_at is not None):
+            return
+        if self.store.mark_dispatched(parent_id):
+            self.send(parent_id)
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
         pipeline = get_pipeline(job.pipeline)
         params = pipeline.params.model_validate(job.params)
+        if job.parts:  # a job run as parts: what is left of it is their assembly
+            return AssembleJob(self, job, params, link)
         kinds = {"reconstruct": ReconstructJob, "relight": RelightJob, "export": ExportJob}
         return kinds[pipeline.name](self, job, params, link)
 
@@ -218,10 +240,13 @@ class Runner:
         return out
 
     # -- outputs ------------------------------------------------------------------------------
-    def publish(self, job: Job, root: Path, prefix: str = "") -> int:
-        """Copy new or changed files under `root` to jobs/<id>/artifacts/<prefix><path> and
-        record them with their kind (what `classify` does not know, such as checkpoints, stays
-        out); returns how many were published."""
+    def publish(self, job: Job | str, root: Path, prefix: str = "", *,
+                frames: bool | None = None) -> int:
+        """Copy new or changed files under `root` to jobs/<id>/artifacts/<prefix><path> (`job`:
+        the job or its id) and record them with their kind (what `classify` does not know,
+        such as checkpoints, stays out); `frames` True publishes only the files of a frame,
+        False only the others. Returns how many were published."""
+        job_id = job if isinstance(job, str) else job.id
         published = 0
         for path in sorted(p for p in root.rglob("*") if p.is_file()):
             rel = prefix + path.relative_to(root).as_posix()
@@ -229,9 +254,11 @@ class Runner:
             stat = path.stat()
             if kind is None or self._published.get(rel) == (stat.st_size, stat.st_mtime_ns):
                 continue
+            if frames is not None and frames != (kind.frame is not None):
+                continue
             digest = sha256_file(path)
-            self.blobs.put_file(f"jobs/{job.id}/artifacts/{rel}", path)
-            self.store.add_artifact(job.id, rel, kind=kind.kind, size=stat.st_size,
+            self.blobs.put_file(f"jobs/{job_id}/artifacts/{rel}", path)
+            self.store.add_artifact(job_id, rel, kind=kind.kind, size=stat.st_size,
                                     sha256=digest, content_type=kind.content_type,
                                     frame=kind.frame)
             self._published[rel] = (stat.st_size, stat.st_mtime_ns)
