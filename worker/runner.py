@@ -126,7 +126,7 @@ class Runner:
     def _send_assembly(self, parent_id: str) -> None:
         """The last part of a parted job has succeeded: send the job for its assembly."""
         parent = self.store.get(parent_id)
-        if (self.send is None or parent is None or parent.state != "running"
+        if (self.send is None or parent is None or parent.stage != "assembling"
                 or parent.lease_owner is not None or parent.dispatched_at is not None):
             return
         if self.store.mark_dispatched(parent_id):
