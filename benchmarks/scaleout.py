@@ -172,9 +172,12 @@ def main() -> int:
     rows = [("`dgs reconstruct` (serial)", ref, None)]
     for n in [int(w) for w in args.workers.split(",")]:
         params = {"preset": "test", "gop": args.gop, "config": cfg}
+        before = os.getloadavg()[0]
         result = service(capture, out, params, n)
         rows.append((f"`dgs serve --workers {n}`", result, n))
-        print(f"  {n} worker(s): {result['wall']:.1f} s", flush=True)
+        # The machine's other users show in the load (this run alone adds about n).
+        print(f"  {n} worker(s): {result['wall']:.1f} s (load average {before:.1f} before, "
+              f"{os.getloadavg()[0]:.1f} after)", flush=True)
     one = next((r for _, r, n in rows if n == 1), None)
     print("\n| run | wall s | speed-up vs 1 worker | parts (s each) | assembly s | held-out "
           "PSNR | PLYs identical to serial |\n| --- | --- | --- | --- | --- | --- | --- |")
