@@ -194,6 +194,45 @@ def run_ours(capture, frame, views, model0, config, out: Path, args) -> dict:
     return res
 
 
+def bake_parts(trainer) -> dict:
+    """The AO bake of the final model again, its parts timed (device synchronized between):
+    the views' quarter-resolution renders (the ray origins), the trace (tree build and rays),
+    the per-view maps (upsampling and the joint bilateral filter)."""
+    from core.ao import _map, _origins, _trace
+    from native import gaussian_rays
+
+    model, p = trainer.current()
+    cfg, cams = trainer.config.ao, trainer.cameras
+    out, t = {}, time.perf_counter()
+
+    def lap(name):
+        nonlocal t
+        sync()
+        now = time.perf_counter()
+        out[name] = round(now - t, 3)
+        t = now
+    with torch.no_grad():
+        views = [_origins(model, cam, p.beta, cfg) for cam in cams]
+        lap("origins (renders) s")
+        means = model.means.detach()
+        own_offset, own_exclude = gaussian_rays(means, model.scales)
+        origins = torch.cat([means] + [o.points for o in views])
+        normals = torch.cat([model.normals.detach()] + [o.normals for o in views])
+        offset = torch.cat([own_offset] + [o.offset for o in views])
+        exclude = torch.cat([own_exclude, torch.full((origins.shape[0] - len(model),), -1,
+                                                     device=means.device)])
+        lap("gather s")
+        vis = _trace(model, origins, normals, offset, exclude, cfg)
+        lap("trace s")
+        parts = vis[len(model):].split([o.points.shape[0] for o in views])
+        for o, v, cam in zip(views, parts, cams):
+            _map(o, v, cam, cfg)
+        lap("maps s")
+    out["rays"] = int(origins.shape[0])
+    out["gaussians"] = len(model)
+    return out
+
+
 # -- gsplat -------------------------------------------------------------------------------------
 class GsplatTrainer:
     """A plain 3DGS on gsplat's API (module docstring), from our initial model."""
@@ -350,7 +389,8 @@ def main() -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="dgs-keyframe-"))
-    report: dict = {"device": torch.cuda.get_device_name() if dev != "cpu" else "cpu", "torch": torch.__version__,
+    report: dict = {"device": torch.cuda.get_device_name() if dev != "cpu" else "cpu",
+                    "torch": torch.__version__,
                     "cuda": torch.version.cuda, "steps": args.steps,
                     "downscale": args.downscale}
     t = time.perf_counter()
@@ -393,6 +433,8 @@ def main() -> int:
                  lambda tr=tr, name=name: host_syncs(tr.train_step, args.profile_steps,
                                                      args.out, name))
     ours = (report.get("ours") or {}).get("_trainer")
+    if ours is not None and ours.config.bake_ao:
+        part(report, args.out, "bake_parts", lambda: bake_parts(ours))
     if ours is not None and args.mesh_voxels:
         from core.config import MeshConfig
         from core.mesh.build import mesh_model
@@ -409,7 +451,7 @@ def main() -> int:
             return {**info, "wall_seconds": round(time.perf_counter() - t0, 2)}
         part(report, args.out, "mesh", mesh)
     print(json.dumps({k: v for k, v in report.items() if k.endswith("host_syncs")
-                      or k == "mesh"}, default=str), flush=True)
+                      or k in ("mesh", "bake_parts")}, default=str), flush=True)
     print(table(report), flush=True)
     return 0
 
