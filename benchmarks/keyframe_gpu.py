@@ -52,9 +52,11 @@ import torch  # noqa: E402
 
 from core.config import train_config  # noqa: E402
 from core.data import CaptureDataset, import_capture, load_capture  # noqa: E402
-from core.losses import photometric_loss  # noqa: E402
+from core.evaluation.run import _reduce_normals  # noqa: E402
+from core.losses import depth_to_normals, photometric_loss  # noqa: E402
 from core.metrics import normal_agreement, rgb_scores  # noqa: E402
 from core.model import GaussianModel  # noqa: E402
+from core.pipeline.outputs import COVERAGE  # noqa: E402
 from core.render import RenderCamera, render  # noqa: E402
 from core.seeding import scene_extent, seed_points  # noqa: E402
 from core.training import Trainer  # noqa: E402
@@ -114,26 +116,36 @@ class StageClock(Callback):
                 for k, s in self.seconds.items()}
 
 
+def _to8(a: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(a, 0, 1) * 255) / 255
+
+
 def held_out(capture, frame: str, downscale: float, draw, background: np.ndarray) -> dict:
-    """Mean scores of `draw(camera) -> ((H, W, 3) rgb, (H, W, 3) normal or None)` over the
-    held-out cameras, as `dgs eval` scores them (8-bit renders, the whole image)."""
+    """Mean scores of `draw(camera) -> ((H, W, 3) rgb, (H, W, 3) unit normals, (H, W) covered)`
+    over the held-out cameras, as `dgs eval` scores them: 8-bit renders, PSNR over the whole
+    image, SSIM, and the normal picture ((n + 1) / 2, black where not covered) against the
+    capture's ground-truth normals (gt/normals, a synthetic capture) or its priors."""
     held = [c.id for i, c in enumerate(capture.cameras) if i % 8 == 0]
     ds = CaptureDataset(capture, frames=[frame], cameras=held, downscale=downscale)
     rows = []
     for i in range(len(ds)):
         s = ds[i]
         with torch.no_grad():
-            rgb, normal = draw(s.camera)
-        rgb8 = np.round(rgb.clamp(0, 1).float().cpu().numpy() * 255) / 255
+            rgb, normal, covered = draw(s.camera)
         image = s.image.numpy()
         mask = None if s.mask is None else s.mask.numpy()
         target = image if mask is None else image * mask + background * (1 - mask)
         fg = np.ones(target.shape[:2], bool) if mask is None else mask[..., 0] > 0.5
-        row = rgb_scores(rgb8.astype(np.float32), target, fg)
-        if normal is not None and s.normal is not None:
-            png = (normal.cpu().numpy() * 0.5 + 0.5).clip(0, 1)
-            agree = normal_agreement(png, s.normal.numpy(),
-                                     np.linalg.norm(s.normal.numpy(), axis=-1) > 0.5)
+        row = rgb_scores(_to8(rgb.float().cpu().numpy()).astype(np.float32), target, fg)
+        gt = capture.root / "gt" / "normals" / frame / f"{s.camera_id}.npy"
+        ref = np.load(gt) if gt.is_file() else (None if s.normal is None
+                                                 else s.normal.numpy())
+        if ref is not None:
+            if ref.shape[:2] != image.shape[:2]:
+                ref = _reduce_normals(ref, image.shape[:2])
+            png = _to8(np.where(covered.cpu().numpy()[..., None],
+                                (normal.float().cpu().numpy() + 1) / 2, 0.0))
+            agree = normal_agreement(png, ref, (np.linalg.norm(ref, axis=-1) > 0.5) & fg)
             row["normal_deg"] = None if agree is None else agree[1]
         rows.append(row)
     keys = {k for r in rows for k in r if r[k] is not None}
@@ -184,14 +196,53 @@ def run_ours(capture, frame, views, model0, config, out: Path, args) -> dict:
         r = render(model, rc, sh_degree=p.sh_degree, beta=p.beta, geometry=True,
                    tie_opacity=p.tie_opacity, background=bg, eps2d=config.eps2d,
                    antialiased=config.antialiased)
-        n = r.normal / r.normal.norm(dim=-1, keepdim=True).clamp_min(1e-6)
-        return r.rgb, n
+        n = torch.nn.functional.normalize(r.normal, dim=-1)
+        return r.rgb, n, r.alpha_g[..., 0] > COVERAGE
 
     t = time.perf_counter()
     res["held_out"] = held_out(capture, frame, args.downscale, draw, bg.cpu().numpy())
     res["eval_seconds"] = round(time.perf_counter() - t, 2)
     res["_trainer"] = trainer
     return res
+
+
+def bake_parts(trainer) -> dict:
+    """The AO bake of the final model again, its parts timed (device synchronized between):
+    the views' quarter-resolution renders (the ray origins), the trace (tree build and rays),
+    the per-view maps (upsampling and the joint bilateral filter)."""
+    from core.ao import _map, _origins, _trace
+    from native import gaussian_rays
+
+    model, p = trainer.current()
+    cfg, cams = trainer.config.ao, trainer.cameras
+    out, t = {}, time.perf_counter()
+
+    def lap(name):
+        nonlocal t
+        sync()
+        now = time.perf_counter()
+        out[name] = round(now - t, 3)
+        t = now
+    with torch.no_grad():
+        views = [_origins(model, cam, p.beta, cfg) for cam in cams]
+        lap("origins (renders) s")
+        means = model.means.detach()
+        own_offset, own_exclude = gaussian_rays(means, model.scales)
+        origins = torch.cat([means] + [o.points for o in views])
+        normals = torch.cat([model.normals.detach()] + [o.normals for o in views])
+        offset = torch.cat([own_offset] + [o.offset for o in views])
+        exclude = torch.cat([own_exclude, torch.full((origins.shape[0] - len(model),), -1,
+                                                     device=means.device)])
+        lap("gather s")
+        vis = _trace(model, origins, normals, offset, exclude, cfg)
+        lap("trace s")
+        parts = vis[len(model):].split([o.points.shape[0] for o in views])
+        for o, v, cam in zip(views, parts, cams):
+            _map(o, v, cam, cfg)
+        lap("maps s")
+    out["rays"] = int(origins.shape[0])
+    out["gaussians"] = len(model)
+    return out
 
 
 # -- gsplat -------------------------------------------------------------------------------------
@@ -229,14 +280,26 @@ class GsplatTrainer:
         self.order: list[int] = []
         self.step = 0
 
-    def draw(self, cam: RenderCamera, sh_degree: int):
+    def draw(self, cam: RenderCamera, sh_degree: int, mode: str = "RGB"):
         P = self.params
         colors = torch.cat([P["sh0"], P["shN"]], 1)
         img, alpha, info = self.gsplat.rasterization(
             P["means"], P["quats"], torch.exp(P["scales"]), torch.sigmoid(P["opacities"]),
             colors, cam.viewmat[None], cam.K[None], cam.width, cam.height, sh_degree=sh_degree,
-            rasterize_mode="classic", packed=True)
-        return img[0] + (1 - alpha[0]) * self.background, info
+            rasterize_mode="classic", packed=True, render_mode=mode)
+        rgb = img[0, ..., :3] + (1 - alpha[0]) * self.background
+        if mode == "RGB":
+            return rgb, info
+        return rgb, img[0, ..., 3:4], alpha[0]
+
+    def draw_normals(self, cam: RenderCamera):
+        """Colour, and normals from the expected depth's central differences (a plain 3DGS
+        has no normals of its own: this is how one gets them, as in 2DGS's and PGSR's
+        comparisons), covered where its alpha passes the pictures' threshold."""
+        rgb, depth, alpha = self.draw(cam, 3, "RGB+ED")
+        inner = depth_to_normals(depth, cam.K, cam.viewmat)
+        normal = torch.nn.functional.pad(inner.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+        return rgb, normal, alpha[..., 0] > COVERAGE
 
     def train_step(self) -> None:
         if not self.order:
@@ -274,7 +337,7 @@ def run_gsplat(capture, frame, views, model0, steps, extent, background, args) -
            "gaussians": int(g.params["means"].shape[0])}
 
     def draw(cam):
-        return g.draw(RenderCamera.from_camera(cam, device="cuda"), 3)[0], None
+        return g.draw_normals(RenderCamera.from_camera(cam, device="cuda"))
 
     res["held_out"] = held_out(capture, frame, args.downscale, draw,
                                background.cpu().numpy())
@@ -350,7 +413,8 @@ def main() -> int:
         return 2
     args.out.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="dgs-keyframe-"))
-    report: dict = {"device": torch.cuda.get_device_name() if dev != "cpu" else "cpu", "torch": torch.__version__,
+    report: dict = {"device": torch.cuda.get_device_name() if dev != "cpu" else "cpu",
+                    "torch": torch.__version__,
                     "cuda": torch.version.cuda, "steps": args.steps,
                     "downscale": args.downscale}
     t = time.perf_counter()
@@ -393,6 +457,8 @@ def main() -> int:
                  lambda tr=tr, name=name: host_syncs(tr.train_step, args.profile_steps,
                                                      args.out, name))
     ours = (report.get("ours") or {}).get("_trainer")
+    if ours is not None and ours.config.bake_ao:
+        part(report, args.out, "bake_parts", lambda: bake_parts(ours))
     if ours is not None and args.mesh_voxels:
         from core.config import MeshConfig
         from core.mesh.build import mesh_model
@@ -409,7 +475,7 @@ def main() -> int:
             return {**info, "wall_seconds": round(time.perf_counter() - t0, 2)}
         part(report, args.out, "mesh", mesh)
     print(json.dumps({k: v for k, v in report.items() if k.endswith("host_syncs")
-                      or k == "mesh"}, default=str), flush=True)
+                      or k in ("mesh", "bake_parts")}, default=str), flush=True)
     print(table(report), flush=True)
     return 0
 

@@ -24,7 +24,8 @@ from core.model import GaussianModel
 from core.render import RenderCamera, render
 from native import gaussian_rays, gaussian_visibility, trace_visibility
 
-__all__ = ["GaussianAOBaker", "init_visibility", "ao_map", "filter_torch", "scaled_camera"]
+__all__ = ["GaussianAOBaker", "init_visibility", "ao_map", "filter_torch", "map_scale",
+           "scaled_camera"]
 
 
 def scaled_camera(camera: RenderCamera, scale: float) -> RenderCamera:
@@ -35,6 +36,15 @@ def scaled_camera(camera: RenderCamera, scale: float) -> RenderCamera:
     K[0] *= sx  # rows, as core.data.Camera.scaled does
     K[1] *= sy
     return RenderCamera(camera.viewmat, K, w, h)
+
+
+def map_scale(camera: RenderCamera, config: AOConfig) -> float:
+    """The traced map's scale for `camera`: `config.scale`, lowered so the map has at most
+    `config.max_map_pixels` pixels."""
+    cap = config.max_map_pixels
+    if cap is None or camera.width * camera.height * config.scale ** 2 <= cap:
+        return config.scale
+    return math.sqrt(cap / (camera.width * camera.height))
 
 
 @torch.no_grad()
@@ -112,7 +122,7 @@ class _Origins:
 
 def _origins(model: GaussianModel, camera: RenderCamera, beta: float,
              config: AOConfig) -> _Origins:
-    small = scaled_camera(camera, config.scale)
+    small = scaled_camera(camera, map_scale(camera, config))
     r = render(model, small, sh_degree=0, beta=beta, geometry=True, tie_opacity=False)
     covered = r.alpha_g[..., 0] > config.min_alpha
     normal = torch.nn.functional.normalize(r.normal, dim=-1)

@@ -78,10 +78,13 @@ def check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, v
             raise ValueError(f"{name} must be contiguous (call .contiguous() on it)")
     _int("width", width)
     _int("height", height)
-    for name in ("viewmat", "K", "background"):  # a few numbers each: always
-        if name in named:
-            _finite(name, named[name])
-    _check_settings(beta, eps2d, near, far, K)
+    # A few numbers each: always on the CPU; on a GPU each read would stall the step (the host
+    # waits for the device), so there they are checked with the values (a loop's first render).
+    if values or device.type == "cpu":
+        for name in ("viewmat", "K", "background"):
+            if name in named:
+                _finite(name, named[name])
+    _check_settings(beta, eps2d, near, far, K if values or device.type == "cpu" else None)
     if values:
         _check_values(named, scales, opacity_c, opacity_g, quats, n)
 
@@ -99,13 +102,15 @@ def _check_values(named: dict[str, Tensor], scales: Tensor, opacity_c: Tensor,
         raise ValueError("quats contains a zero quaternion, which is no rotation")
 
 
-def _check_settings(beta, eps2d, near, far, K: Tensor) -> None:
+def _check_settings(beta, eps2d, near, far, K: Tensor | None) -> None:
     if not 0.0 <= float(beta) <= 1.0:
         raise ValueError(f"beta must lie in [0, 1], got {beta}")
     if not float(eps2d) >= 0.0:
         raise ValueError(f"eps2d must be >= 0, got {eps2d}")
     if not 0.0 < float(near) < float(far):
         raise ValueError(f"near and far must satisfy 0 < near < far, got near={near}, far={far}")
+    if K is None:
+        return
     fx, fy = float(K[0, 0].detach()), float(K[1, 1].detach())
     if not (fx > 0 and fy > 0):
         raise ValueError(f"K must have positive focal lengths, got fx={fx}, fy={fy}")

@@ -177,6 +177,10 @@ class AOConfig:
     """Rays per point, over the Fibonacci hemisphere about its normal."""
     scale: Annotated[float, Field(gt=0, le=1)] = 0.25
     """Resolution of the traced maps relative to the training views."""
+    max_map_pixels: Annotated[int, Field(ge=256, le=2**24)] | None = 65_536
+    """At most this many pixels in a view's traced map: larger views trace at a lower scale
+    (AO is smooth; the joint bilateral filter restores full resolution along the normals).
+    None: `scale` alone."""
     min_alpha: Annotated[float, Field(gt=0, lt=1)] = 0.5
     """Pixels whose geometry coverage is below this are background (AO 1)."""
     offset_pixels: Annotated[float, Field(ge=0, le=100)] = 0.5

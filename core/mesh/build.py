@@ -22,6 +22,7 @@ import time
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from torch import Tensor
 
 from core.color import linear_to_srgb
 from core.config import MeshConfig
@@ -86,27 +87,49 @@ def _fuse(model, cameras, settings, config: MeshConfig, lo, hi, voxel, device) -
     return vol
 
 
+def _project(cam, pts: Tensor) -> tuple[Tensor, Tensor]:
+    """`core.data.Camera.project` in torch on `pts`' device (float64): pixels (N, 2), depth."""
+    R = torch.as_tensor(np.asarray(cam.R), dtype=pts.dtype, device=pts.device)
+    t = torch.as_tensor(np.asarray(cam.t), dtype=pts.dtype, device=pts.device)
+    c = pts @ R.T + t
+    z = c[:, 2]
+    x, y = c[:, 0] / z, c[:, 1] / z
+    if cam.distortion is not None:
+        k1, k2, p1, p2, k3 = (float(v) for v in cam.distortion)
+        r2 = x * x + y * y
+        radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
+        x, y = (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
+                y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
+    K = np.asarray(cam.K, np.float64)
+    return torch.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], 1), z
+
+
 @torch.no_grad()
 def vertex_colors(mesh, model, cameras, settings, *, voxel: float, alpha_threshold: float,
                   linear_capture: bool) -> np.ndarray:
-    """(V, 4) uint8 sRGB colours (see module doc)."""
-    verts = np.asarray(mesh.vertices, np.float64)
-    normals = np.asarray(mesh.vertex_normals, np.float64)
-    acc, wsum = np.zeros((len(verts), 3)), np.zeros(len(verts))
+    """(V, 4) uint8 sRGB colours (see module doc), computed where the model lives."""
+    dev = model.device
+    verts_np = np.asarray(mesh.vertices, np.float64)
+    verts = torch.from_numpy(verts_np).to(dev)
+    normals = torch.from_numpy(np.array(mesh.vertex_normals, np.float64)).to(dev)
+    acc = torch.zeros(len(verts), 3, dtype=torch.float64, device=dev)
+    wsum = torch.zeros(len(verts), dtype=torch.float64, device=dev)
     for cam in cameras:
         r = _render(model, cam, settings, settings.beta)
-        rgb = safe_divide(r.rgb, r.alpha_c).clamp(0, 1).cpu().numpy()
-        depth, cover = r.depth[..., 0].cpu().numpy(), r.alpha_g[..., 0].cpu().numpy()
-        uv, z = cam.project(verts)
-        u, v = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
+        rgb = safe_divide(r.rgb, r.alpha_c).clamp(0, 1).double()
+        depth, cover = r.depth[..., 0].double(), r.alpha_g[..., 0].double()
+        uv, z = _project(cam, verts)
+        u, v = torch.floor(uv[:, 0]), torch.floor(uv[:, 1])
         ok = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
-        uc, vc = np.clip(u, 0, cam.width - 1), np.clip(v, 0, cam.height - 1)
-        tol = np.maximum(3 * voxel, 0.01 * z)
-        ok &= (cover[vc, uc] > alpha_threshold) & (np.abs(depth[vc, uc] - z) < tol)
-        to_cam = cam.center[None] - verts
-        w = np.clip((normals * to_cam).sum(1) / np.linalg.norm(to_cam, axis=1), 0, 1) * ok
+        uc = u.nan_to_num(0).clamp(0, cam.width - 1).long()
+        vc = v.nan_to_num(0).clamp(0, cam.height - 1).long()
+        tol = (0.01 * z).clamp_min(3 * voxel)
+        ok &= (cover[vc, uc] > alpha_threshold) & ((depth[vc, uc] - z).abs() < tol)
+        to_cam = torch.as_tensor(np.asarray(cam.center), device=dev)[None] - verts
+        w = ((normals * to_cam).sum(1) / to_cam.norm(dim=1)).clamp(0, 1) * ok
         acc += rgb[vc, uc] * w[:, None]
         wsum += w
+    acc, wsum, verts = acc.cpu().numpy(), wsum.cpu().numpy(), verts_np
     colors = acc / np.maximum(wsum, 1e-12)[:, None]
     unseen = wsum <= 1e-6
     if unseen.any():

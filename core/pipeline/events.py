@@ -8,7 +8,13 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
+import torch
+
+from core.metrics import psnr_of_mse
 from core.training import Callback, CheckpointCallback, FrameFitter, StepInfo
+
+LOSS_EVERY = 10
+"""Steps between the loss a step event carries (reading it waits for the device)."""
 
 __all__ = ["History", "Hooks", "Progress", "Stopped"]
 
@@ -56,15 +62,42 @@ class Stopped(Exception):
 
 
 class History(Callback):
-    """Per-step records for metrics.json and the plots (survives resume via the checkpoint)."""
+    """Per-step records for metrics.json and the plots (survives resume via the checkpoint).
+    A step's numbers stay on the device until `records` is read or `every` steps have
+    gathered: then all of them come back in one read (a GPU step never waits for the host)."""
 
-    def __init__(self) -> None:
-        self.records: list[dict] = []
+    def __init__(self, every: int = 100) -> None:
+        self._records: list[dict] = []
+        self._pending: list[StepInfo] = []
+        self.every = every
+
+    @property
+    def records(self) -> list[dict]:
+        self._flush()
+        return self._records
+
+    @records.setter
+    def records(self, value: list[dict]) -> None:
+        self._pending, self._records = [], list(value)
 
     def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
-        self.records.append({"step": info.step, "stage": info.plan.stage,
-                             "gaussians": info.n_gaussians, "psnr": info.psnr,
-                             "seconds": info.seconds, **info.losses})
+        self._pending.append(info)
+        if len(self._pending) >= self.every:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._pending:
+            return
+        values = [v for i in self._pending for v in
+                  ([] if i.mse is None else [i.mse]) + list(i.terms.values())]
+        flat = iter(torch.stack(values).tolist())
+        for i in self._pending:
+            mse = None if i.mse is None else next(flat)
+            self._records.append({"step": i.step, "stage": i.plan.stage,
+                                  "gaussians": i.n_gaussians,
+                                  "psnr": None if mse is None else psnr_of_mse(mse),
+                                  "seconds": i.seconds, **{k: next(flat) for k in i.terms}})
+        self._pending = []
 
 
 class Hooks(Callback):
@@ -96,7 +129,9 @@ class Hooks(Callback):
         self.emit("frame_start", trainer)
 
     def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
-        self.stage, self.loss = info.plan.stage, info.losses["total"]
+        self.stage = info.plan.stage
+        if info.step % LOSS_EVERY == 0 or trainer.step >= trainer.iterations:
+            self.loss = info.losses["total"]  # a read-back: not every step
         self.emit("step", trainer)
         last = trainer.step >= trainer.iterations
         if self.should_stop is not None and not last and self.should_stop():

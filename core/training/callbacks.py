@@ -7,9 +7,14 @@ import os
 import sys
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, TextIO
 
+import torch
+from torch import Tensor
+
+from core.metrics import psnr_of_mse
 from core.stages import StagePlan
 
 if TYPE_CHECKING:
@@ -20,16 +25,30 @@ __all__ = ["Callback", "CheckpointCallback", "ProgressCallback", "StepInfo"]
 
 @dataclass
 class StepInfo:
-    """What a callback sees after each step."""
+    """What a callback sees after each step. The step's numbers stay where they were computed
+    (on a GPU, the device) until a callback reads `losses` or `psnr`: a step never waits for
+    the device unless someone looks (a progress line every N steps, `History` in batches)."""
 
     step: int
     plan: StagePlan
-    losses: dict[str, float]
+    terms: dict[str, Tensor]
+    """The loss terms and their "total", 0-dim tensors."""
     n_gaussians: int
     seconds: float
-    psnr: float | None = None
-    """PSNR (dB) of this step's training render against its target, both on the configured
-    background (comparable between steps whatever the step's random background)."""
+    """Host seconds of the step (on a GPU: its launches, not its device time)."""
+    mse: Tensor | None = None
+    """Mean squared error of this step's training render against its target, both on the
+    configured background (comparable between steps whatever the step's random background)."""
+
+    @cached_property
+    def losses(self) -> dict[str, float]:
+        """The terms as floats (one read-back for all)."""
+        return dict(zip(self.terms, torch.stack(list(self.terms.values())).tolist()))
+
+    @cached_property
+    def psnr(self) -> float | None:
+        """PSNR (dB) of `mse`."""
+        return None if self.mse is None else psnr_of_mse(float(self.mse))
 
 
 class Callback:

@@ -141,12 +141,12 @@ class FrameFitter:
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.after_step(r, index, p)
-        losses = {k: float(v.detach()) for k, v in terms.items()}
-        losses["total"] = float(total.detach())
+        values = {k: v.detach() for k, v in terms.items()}
+        values["total"] = total.detach()
         # The render in front of the configured background: rgb = blend + (1 - alpha_c) bg.
         on_config = r.rgb.detach() + (1 - r.alpha_c.detach()) * (self.background - bg)
-        info = StepInfo(self.step, p, losses, len(self.model), time.perf_counter() - start,
-                        psnr(on_config, self.target(index)))
+        mse = (on_config - self.target(index)).square().mean()
+        info = StepInfo(self.step, p, values, len(self.model), time.perf_counter() - start, mse)
         self.step += 1
         return info
 

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from core.ao import _filter, ao_map, filter_torch, init_visibility, scaled_camera
+from core.ao import _filter, ao_map, filter_torch, init_visibility, map_scale, scaled_camera
 from core.config import AOConfig
 from core.config import LearningRates
 from core.model import GaussianModel
@@ -141,3 +141,16 @@ def test_torch_joint_bilateral_filter_is_opencvs(shape, sigmas):
     ref = _filter(ao, guide, cfg)
     out = filter_torch(torch.from_numpy(ao), torch.from_numpy(guide), cfg).numpy()
     assert np.abs(out - ref).max() < 1e-5
+
+
+def test_large_views_trace_a_map_of_at_most_max_map_pixels():
+    K = torch.tensor([[1000.0, 0, 960], [0, 1000.0, 540], [0, 0, 1]])
+    big = RenderCamera(torch.eye(4), K, 1920, 1080)
+    small = RenderCamera(torch.eye(4), K, 64, 48)
+    cfg = AOConfig(scale=0.25, max_map_pixels=65_536)
+    s = map_scale(big, cfg)
+    assert s < 0.25 and abs(1920 * 1080 * s * s - 65_536) < 1
+    cam = scaled_camera(big, s)
+    assert cam.width * cam.height <= 65_536 * 1.01
+    assert map_scale(small, cfg) == 0.25  # small views keep the configured scale
+    assert map_scale(big, AOConfig(scale=0.25, max_map_pixels=None)) == 0.25
