@@ -16,7 +16,7 @@ from service.app import create_app
 from service.auth import BindRefused, check_bind, has_active_key
 from service.settings import ServiceSettings
 from worker.db import migrate
-from worker.supervise import EmbeddedWorker, make_sweeper, worker_env
+from worker.supervise import EmbeddedWorker, make_sweeper, stop_all, worker_env
 
 __all__ = ["serve"]
 
@@ -58,8 +58,7 @@ def serve(settings: ServiceSettings, *, worker: bool = True, workers: int = 1) -
     finally:
         signal.signal(signal.SIGTERM, previous)
         sweeper.stop()
-        for each in embedded:
-            each.stop()
+        stop_all(embedded)
     return 0
 
 

@@ -27,7 +27,7 @@ from worker.store import JobStore
 from worker.sweeper import Sweeper
 
 __all__ = ["EmbeddedWorker", "job_sender", "make_sweeper", "run_gpu_workers", "run_worker",
-           "worker_env"]
+           "stop_all", "worker_env"]
 
 log = logging.getLogger("dgs.worker")
 
@@ -238,6 +238,14 @@ def run_gpu_workers(gpus: list[str], args: list[str]) -> int:
     log.info("%d workers, one per GPU (%s); logs in %s", len(gpus), ", ".join(gpus),
              settings.data_dir / "logs")
     done.wait()
-    for worker in workers:
-        worker.stop(grace=60.0)
+    stop_all(workers, grace=60.0)
     return 0
+
+
+def stop_all(workers: list[EmbeddedWorker], grace: float = 10.0) -> None:
+    """Stop every worker at once (each gets `grace` seconds for its warm shutdown)."""
+    threads = [threading.Thread(target=w.stop, args=(grace,)) for w in workers]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
