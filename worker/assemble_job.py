@@ -40,6 +40,7 @@ class AssembleJob:
         run = self.runner.settings.scratch / "jobs" / self.job.id / "run"
         shutil.rmtree(run, ignore_errors=True)  # what an assembler lost before left
         self.link.update(fraction=1 - 2 * PUBLISH_SHARE, stage="assembling",
+                         frame=self.job.frames, frames=self.job.frames,
                          message=f"{self.job.parts} parts")
         records = self._fetch(run)
         metrics = assemble(run, records)
