@@ -165,6 +165,16 @@ class PartOps:
             self._state_event(s, parent)  # type: ignore[attr-defined]
             return parent, parts
 
+    @staticmethod
+    def _lock(s: Session, job_id: str) -> Job | None:
+        """The job's row locked; a part's parent is locked first, so that every transaction
+        that locks both (a part's claim or end, a cancel of its job) takes them in the same
+        order and none waits for another in a cycle (PostgreSQL)."""
+        parent_id = s.scalar(select(Job.parent_id).where(Job.id == job_id))
+        if parent_id is not None:
+            s.get(Job, parent_id, with_for_update=True)
+        return s.get(Job, job_id, with_for_update=True)
+
     def _roll_up(self, s: Session, part: Job) -> None:
         """After a part ended: end the parent when none of its parts is left to run, or make it
         wait for its assembly when every part succeeded."""

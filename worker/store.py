@@ -205,7 +205,7 @@ class JobStore(PartOps):
         """Take the job's lease (and count an attempt) unless a live worker holds it."""
         now = utcnow()
         with self.session() as s:
-            job = s.get(Job, job_id, with_for_update=True)
+            job = self._lock(s, job_id)
             if job is None:
                 return Claim("missing")
             if job.state in TERMINAL:
@@ -267,7 +267,7 @@ class JobStore(PartOps):
                error: dict[str, Any] | None = None, message: str = "") -> bool:
         """End the job (only its lease holder may); False when the lease was lost."""
         with self.session() as s:
-            job = s.get(Job, job_id, with_for_update=True)
+            job = self._lock(s, job_id)
             if job is None or job.lease_owner != str(owner):
                 return False
             self._finish(s, job, state, error, message)
