@@ -1,6 +1,6 @@
 """The last step of a reconstruction run as parts (docs/design.md 4.4): once every part has
-succeeded, the parent job itself is sent to a worker, which rebuilds the run directory from the
-parts' published frames and records (jobs/<id>/artifacts/, jobs/<id>/parts/<index>/), merges
+succeeded, the worker that ran the last one (or, if it is lost, whichever worker a sweeper
+sends the job to) rebuilds the run directory from the parts' published frames and records (jobs/<id>/artifacts/, jobs/<id>/parts/<index>/), merges
 them (`core.pipeline.assemble`: metrics.json, sequence.json, plots), evaluates every frame
 (eval.json, contact sheet) and publishes what is new. It runs under the parent's own lease, so a
 worker lost while assembling is replaced like any other."""

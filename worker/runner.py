@@ -12,7 +12,6 @@ import shutil
 import signal
 import threading
 import traceback
-from collections.abc import Callable
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -86,13 +85,11 @@ class Runner:
     """Runs jobs from the job store with the settings' storage."""
 
     def __init__(self, settings: WorkerSettings, store: JobStore | None = None,
-                 blobs: BlobStore | None = None, send: Callable[[str], None] | None = None):
+                 blobs: BlobStore | None = None):
         set_default_max_pixels(settings.max_image_pixels)  # every image core decodes here
         if settings.torch_threads is not None:  # N workers on one machine share its cores
             torch.set_num_threads(settings.torch_threads)
-        self.settings, self.send = settings, send
-        """`send(job_id)` hands a job to the broker: a parted job once its last part has
-        succeeded (without it, the sweeper sends it at its next pass)."""
+        self.settings = settings
         self.store = store or JobStore(settings.database)
         self.blobs = blobs or open_store(settings.storage, endpoint_url=settings.s3_endpoint_url,
                                          region=settings.s3_region)
@@ -120,17 +117,17 @@ class Runner:
         if outcome.status in ("succeeded", "failed", "cancelled"):
             shutil.rmtree(job_folder(s.scratch, job_id), ignore_errors=True)
         if outcome.status == "succeeded" and claim.job.parent_id is not None:
-            self._send_assembly(claim.job.parent_id)
+            self._assemble(claim.job.parent_id)
         return outcome
 
-    def _send_assembly(self, parent_id: str) -> None:
-        """The last part of a parted job has succeeded: send the job for its assembly."""
+    def _assemble(self, parent_id: str) -> None:
+        """The last part of a parted job has succeeded here: assemble the job at once, in this
+        process (no round trip through the broker), under the job's own claim and lease. If
+        this worker dies meanwhile, the job's lease lapses and a sweeper sends it to another;
+        if a sweeper sent it already and another worker took it, the claim says so."""
         parent = self.store.get(parent_id)
-        if (self.send is None or parent is None or parent.stage != "assembling"
-                or parent.lease_owner is not None or parent.dispatched_at is not None):
-            return
-        if self.store.mark_dispatched(parent_id):
-            self.send(parent_id)
+        if parent is not None and parent.stage == "assembling" and parent.lease_owner is None:
+            self.run(parent_id)
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
         pipeline = get_pipeline(job.pipeline)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 
 from worker.app import app
-from worker.celery_app import TASK_NAME, dispatch
+from worker.celery_app import TASK_NAME
 from worker.settings import get_settings
 
 __all__ = ["run_job"]
@@ -22,9 +22,7 @@ def run_job(job_id: str) -> str:
     # forks the child that runs this task
     from worker.runner import Runner
 
-    settings = get_settings()
-    outcome = Runner(settings, send=lambda job: dispatch(app, settings, job, "reconstruct")
-                     ).run(job_id)
+    outcome = Runner(get_settings()).run(job_id)
     if outcome.note:
         log.info("job %s: %s", job_id, outcome.note)
     return outcome.status
