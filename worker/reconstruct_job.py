@@ -146,8 +146,11 @@ class ReconstructJob:
                     link.log(f"frame {event.frame}: {note}")
             elif event.kind == "step" and event.step // 100 != last_logged[0]:
                 last_logged[0] = event.step // 100
+                # The loss is read back every few steps only (core.pipeline.events), so a
+                # resumed frame's first steps may have none yet.
+                loss = "-" if event.loss is None else f"{event.loss:.4f}"
                 link.log(f"frame {event.frame} step {event.step}/{event.iterations} stage "
-                         f"{event.stage} loss {event.loss:.4f} gaussians {event.gaussians}")
+                         f"{event.stage} loss {loss} gaussians {event.gaussians}")
             elif event.kind == "checkpoint":
                 self._save_state(run, Path(event.path))
             elif event.kind == "frame_done":
