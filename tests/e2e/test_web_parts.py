@@ -48,8 +48,11 @@ def _until(driver, what: str, predicate, timeout: float = 120):
 
 
 def _cells(driver) -> list[tuple[str, str]]:
-    return [(c.get_attribute("class"), c.text)
-            for c in driver.find_elements(By.CSS_SELECTOR, "#job-parts .part")]
+    """(class, text) of each cell, read in one script: the strip is redrawn on every event, so
+    elements found one call earlier may be gone."""
+    return [tuple(c) for c in driver.execute_script(
+        "return [...document.querySelectorAll('#job-parts .part')]"
+        ".map((c) => [c.className, c.textContent]);")]
 
 
 def test_the_page_shows_a_strip_of_parts(tmp_path):
