@@ -35,8 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 VARIANTS = ("sequential", "independent", "no-temporal", "no-anisotropy")
 # The group-boundary study (issue 22): the refine budget drawn on the whole run instead of
-# each group, and key frames trained longer (key_steps x the schedule).
-STUDY = ("run-budget", "key-1.5", "key-2")
+# each group, and key frames trained for key_steps x the schedule (the default is 2: key-1 is
+# the plain schedule, as before 2026-11-26).
+STUDY = ("run-budget", "key-1", "key-1.5", "key-2")
 
 
 def _schedule(iterations: int) -> dict:
