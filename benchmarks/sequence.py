@@ -183,9 +183,11 @@ def main(argv: list[str] | None = None) -> int:
         b = (results.get(v) or {}).get("boundaries")
         if b and b["count"]:
             r = results[v]
+            inside = r["largest_drop_db"]  # None: no group has two frames
+            ratio = b["flicker_ratio"]
             print(f"| {v} | {b['count']} | {b['largest_psnr_drop']:.2f} | "
-                  f"{r['largest_drop_db']:.2f} | {b['flicker']:.4f} / {b['flicker_inside']:.4f}"
-                  f" ({b['flicker_ratio']:.2f}x) |")
+                  f"{'-' if inside is None else f'{inside:.2f}'} | {b['flicker']:.4f} / "
+                  f"{b['flicker_inside'] or 0:.4f} ({'-' if ratio is None else f'{ratio:.2f}'}x) |")
     return 0
 
 
