@@ -35,8 +35,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 VARIANTS = ("sequential", "independent", "no-temporal", "no-anisotropy")
 # The group-boundary study (issue 22): the refine budget drawn on the whole run instead of
-# each group, and key frames trained longer (key_steps x the schedule).
-STUDY = ("run-budget", "key-1.5", "key-2")
+# each group, and key frames trained for key_steps x the schedule (the default is 2: key-1 is
+# the plain schedule, as before 2026-11-26).
+STUDY = ("run-budget", "key-1", "key-1.5", "key-2")
 
 
 def _schedule(iterations: int) -> dict:
@@ -182,9 +183,11 @@ def main(argv: list[str] | None = None) -> int:
         b = (results.get(v) or {}).get("boundaries")
         if b and b["count"]:
             r = results[v]
+            inside = r["largest_drop_db"]  # None: no group has two frames
+            ratio = b["flicker_ratio"]
             print(f"| {v} | {b['count']} | {b['largest_psnr_drop']:.2f} | "
-                  f"{r['largest_drop_db']:.2f} | {b['flicker']:.4f} / {b['flicker_inside']:.4f}"
-                  f" ({b['flicker_ratio']:.2f}x) |")
+                  f"{'-' if inside is None else f'{inside:.2f}'} | {b['flicker']:.4f} / "
+                  f"{b['flicker_inside'] or 0:.4f} ({'-' if ratio is None else f'{ratio:.2f}'}x) |")
     return 0
 
 

@@ -25,9 +25,12 @@ class SequenceConfig:
 
     enabled: bool = True
     """Deform + refine the frames after each group's first; off: every frame is a key frame."""
-    key_steps: Annotated[float, Field(ge=0.1, le=10)] = 1.0
-    """A group's key frame trains this many times the schedule's iterations (every step
-    count of the schedule scaled); tracked frames' steps stay fractions of the nominal."""
+    key_steps: Annotated[float, Field(ge=0.1, le=10)] = 2.0
+    """A group of several frames starts from a key frame trained this many times the
+    schedule's iterations (every step count scaled; a frame alone keeps the schedule);
+    tracked frames' steps stay fractions of the nominal. 2: the key frame is no longer the
+    weakest of its group, so a boundary between groups drops no more than a tracked frame
+    (docs/design.md 5.9)."""
     deform_fraction: Share = 0.2
     """Deform-stage steps per frame, as a fraction of a key frame's iterations."""
     refine_fraction: Share = 0.28

@@ -130,7 +130,8 @@ class Hooks(Callback):
 
     def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
         self.stage = info.plan.stage
-        if info.step % LOSS_EVERY == 0 or trainer.step >= trainer.iterations:
+        if self.loss is None or info.step % LOSS_EVERY == 0 \
+                or trainer.step >= trainer.iterations:
             self.loss = info.losses["total"]  # a read-back: not every step
         self.emit("step", trainer)
         last = trainer.step >= trainer.iterations

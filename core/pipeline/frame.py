@@ -51,8 +51,10 @@ def _fitter(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None,
             callbacks: list[Callback]) -> FrameFitter:
     cfg = job.cfg
     if inputs is None:
-        train = cfg.train.stretched(cfg.sequence.key_steps) if cfg.sequence.enabled \
-            else cfg.train
+        # A group's key frame starts what its tracked frames inherit: it trains longer
+        # (sequence.key_steps); a frame alone, or every frame a key frame, does not.
+        grouped = cfg.sequence.enabled and role.size > 1
+        train = cfg.train.stretched(cfg.sequence.key_steps) if grouped else cfg.train
         return Trainer.from_capture(job.capture, role.frame, train, callbacks=callbacks,
                                     downscale=cfg.downscale)
     return tracker_for(job.capture, role.frame, job.run, inputs, cfg.train, cfg.sequence,

@@ -42,6 +42,8 @@ class FrameRole:
     """Position inside the group (0: the key frame)."""
     previous: str | None
     """The frame it is deformed from (None for a key frame)."""
+    size: int = 1
+    """Frames in its group."""
 
     @property
     def key(self) -> bool:
@@ -60,7 +62,7 @@ def segment(frames: Sequence[str], gop: int) -> list[Gop]:
 
 def roles(frames: Sequence[str], gop: int) -> list[FrameRole]:
     """Every frame's role, in order (`gop` 1: every frame a key frame)."""
-    return [FrameRole(frame, g.index, p, g.frames[p - 1] if p else None)
+    return [FrameRole(frame, g.index, p, g.frames[p - 1] if p else None, len(g.frames))
             for g in segment(frames, gop) for p, frame in enumerate(g.frames)]
 
 

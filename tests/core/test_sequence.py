@@ -289,7 +289,8 @@ def test_three_frames_stop_twice_and_resume_to_the_straight_result(capture3, tmp
     straight_metrics = _reconstruct(capture3, straight, on_progress=events.append)
     # Cost in rendered images: D steps of 2 views (the default) and R steps of one.
     assert straight_metrics["frames"]["000001"]["renders"] == 10 * 2 + 11
-    assert straight_metrics["frames"]["000000"]["renders"] == 40
+    # The group's key frame trains sequence.key_steps (2) times the schedule's 40 steps.
+    assert straight_metrics["frames"]["000000"]["renders"] == 2 * 40
     # The third frame chooses its start among rest and the first two frames' motion continued
     # at the candidate dampings (the second frame has no motion to go on).
     starts = [straight_metrics["frames"][f]["start"] for f in ("000001", "000002")]
