@@ -21,6 +21,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "~/.local/share/dgs)")
     p.add_argument("--no-worker", action="store_true",
                    help="do not start the embedded worker (run `dgs worker` yourself)")
+    p.add_argument("--workers", type=int, default=1, metavar="N",
+                   help="embedded workers (default 1): a sequence's groups of pictures run on "
+                        "N at once, each with the cores divided by N")
     p.set_defaults(func=_serve)
 
     k = sub.add_parser("keys", help="create, list and revoke API keys")
@@ -88,7 +91,10 @@ def _serve(args: argparse.Namespace) -> int:
     # lazy: `dgs` starts without the service extra installed
     from service.serve import serve
 
-    return serve(_settings(args), worker=not args.no_worker)
+    if args.workers < 1:
+        print(f"dgs serve: --workers: expected at least 1, got {args.workers}", file=sys.stderr)
+        return 2
+    return serve(_settings(args), worker=not args.no_worker, workers=args.workers)
 
 
 def _database(args: argparse.Namespace) -> str:

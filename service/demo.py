@@ -28,6 +28,7 @@ import httpx
 
 from core.evaluation import evaluate_run
 from service.client import Client
+from service.client.bars import JobBars
 from service.settings import ServiceSettings
 
 __all__ = ["DemoServer", "ProgressBar", "run_service_demo"]
@@ -158,16 +159,11 @@ def _upload(client, capture_dir: Path) -> dict:
 
 
 def _follow(client, job_id: str, server: DemoServer) -> dict:
-    bar = ProgressBar()
-
-    def on_event(event) -> None:
-        if event.kind in ("progress", "state") and "fraction" in event.data:
-            bar.update(event.data)
-
+    bars = JobBars()  # the job's bar, and one per running part of a sequence run as parts
     try:
-        job = client.wait(job_id, on_event=on_event)
+        job = client.wait(job_id, on_event=bars.on_event)
     finally:
-        bar.close()
+        bars.close()
     if job["state"] != "succeeded":
         error = (job.get("error") or {}).get("message", "")
         tail = "\n".join(client.logs(job_id)[-15:])

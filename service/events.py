@@ -1,7 +1,8 @@
 """A job's progress as server-sent events (text/event-stream).
 
-Each event is a JobEvent row: `id:` its id, `event:` its kind (state, progress, artifact),
-`data:` JSON. A new stream starts with the job's current state (an event with the id of the
+Each event is a JobEvent row: `id:` its id, `event:` its kind (state, progress, artifact, and
+for a job run as parts `part`: {"part": index, "event": state or progress, ...} whenever a
+part changes, each batch of them followed by the job's overall progress), `data:` JSON. A new stream starts with the job's current state (an event with the id of the
 latest row, so a reconnect resumes after it); a reconnect with Last-Event-ID gets every event
 after that id and nothing twice. The stream polls the job store, sends a comment when idle so
 proxies keep it open, and ends after the event that reports a terminal state.
@@ -19,6 +20,7 @@ from sqlalchemy import func, select
 from starlette.concurrency import run_in_threadpool as run
 
 from worker.models import Job, JobEvent
+from worker.parts import overall_progress
 from worker.store import TERMINAL, JobStore, progress_of
 
 __all__ = ["format_event", "job_events", "snapshot"]
@@ -62,6 +64,12 @@ async def job_events(store: JobStore, job_id: str, last_id: int | None, *, poll:
             yield format_event(event.id, event.kind, event.data)
             if event.kind == "state" and event.data.get("state") in TERMINAL:
                 return
+        if job is not None and job.parts and any(e.kind == "part" for e in events):
+            # What the parts did, as the job's own progress (under the last part event's id:
+            # a reconnect after it misses nothing).
+            overall = overall_progress(job, await run(store.parts, job_id))
+            if overall:
+                yield format_event(last_id, "progress", {**progress_of(job), **overall})
         if job is None or (job.state in TERMINAL and not events):
             return
         if events:

@@ -29,7 +29,7 @@ def get_capture(store: JobStore, capture_id: str, tenant: str) -> Capture:
 
 def get_job(store: JobStore, job_id: str, tenant: str) -> Job:
     job = store.get(job_id, tenant)
-    if job is None:
+    if job is None or job.parent_id is not None:  # a part is reached through its job
         raise missing("job", job_id)
     return job
 

@@ -15,7 +15,8 @@ from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJ
 __all__ = [
     "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
     "CaptureItem", "CaptureOut", "CapturePage", "CaptureSummary", "ExportIn", "FileOut", "FilePage",
-    "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut", "JobPage", "JobState",
+    "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut",
+    "PartOut", "JobPage", "JobState",
     "LightIn", "LimitsOut", "LogsOut", "ManifestFileIn", "ManifestIn", "ManifestPatchIn", "PipelineOut",
     "ProgressOut", "ReadyOut", "RenderIn", "TusOut", "manifest_entries",
 ]
@@ -154,6 +155,25 @@ class ProgressOut(BaseModel):
     message: str
 
 
+class PartOut(BaseModel):
+    """One part of a sequence job run as parts (one group of pictures, docs/design.md 4.4)."""
+
+    index: int = Field(description="The group of pictures (0-based).")
+    frames: list[str] = Field(description="Its frames in order; the first is its key frame.")
+    state: JobState
+    worker: str | None = Field(description="host/pid of the worker running it (while running).")
+    attempts: int
+    stage: str
+    frame: int = Field(description="Its frame being made (1-based, within the part).")
+    iteration: int
+    iterations: int
+    fraction: float = Field(description="0..1 of the part; never decreases.")
+    eta_s: float | None
+    started_at: dt.datetime | None
+    finished_at: dt.datetime | None
+    error: ErrorInfo | None
+
+
 class JobOut(BaseModel):
     id: str
     name: str
@@ -172,6 +192,10 @@ class JobOut(BaseModel):
     started_at: dt.datetime | None
     finished_at: dt.datetime | None
     expires_at: dt.datetime | None
+    parts: list[PartOut] | None = Field(None, description=(
+        "A sequence reconstruction of several groups of pictures runs as parts, one per group, "
+        "on any idle workers; then progress is over all of them (the ETA from their measured "
+        "rates) and this lists each. null for a job that runs as one."))
     links: dict[str, str]
 
 

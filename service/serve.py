@@ -16,15 +16,16 @@ from service.app import create_app
 from service.auth import BindRefused, check_bind, has_active_key
 from service.settings import ServiceSettings
 from worker.db import migrate
-from worker.supervise import EmbeddedWorker, make_sweeper
+from worker.supervise import EmbeddedWorker, make_sweeper, stop_all, worker_env
 
 __all__ = ["serve"]
 
 log = logging.getLogger("dgs.service")
 
 
-def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
-    """Run until interrupted; 2 when the bind is refused (see service.auth.check_bind)."""
+def serve(settings: ServiceSettings, *, worker: bool = True, workers: int = 1) -> int:
+    """Run until interrupted; 2 when the bind is refused (see service.auth.check_bind).
+    `workers` embedded workers share the machine's cores (`worker.supervise.worker_env`)."""
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     migrate(settings.database)
     try:
@@ -37,10 +38,14 @@ def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
 
     sweeper = make_sweeper(services.celery, settings, store=services.store,
                            blobs=services.blobs).start()
-    embedded = None
+    embedded = []
     if worker and settings.embedded_broker:
-        embedded = EmbeddedWorker(settings).start()
-    _announce(settings, embedded is not None)
+        # worker.log, worker-2.log, ...
+        embedded = [EmbeddedWorker(settings, worker_env(settings, i, workers) if workers > 1
+                                   else None,
+                                   log_name="worker.log" if i == 0 else f"worker-{i + 1}.log"
+                                   ).start() for i in range(workers)]
+    _announce(settings, len(embedded))
     # Uvicorn shuts down gracefully on SIGTERM, then raises the signal again with the handler
     # it found installed: this one, so the embedded worker is stopped below instead of being
     # left running without its server.
@@ -53,8 +58,7 @@ def serve(settings: ServiceSettings, *, worker: bool = True) -> int:
     finally:
         signal.signal(signal.SIGTERM, previous)
         sweeper.stop()
-        if embedded is not None:
-            embedded.stop()
+        stop_all(embedded)
     return 0
 
 
@@ -66,11 +70,12 @@ def _stopped(signum, frame) -> None:
     raise _Stopped
 
 
-def _announce(settings: ServiceSettings, worker: bool) -> None:
+def _announce(settings: ServiceSettings, worker: int) -> None:
     keys = ("API keys required" if has_active_key(settings.database)
             else "no API keys exist: requests run as tenant 'local' (loopback only)")
     if worker:
-        workers = f"one embedded worker (log: {settings.data_dir / 'logs' / 'worker.log'})"
+        workers = (f"{'one embedded worker' if worker == 1 else f'{worker} embedded workers'} "
+                   f"(log: {settings.data_dir / 'logs' / 'worker.log'})")
     elif settings.embedded_broker:
         workers = "no worker (--no-worker): start `dgs worker` with the same DGS_DATA_DIR"
     else:

@@ -43,8 +43,8 @@ def create_key(data_dir: Path, tenant: str = "web") -> str:
 class LiveServer:
     """`dgs serve --port P` on `data_dir` until stop(); `url` once started."""
 
-    def __init__(self, data_dir: Path, log: Path, **env: str):
-        self.data_dir, self.log_path = data_dir, log
+    def __init__(self, data_dir: Path, log: Path, *args: str, **env: str):
+        self.data_dir, self.log_path, self.args = data_dir, log, args
         self.port = free_port()
         self.url = f"http://127.0.0.1:{self.port}"
         self.env = clean_env(data_dir, DGS_QUEUE=f"live-{self.port}", **env)
@@ -54,7 +54,8 @@ class LiveServer:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
         with open(self.log_path, "ab") as out:
             self.proc = subprocess.Popen(
-                [sys.executable, "-m", "core.cli", "serve", "--port", str(self.port)],
+                [sys.executable, "-m", "core.cli", "serve", "--port", str(self.port),
+                 *self.args],
                 cwd=ROOT, env=self.env, stdout=out, stderr=subprocess.STDOUT)
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
@@ -67,9 +68,10 @@ class LiveServer:
             time.sleep(0.3)
         raise AssertionError(f"dgs serve did not become ready:\n{self.log()}")
 
-    def wait_worker(self, timeout: float = 120.0) -> None:
-        """Until the embedded worker has connected (jobs would otherwise just wait queued)."""
-        log = self.data_dir / "logs" / "worker.log"
+    def wait_worker(self, timeout: float = 120.0, name: str = "worker.log") -> None:
+        """Until the embedded worker has connected (jobs would otherwise just wait queued);
+        `name`: its log (worker-2.log, ... for the others of `dgs serve --workers N`)."""
+        log = self.data_dir / "logs" / name
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             if log.is_file() and " ready." in log.read_text(errors="replace"):

@@ -5,6 +5,7 @@ whose worker was lost."""
 from __future__ import annotations
 
 import argparse
+import sys
 
 __all__ = ["register"]
 
@@ -17,12 +18,24 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--hostname", default=None, help="Celery node name (default dgs@<host>)")
     p.add_argument("--no-sweeper", action="store_true",
                    help="do not re-send jobs of lost workers from this process")
+    p.add_argument("--gpus", default=None, metavar="0,1,...",
+                   help="one worker per GPU on this machine (each sees only its GPU and its "
+                        "share of the cores; logs in <data_dir>/logs/worker-gpu<N>.log)")
     p.set_defaults(func=_worker)
 
 
 def _worker(args: argparse.Namespace) -> int:
     # lazy: `dgs` starts without the worker extra installed
-    from worker.supervise import run_worker
+    from worker.supervise import run_gpu_workers, run_worker
+
+    if args.gpus is not None:
+        gpus = [g.strip() for g in args.gpus.split(",") if g.strip()]
+        if not gpus or not all(g.isdigit() for g in gpus):
+            print(f"dgs worker: --gpus: expected GPU indices such as 0,1; got {args.gpus!r}",
+                  file=sys.stderr)
+            return 2
+        extra = [f"--loglevel={args.loglevel}"] + (["--no-sweeper"] if args.no_sweeper else [])
+        return run_gpu_workers(gpus, extra)
 
     return run_worker(concurrency=args.concurrency, loglevel=args.loglevel,
                       hostname=args.hostname, sweeper=not args.no_sweeper)

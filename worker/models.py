@@ -145,6 +145,15 @@ class Job(Base):
     deleted. Not a foreign key (see migration 0002): deleting a job is refused while a queued
     or running job needs it, and clears this field of the finished ones."""
     name: Mapped[str] = mapped_column(String(256), default="")
+    parent_id: Mapped[str | None] = mapped_column(String(32), index=True, default=None)
+    """A part (one group of pictures of a sequence job, docs/design.md 4.4): the sequence job
+    it belongs to; None for every other job. Not a foreign key (see migration 0003)."""
+    part_index: Mapped[int | None] = mapped_column(Integer, default=None)
+    """A part's group of pictures (0-based), the order of the parent's parts."""
+    part_frames: Mapped[list[Any] | None] = mapped_column(default=None)
+    """A part's frames, in order (the first is its key frame)."""
+    parts: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    """A sequence job run as parts: how many (0: the job runs as one)."""
     state: Mapped[str] = mapped_column(String(16), index=True)
     """queued | running | succeeded | failed | cancelled"""
     stage: Mapped[str] = mapped_column(String(64), default="queued")

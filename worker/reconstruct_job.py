@@ -10,6 +10,7 @@ resumes where a lost one stopped.
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -42,6 +43,12 @@ class ReconstructJob:
     def __init__(self, runner: Runner, job: Job, params: ReconstructParams, link: JobLink):
         self.runner, self.job, self.params, self.link = runner, job, params, link
         self.blobs = runner.blobs
+        self.part = job.parent_id is not None
+        """A part of a parted job (docs/design.md 4.4): its group's frames only, published
+        into the parent's artifacts; the parent's assembly evaluates and merges."""
+        self.owner = job.parent_id or job.id
+        """Whose artifacts the frames are."""
+        self.frames = list(job.part_frames or [])
 
     def run(self) -> None:
         capture = self.runner.capture(self.job, self.link)
@@ -50,6 +57,9 @@ class ReconstructJob:
             self._reconstruct(capture, run)
         except Stopped as exc:
             raise JobStopped(f"step {exc.step}") from exc
+        if self.part:
+            self._finish_part(run)
+            return
         self._evaluate(run, capture)
         self._publish_final(run)
 
@@ -64,7 +74,11 @@ class ReconstructJob:
         if state:
             self.link.log(f"restoring the run directory from the store ({len(state)} files)")
             self.runner.fetch(f"jobs/{job_id}/state", run)
-            self.runner.fetch(f"jobs/{job_id}/artifacts/frames", run / "frames")
+            if not self.part:
+                self.runner.fetch(f"jobs/{job_id}/artifacts/frames", run / "frames")
+            for frame in self.frames:  # a part's own frames (the others are other parts')
+                self.runner.fetch(f"jobs/{self.owner}/artifacts/frames/{frame}",
+                                  run / "frames" / frame)
         return run
 
     def _reconstruct(self, capture: Path, run: Path) -> None:
@@ -79,7 +93,8 @@ class ReconstructJob:
         reconstruct(capture, run, preset=params.preset, frames=params.frames, gop=params.gop,
                     overrides=overrides or None, resume=resume, progress=False,
                     model_files=self._model_files(run.parent),
-                    on_progress=self._on_progress(run), should_stop=link.should_stop)
+                    on_progress=self._on_progress(run), should_stop=link.should_stop,
+                    gops=[self.job.part_index] if self.part else None)
 
     def _model_files(self, work: Path) -> dict[str, Path]:
         """Where the models the configuration names are on this worker: an operator's
@@ -114,6 +129,9 @@ class ReconstructJob:
             step_share = TRAIN_SHARE * event.step / max(event.iterations, 1)
             if event.kind == "frame_done":
                 step_share = 1.0
+            if self.part:  # a part counts its own frames
+                event = replace(event, frame_index=self.frames.index(event.frame),
+                                frames=len(self.frames))
             fraction = (event.frame_index + step_share) / event.frames * (1 - PUBLISH_SHARE)
             stage = ("outputs" if event.step >= event.iterations else event.phase
                      if event.phase != "key" else STAGES.get(event.stage, ""))
@@ -128,13 +146,16 @@ class ReconstructJob:
                     link.log(f"frame {event.frame}: {note}")
             elif event.kind == "step" and event.step // 100 != last_logged[0]:
                 last_logged[0] = event.step // 100
+                # The loss is read back every few steps only (core.pipeline.events), so a
+                # resumed frame's first steps may have none yet.
+                loss = "-" if event.loss is None else f"{event.loss:.4f}"
                 link.log(f"frame {event.frame} step {event.step}/{event.iterations} stage "
-                         f"{event.stage} loss {event.loss:.4f} gaussians {event.gaussians}")
+                         f"{event.stage} loss {loss} gaussians {event.gaussians}")
             elif event.kind == "checkpoint":
                 self._save_state(run, Path(event.path))
             elif event.kind == "frame_done":
                 link.log(f"frame {event.frame} done")
-                self.runner.publish(self.job, run)
+                self.runner.publish(self.owner, run, frames=True if self.part else None)
                 self._save_state(run, None)
 
         return on_progress
@@ -167,5 +188,18 @@ class ReconstructJob:
         self.link.update(fraction=1 - PUBLISH_SHARE / 2, stage="publishing", message="")
         published = self.runner.publish(self.job, run)
         self.link.log(f"published {published} artifacts")
+        self.blobs.delete_prefix(f"jobs/{self.job.id}/state")
+        shutil.rmtree(run.parent, ignore_errors=True)
+
+    def _finish_part(self, run: Path) -> None:
+        """A part's end: its frames are published (each when it finished); its records and
+        the run's configuration go to jobs/<parent>/parts/<index>/ for the assembly, and its
+        resume state is dropped."""
+        self.link.update(fraction=1 - PUBLISH_SHARE / 2, stage="publishing", message="")
+        published = self.runner.publish(self.owner, run, frames=True)
+        for name in ("metrics.json", "config.json"):
+            self.blobs.put_file(f"jobs/{self.owner}/parts/{self.job.part_index}/{name}",
+                                run / name)
+        self.link.log(f"published {published} artifacts; part {self.job.part_index} done")
         self.blobs.delete_prefix(f"jobs/{self.job.id}/state")
         shutil.rmtree(run.parent, ignore_errors=True)

@@ -16,12 +16,14 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import torch
 from billiard.exceptions import SoftTimeLimitExceeded
 from pydantic import ValidationError
 
 from core.data.headers import set_default_max_pixels
 from core.files import sha256_file
 from core.rundir import classify
+from worker.assemble_job import AssembleJob
 from worker.blobs import BlobStore, open_store
 from worker.execution import Execution, JobStopped
 from worker.export_job import ExportJob
@@ -55,6 +57,8 @@ _DROPPED = {
     "terminal": "it has ended ({job.state}); this duplicate message is dropped",
     "missing": "it was deleted; its message is dropped",
     "exhausted": "its worker was lost {job.attempts} times; it failed (worker_lost)",
+    "waiting": "its parts are queued or running (it is assembled after them); this message "
+               "is dropped",
 }
 
 
@@ -83,6 +87,8 @@ class Runner:
     def __init__(self, settings: WorkerSettings, store: JobStore | None = None,
                  blobs: BlobStore | None = None):
         set_default_max_pixels(settings.max_image_pixels)  # every image core decodes here
+        if settings.torch_threads is not None:  # N workers on one machine share its cores
+            torch.set_num_threads(settings.torch_threads)
         self.settings = settings
         self.store = store or JobStore(settings.database)
         self.blobs = blobs or open_store(settings.storage, endpoint_url=settings.s3_endpoint_url,
@@ -110,11 +116,24 @@ class Runner:
             link.close()
         if outcome.status in ("succeeded", "failed", "cancelled"):
             shutil.rmtree(job_folder(s.scratch, job_id), ignore_errors=True)
+        if outcome.status == "succeeded" and claim.job.parent_id is not None:
+            self._assemble(claim.job.parent_id)
         return outcome
+
+    def _assemble(self, parent_id: str) -> None:
+        """The last part of a parted job has succeeded here: assemble the job at once, in this
+        process (no round trip through the broker), under the job's own claim and lease. If
+        this worker dies meanwhile, the job's lease lapses and a sweeper sends it to another;
+        if a sweeper sent it already and another worker took it, the claim says so."""
+        parent = self.store.get(parent_id)
+        if parent is not None and parent.stage == "assembling" and parent.lease_owner is None:
+            self.run(parent_id)
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
         pipeline = get_pipeline(job.pipeline)
         params = pipeline.params.model_validate(job.params)
+        if job.parts:  # a job run as parts: what is left of it is their assembly
+            return AssembleJob(self, job, params, link)
         kinds = {"reconstruct": ReconstructJob, "relight": RelightJob, "export": ExportJob}
         return kinds[pipeline.name](self, job, params, link)
 
@@ -218,10 +237,13 @@ class Runner:
         return out
 
     # -- outputs ------------------------------------------------------------------------------
-    def publish(self, job: Job, root: Path, prefix: str = "") -> int:
-        """Copy new or changed files under `root` to jobs/<id>/artifacts/<prefix><path> and
-        record them with their kind (what `classify` does not know, such as checkpoints, stays
-        out); returns how many were published."""
+    def publish(self, job: Job | str, root: Path, prefix: str = "", *,
+                frames: bool | None = None) -> int:
+        """Copy new or changed files under `root` to jobs/<id>/artifacts/<prefix><path> (`job`:
+        the job or its id) and record them with their kind (what `classify` does not know,
+        such as checkpoints, stays out); `frames` True publishes only the files of a frame,
+        False only the others. Returns how many were published."""
+        job_id = job if isinstance(job, str) else job.id
         published = 0
         for path in sorted(p for p in root.rglob("*") if p.is_file()):
             rel = prefix + path.relative_to(root).as_posix()
@@ -229,9 +251,11 @@ class Runner:
             stat = path.stat()
             if kind is None or self._published.get(rel) == (stat.st_size, stat.st_mtime_ns):
                 continue
+            if frames is not None and frames != (kind.frame is not None):
+                continue
             digest = sha256_file(path)
-            self.blobs.put_file(f"jobs/{job.id}/artifacts/{rel}", path)
-            self.store.add_artifact(job.id, rel, kind=kind.kind, size=stat.st_size,
+            self.blobs.put_file(f"jobs/{job_id}/artifacts/{rel}", path)
+            self.store.add_artifact(job_id, rel, kind=kind.kind, size=stat.st_size,
                                     sha256=digest, content_type=kind.content_type,
                                     frame=kind.frame)
             self._published[rel] = (stat.st_size, stat.st_mtime_ns)

@@ -92,6 +92,10 @@ class WorkerSettings(BaseSettings):
     """Largest image (width x height) the API and the workers decode: capture images, masks,
     normal maps and environment maps. Checked from the file's header before any decoding, so
     a 20000 x 20000 PNG is refused in microseconds (the default passes a 16384 x 8192 map)."""
+    torch_threads: int | None = Field(None, ge=1, le=1024)
+    """Threads a job's training uses (torch.set_num_threads); None leaves torch's default (every
+    core). `dgs serve --workers N` gives each embedded worker the machine's cores divided by N,
+    so N workers do not oversubscribe the cores."""
     retention_days: float | None = None
     """Default lifetime of captures, jobs and assets (expires_at); None keeps them until
     deleted. Expiry is shown on every object and logged when it happens."""

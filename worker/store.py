@@ -18,13 +18,14 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from sqlalchemy import func, select, update
+from sqlalchemy import exists, func, select, update
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, aliased
 
 from worker.db import session_scope
 from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
 from worker.owner import Owner
+from worker.parts import PartOps, part_event
 
 __all__ = [
     "ACTIVE",
@@ -50,10 +51,11 @@ def new_id(prefix: str) -> str:
 class Claim:
     """The outcome of `JobStore.claim`."""
 
-    status: Literal["claimed", "leased", "terminal", "missing", "exhausted"]
+    status: Literal["claimed", "leased", "terminal", "missing", "exhausted", "waiting"]
     """claimed: run it; leased: another live worker holds it (for `retry_in` more seconds,
     and longer while it renews); terminal: it finished or was cancelled meanwhile; missing:
-    deleted; exhausted: the redelivery cap was reached (the job is now failed)."""
+    deleted; exhausted: the redelivery cap was reached (the job is now failed); waiting: a
+    parted job whose parts are still queued or running (it is assembled after them)."""
     job: Job | None = None
     retry_in: float = 0.0
 
@@ -65,8 +67,17 @@ def progress_of(job: Job) -> dict[str, Any]:
             "fraction": round(job.fraction, 6), "eta_s": job.eta_s, "message": job.message}
 
 
-class JobStore:
-    """Job lifecycle operations on the database at `url`."""
+def _active_parts(job_id) -> Any:
+    """SQL: the job has a queued or running part."""
+    part = aliased(Job)
+    return exists().where(part.parent_id == job_id, part.state.in_(ACTIVE))
+
+
+class JobStore(PartOps):
+    """Job lifecycle operations on the database at `url` (those particular to a job run as
+    parts in `worker.parts.PartOps`)."""
+
+    _new_id = staticmethod(new_id)
 
     def __init__(self, url: str):
         self.url = url
@@ -89,8 +100,11 @@ class JobStore:
         s.add(JobEvent(job_id=job_id, kind=kind, data=data))
 
     def _state_event(self, s: Session, job: Job) -> None:
-        self._event(s, job.id, "state", {"state": job.state, "error": job.error,
-                                         "attempts": job.attempts, **progress_of(job)})
+        data = {"state": job.state, "error": job.error, "attempts": job.attempts,
+                **progress_of(job)}
+        self._event(s, job.id, "state", data)
+        if job.parent_id is not None:  # the parent's stream says what its parts do
+            part_event(s, job, "state", data)
 
     # -- created and changed by the API -------------------------------------------------------
     def create(self, tenant: str, pipeline: str, params: dict[str, Any], *,
@@ -156,7 +170,11 @@ class JobStore:
             job = s.get(Job, job_id, with_for_update=True)
             if job is None or job.tenant != tenant:
                 return None
-            if job.state == "queued" and job.lease_owner is None:
+            if job.parts and job.state in ACTIVE:
+                job.cancel_requested = True
+                self._event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
+                self._cancel_parts(s, job)
+            elif job.state == "queued" and job.lease_owner is None:
                 job.state, job.stage, job.finished_at = "cancelled", "cancelled", utcnow()
                 job.eta_s = None
                 self._state_event(s, job)
@@ -172,7 +190,10 @@ class JobStore:
             job = s.get(Job, job_id, with_for_update=True)
             if job is None or job.tenant != tenant:
                 return None
-            if job.state in ("failed", "cancelled"):
+            if job.parts and job.state in ("failed", "cancelled"):
+                self._retry_parts(s, job)
+                self._state_event(s, job)
+            elif job.state in ("failed", "cancelled"):
                 job.state, job.stage, job.error, job.message = "queued", "queued", None, ""
                 job.attempts, job.cancel_requested, job.finished_at = 0, False, None
                 job.lease_owner = job.lease_expires_at = job.eta_s = None
@@ -184,7 +205,7 @@ class JobStore:
         """Take the job's lease (and count an attempt) unless a live worker holds it."""
         now = utcnow()
         with self.session() as s:
-            job = s.get(Job, job_id, with_for_update=True)
+            job = self._lock(s, job_id)
             if job is None:
                 return Claim("missing")
             if job.state in TERMINAL:
@@ -192,6 +213,8 @@ class JobStore:
             if job.cancel_requested:
                 self._finish(s, job, "cancelled", None, "cancelled before it resumed")
                 return Claim("terminal", job)
+            if job.parts and s.scalar(select(_active_parts(job.id))):
+                return Claim("waiting", job)
             if job.lease_owner is not None and job.lease_expires_at and job.lease_expires_at > now:
                 holder = Owner.parse(job.lease_owner)
                 if holder is None or not holder.is_dead_here():
@@ -211,6 +234,8 @@ class JobStore:
             job.run_started_at, job.run_start_fraction = now, job.fraction
             job.stage, job.eta_s = "starting", None
             self._state_event(s, job)
+            if job.parent_id is not None:
+                self._part_claimed(s, job)
             return Claim("claimed", job)
 
     def heartbeat(self, job_id: str, owner: Owner, lease_seconds: float,
@@ -234,13 +259,15 @@ class JobStore:
                 job.fraction = min(1.0, max(job.fraction, fraction))
                 job.eta_s = state.get("eta_s", job.eta_s)
                 self._event(s, job.id, "progress", progress_of(job))
+                if job.parent_id is not None:
+                    part_event(s, job, "progress", progress_of(job))
             return True, job.cancel_requested
 
     def finish(self, job_id: str, owner: Owner, state: JobState,
                error: dict[str, Any] | None = None, message: str = "") -> bool:
         """End the job (only its lease holder may); False when the lease was lost."""
         with self.session() as s:
-            job = s.get(Job, job_id, with_for_update=True)
+            job = self._lock(s, job_id)
             if job is None or job.lease_owner != str(owner):
                 return False
             self._finish(s, job, state, error, message)
@@ -257,6 +284,8 @@ class JobStore:
         if state == "succeeded":
             job.fraction = 1.0
         self._state_event(s, job)
+        if job.parent_id is not None:
+            self._roll_up(s, job)
 
     def release(self, job_id: str, owner: Owner, message: str) -> bool:
         """Give the job back to the queue without ending it (its worker is shutting down).
@@ -329,12 +358,13 @@ class JobStore:
         now = utcnow()
         out: dict[str, str] = {}
         with self.session(write=False) as s:
+            # A parted job's own turn (its assembly) comes when no part is left to run.
             for job_id, owner in s.execute(select(Job.id, Job.lease_owner).where(
-                    Job.state == "running",
+                    Job.state == "running", ~_active_parts(Job.id),
                     (Job.lease_owner.is_(None)) | (Job.lease_expires_at < now))):
                 out[job_id] = f"its worker ({owner}) stopped renewing its lease"
             for job_id, sent in s.execute(select(Job.id, Job.dispatched_at).where(
-                    Job.state == "queued", Job.lease_owner.is_(None))):
+                    Job.state == "queued", Job.lease_owner.is_(None), ~_active_parts(Job.id))):
                 if sent is None:
                     out[job_id] = ("it was never sent to the broker (released by a worker that "
                                    "shut down, or the broker was away)")

@@ -26,7 +26,8 @@ from worker.settings import WorkerSettings, get_settings
 from worker.store import JobStore
 from worker.sweeper import Sweeper
 
-__all__ = ["EmbeddedWorker", "job_sender", "make_sweeper", "run_worker"]
+__all__ = ["EmbeddedWorker", "job_sender", "make_sweeper", "run_gpu_workers", "run_worker",
+           "stop_all", "worker_env"]
 
 log = logging.getLogger("dgs.worker")
 
@@ -122,21 +123,43 @@ WORKER_NICE = 5
 keeps answering (polls, progress, downloads) while a job trains on every core."""
 
 
-def _embedded_child() -> None:
+def _embedded_child(nice: int) -> None:
     _die_with_parent()
     try:
-        os.nice(WORKER_NICE)
+        os.nice(nice)
     except OSError:
         pass
+
+
+def worker_env(settings: WorkerSettings, index: int, count: int,
+               gpu: str | None = None) -> dict[str, str]:
+    """The variables of worker `index` of `count` on one machine: its own Celery node name,
+    and its share of the cores (`torch_threads`, OMP_NUM_THREADS: the cores divided by
+    `count`, unless the settings fix it), so `count` workers do not oversubscribe them; with
+    `gpu`, the one GPU it sees (CUDA_VISIBLE_DEVICES, so its `cuda:0` is that GPU)."""
+    threads = settings.torch_threads or max(1, (os.cpu_count() or 1) // count)
+    name = f"gpu{gpu}" if gpu is not None else f"w{index + 1}"
+    env = {"DGS_TORCH_THREADS": str(threads), "OMP_NUM_THREADS": str(threads)}
+    if count > 1 or gpu is not None:
+        prefix = f"{settings.worker_name}-" if settings.worker_name else ""
+        env["DGS_WORKER_NAME"] = prefix + name
+    if gpu is not None:
+        env["CUDA_VISIBLE_DEVICES"] = gpu
+    return env
 
 
 class EmbeddedWorker:
     """Keeps one `dgs worker` subprocess running (restarted with back-off if it dies), with
     `settings` (as DGS_* variables, over this process's environment, then `env`); its output
-    goes to <data_dir>/logs/worker.log."""
+    goes to <data_dir>/logs/<log_name>. `nice` is added to its niceness (the embedded worker
+    shares its machine with the API)."""
 
-    def __init__(self, settings: WorkerSettings, env: dict[str, str] | None = None):
-        self.settings = settings
+    def __init__(self, settings: WorkerSettings, env: dict[str, str] | None = None, *,
+                 log_name: str = "worker.log", nice: int = WORKER_NICE,
+                 args: list[str] | None = None):
+        self.settings, self.log_name, self.nice = settings, log_name, nice
+        self.args = list(args or [])
+        """Extra arguments of its `dgs worker`."""
         self.env = {**os.environ, **settings.to_env(), **(env or {})}
         self.proc: subprocess.Popen | None = None
         self.restarts = 0
@@ -146,7 +169,7 @@ class EmbeddedWorker:
 
     @property
     def log_path(self) -> Path:
-        return self.settings.data_dir / "logs" / "worker.log"
+        return self.settings.data_dir / "logs" / self.log_name
 
     def start(self) -> EmbeddedWorker:
         self.log_path.parent.mkdir(parents=True, exist_ok=True)
@@ -156,9 +179,10 @@ class EmbeddedWorker:
     def _spawn(self) -> subprocess.Popen:
         out = open(self.log_path, "ab")
         try:
-            return subprocess.Popen([sys.executable, "-m", "core.cli", "worker"],
+            return subprocess.Popen([sys.executable, "-m", "core.cli", "worker", *self.args],
                                     env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                                    start_new_session=True, preexec_fn=_embedded_child)
+                                    start_new_session=True,
+                                    preexec_fn=lambda: _embedded_child(self.nice))
         finally:
             out.close()
 
@@ -195,3 +219,33 @@ class EmbeddedWorker:
         except ProcessLookupError:
             pass
         self._thread.join(timeout=5)
+
+
+def run_gpu_workers(gpus: list[str], args: list[str]) -> int:
+    """`dgs worker --gpus 0,1,...`: one supervised `dgs worker` per GPU, each seeing only its
+    GPU and its share of the cores (`worker_env`), logs in <data_dir>/logs/worker-gpu<N>.log;
+    runs until SIGTERM or SIGINT, then shuts each down warmly (their jobs go back to the
+    queue)."""
+    settings = get_settings()
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    migrate(settings.database)
+    workers = [EmbeddedWorker(settings, worker_env(settings, i, len(gpus), gpu),
+                              log_name=f"worker-gpu{gpu}.log", nice=0, args=args).start()
+               for i, gpu in enumerate(gpus)]
+    done = threading.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        signal.signal(sig, lambda *_: done.set())
+    log.info("%d workers, one per GPU (%s); logs in %s", len(gpus), ", ".join(gpus),
+             settings.data_dir / "logs")
+    done.wait()
+    stop_all(workers, grace=60.0)
+    return 0
+
+
+def stop_all(workers: list[EmbeddedWorker], grace: float = 10.0) -> None:
+    """Stop every worker at once (each gets `grace` seconds for its warm shutdown)."""
+    threads = [threading.Thread(target=w.stop, args=(grace,)) for w in workers]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()

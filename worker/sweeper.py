@@ -25,6 +25,7 @@ from sqlalchemy import select, update
 
 from worker.blobs import BlobStore, open_store
 from worker.models import Asset, Capture, Job, utcnow
+from worker.parts import delete_parts
 from worker.scratch import clean_job_folders
 from worker.settings import WorkerSettings
 from worker.store import ACTIVE, TERMINAL, JobStore
@@ -107,8 +108,9 @@ class Sweeper:
             assets = [a for a in s.scalars(select(Asset).where(Asset.expires_at < now))
                       if a.id not in envmaps]
             for job in jobs:
-                self.blobs.delete_prefix(f"jobs/{job.id}")
-                shutil.rmtree(self.settings.scratch / "jobs" / job.id, ignore_errors=True)
+                for each in [job.id, *delete_parts(s, job.id)]:
+                    self.blobs.delete_prefix(f"jobs/{each}")
+                    shutil.rmtree(self.settings.scratch / "jobs" / each, ignore_errors=True)
                 s.execute(update(Job).where(Job.source_job_id == job.id)
                           .values(source_job_id=None))
                 s.delete(job)

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import asdict, fields, replace
 from pathlib import Path
 
@@ -76,7 +76,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
                 gop: int | None = None, overrides: dict | None = None,
                 progress: bool = True, on_progress: Callable[[Progress], None] | None = None,
                 should_stop: Callable[[], bool] | None = None, device: str | None = None,
-                model_files: dict[str, Path] | None = None) -> dict:
+                model_files: dict[str, Path] | None = None,
+                gops: Collection[int] | None = None) -> dict:
     """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
     `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
     run: finished frames are skipped, an unfinished one restarts from its checkpoint. The
@@ -88,7 +89,10 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     checkpoint and frame); `should_stop` is asked after every step and, when it returns True,
     the frame's checkpoint is written and `Stopped` raised (a service's cooperative cancel).
     `model_files` maps a model the configuration names (`normal_estimator`: a service's asset
-    id or allow-listed name) to the file to load; config.json keeps the name."""
+    id or allow-listed name) to the file to load; config.json keeps the name. `gops` runs only
+    those groups of pictures (a part of a sequence job, docs/design.md 4.4: with
+    `sequence.refine_scope` "group" a group needs no other group's records);
+    `core.pipeline.assemble` merges the parts' records."""
     capture_dir, run = Path(capture_dir), RunDir(run_dir)
     cfg = _resolve_run_device(load_config(preset, config_file, overrides, gop=gop,
                                           where="config"), device)
@@ -104,7 +108,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     plan = GopPlan(chosen, cfg.gop, cfg.sequence, cfg.train.schedule.iterations)
     job = FrameJob(capture, run, cfg, estimator, display_mode(progress))
     for i, role in enumerate(plan.roles):
-        if role.frame in records and run.ply(role.frame).is_file():
+        if (gops is not None and role.gop not in gops) or (
+                role.frame in records and run.ply(role.frame).is_file()):
             continue
         hooks = Hooks(role.frame, i, len(chosen), on_progress, should_stop)
         label = f"frame {role.frame} ({i + 1}/{len(chosen)})"

@@ -7,6 +7,8 @@ service. Torch-free; only httpx.
     c.commit(cap["id"])
     job = c.submit(cap["id"], {"preset": "fast"})
     job = c.wait(job["id"], on_event=print)        # server-sent events, reconnecting
+    bars = JobBars()                               # or: a bar for the job, one per running
+    c.wait(job["id"], on_event=bars.on_event)      # part of a sequence run as parts
     c.download_all(job["id"], "results/")          # Range-resumed, SHA-256 checked
     env = c.upload_envmap("studio.exr")            # an environment map asset
     render = c.render(job["id"], env["id"], orbit=24)
@@ -14,11 +16,12 @@ service. Torch-free; only httpx.
     c.download_all(render["id"], "relit/", kind="video")
 """
 
+from service.client.bars import JobBars
 from service.client.http import ApiError, Event
 from service.client.jobs import Jobs
 from service.client.uploads import Uploads, manifest_of
 
-__all__ = ["ApiError", "Client", "Event", "manifest_of"]
+__all__ = ["ApiError", "Client", "Event", "JobBars", "manifest_of"]
 
 
 class Client(Uploads, Jobs):

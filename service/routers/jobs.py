@@ -19,10 +19,12 @@ from service.deps import Services, ServicesDep, absolute_url, default_expiry
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.events import job_events
 from service.pagination import newest_page
+from service.parts import job_parts, split_job
 from service.records import get_capture, get_job
 from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressOut
 from worker.celery_app import dispatch
 from worker.models import Job
+from worker.parts import delete_parts
 from worker.pipelines import get_pipeline
 from worker.store import ACTIVE, TERMINAL, JobStore, progress_of
 
@@ -32,12 +34,15 @@ log = logging.getLogger("dgs.service")
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=error_responses(*COMMON))
 
 
-def job_out(job: Job) -> JobOut:
+def job_out(job: Job, services: Services | None = None) -> JobOut:
+    """The job as the API shows it; with `services`, a job run as parts lists them."""
     base = f"/v1/jobs/{job.id}"
+    parts, progress = job_parts(services, job) if services is not None else (None,
+                                                                              progress_of(job))
     return JobOut(
         id=job.id, name=job.name, capture_id=job.capture_id, source_job_id=job.source_job_id,
-        pipeline=job.pipeline,
-        params=job.params, state=job.state, progress=ProgressOut(**progress_of(job)),
+        pipeline=job.pipeline, parts=parts,
+        params=job.params, state=job.state, progress=ProgressOut(**progress),
         error=ErrorInfo(**job.error) if job.error else None, attempts=job.attempts,
         cancel_requested=job.cancel_requested, created_at=job.created_at,
         updated_at=job.updated_at, started_at=job.started_at, finished_at=job.finished_at,
@@ -48,7 +53,7 @@ def job_out(job: Job) -> JobOut:
 
 
 def accepted(request: Request, services: Services, job: Job) -> JSONResponse:
-    out = job_out(job)
+    out = job_out(job, services)
     return JSONResponse(out.model_dump(mode="json"), status_code=202, headers={
         "Location": absolute_url(request, services, out.links["self"])})
 
@@ -118,14 +123,24 @@ def create_job(body: JobIn, request: Request, services: ServicesDep,
         raise ApiError(409, f"capture {capture.id} is {capture.state}; commit it first "
                             "(POST /v1/captures/{id}/commit)")
     check_reconstruct(services, tenant, capture, params)
+    # A sequence of several groups of pictures runs as parts, one per group, on any idle
+    # workers (docs/design.md 4.4); the parent is sent once they have all succeeded.
+    groups = split_job(services, capture, params) if body.pipeline == "reconstruct" else None
+    expires_at = default_expiry(services, body.expires_at)
     try:
-        job = services.store.create(tenant, body.pipeline, params.model_dump(mode="json"),
-                                    capture_id=capture.id,
-                                    name=body.name,
-                                    expires_at=default_expiry(services, body.expires_at))
+        if groups:
+            job, sent = services.store.create_parted(
+                tenant, params.model_dump(mode="json"), groups, capture_id=capture.id,
+                name=body.name, expires_at=expires_at)
+        else:
+            job = services.store.create(tenant, body.pipeline, params.model_dump(mode="json"),
+                                        capture_id=capture.id, name=body.name,
+                                        expires_at=expires_at)
+            sent = [job]
     except IntegrityError:  # the capture was deleted meanwhile
         raise ApiError(404, f"no capture {body.capture_id!r}") from None
-    send(services, job)
+    for each in sent:
+        send(services, each)
     return accepted(request, services, job)
 
 
@@ -134,17 +149,17 @@ def list_jobs(services: ServicesDep, tenant: TenantDep, state: JobState | None =
               cursor: Annotated[str | None, Query(max_length=512)] = None,
               limit: Annotated[int, Query(ge=1, le=200)] = 50) -> JobPage:
     """The caller's jobs, newest first; pass next_cursor to read the next page."""
-    q = select(Job).where(Job.tenant == tenant)
+    q = select(Job).where(Job.tenant == tenant, Job.parent_id.is_(None))
     if state is not None:
         q = q.where(Job.state == state)
     with services.store.session(write=False) as s:
         rows, after = newest_page(s, q, Job.created_at, Job.id, cursor, limit)
-    return JobPage(items=[job_out(j) for j in rows], next_cursor=after)
+    return JobPage(items=[job_out(j, services) for j in rows], next_cursor=after)
 
 
 @router.get("/{job_id}", response_model=JobOut)
 def read_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JobOut:
-    return job_out(get_job(services.store, job_id, tenant))
+    return job_out(get_job(services.store, job_id, tenant), services)
 
 
 @router.get("/{job_id}/events", response_class=StreamingResponse,
@@ -186,7 +201,8 @@ def job_logs(job_id: str, services: ServicesDep, tenant: TenantDep,
 def cancel_job(job_id: str, request: Request, services: ServicesDep,
                tenant: TenantDep) -> JSONResponse:
     """Cancel: a queued job at once, a running one at its next step (its worker process is
-    ended if it does not stop within seconds). 409 when it has already ended."""
+    ended if it does not stop within seconds); a job run as parts: every part likewise, none
+    left queued. 409 when it has already ended."""
     job = get_job(services.store, job_id, tenant)
     if job.state in TERMINAL:
         raise ApiError(409, f"job {job_id} already {job.state}")
@@ -201,7 +217,8 @@ def cancel_job(job_id: str, request: Request, services: ServicesDep,
 def retry_job(job_id: str, request: Request, services: ServicesDep,
               tenant: TenantDep) -> JSONResponse:
     """Queue a failed or cancelled job again: a reconstruction resumes from its last
-    checkpoint, a render starts over."""
+    checkpoint (run as parts: only its failed and cancelled parts run again, each from its
+    own checkpoint), a render starts over."""
     job = get_job(services.store, job_id, tenant)
     if job.state not in ("failed", "cancelled"):
         raise ApiError(409, f"job {job_id} is {job.state}; only failed or cancelled jobs are "
@@ -214,10 +231,11 @@ def retry_job(job_id: str, request: Request, services: ServicesDep,
     job = services.store.retry(job_id, tenant)
     if job is None:
         raise ApiError(404, f"no job {job_id!r}")
-    if job.state != "queued":
+    if job.state not in ACTIVE:
         raise ApiError(409, f"job {job_id} is {job.state}; only failed or cancelled jobs are "
                             "retried")
-    send(services, job)
+    for each in services.store.to_dispatch(job.id):
+        send(services, services.store.get(each) or job)
     return accepted(request, services, job)
 
 
@@ -238,7 +256,9 @@ def delete_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> Respons
             raise ApiError(409, f"render job {needed[0]} needs the results of job {job_id}; "
                                 "cancel it or wait for it to end, then delete")
         s.execute(update(Job).where(Job.source_job_id == job_id).values(source_job_id=None))
+        parts = delete_parts(s, job_id)
         s.delete(job)
-    services.blobs.delete_prefix(f"jobs/{job_id}")
-    shutil.rmtree(services.settings.scratch / "jobs" / job_id, ignore_errors=True)
+    for each in [job_id, *parts]:
+        services.blobs.delete_prefix(f"jobs/{each}")
+        shutil.rmtree(services.settings.scratch / "jobs" / each, ignore_errors=True)
     return Response(status_code=204)

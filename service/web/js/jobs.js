@@ -19,9 +19,41 @@ function describe(job) {
   return parts.join(' · ');
 }
 
+// A sequence run as parts (one per group of pictures): a strip with a cell per part, queued,
+// running with its percentage, done or failed.
+const CELL = { queued: '', running: null, succeeded: '✓', failed: '✗', cancelled: '–' };
+
+function renderParts(parts) {
+  const strip = $('job-parts');
+  strip.hidden = !parts || parts.length === 0;
+  if (strip.hidden) return;
+  strip.replaceChildren(...parts.map((part) => {
+    const pct = Math.round(100 * (part.fraction || 0));
+    const frames = part.frames || [];
+    const cell = el('span', {
+      className: `part part-${part.state}`,
+      textContent: CELL[part.state] ?? `${pct}%`,
+      title: `part ${part.index}: frames ${frames[0]}..${frames[frames.length - 1]}, ${part.state}` +
+        (part.state === 'running' ? ` ${pct}%${part.worker ? ` on ${part.worker}` : ''}` : ''),
+    });
+    if (part.state === 'running') {
+      cell.style.background = `linear-gradient(to right, var(--part-done) ${pct}%, var(--part-left) ${pct}%)`;
+    }
+    return cell;
+  }));
+}
+
+function updatePart(job, data) {
+  const parts = (job.parts || []).map((part) => (part.index === data.part
+    ? { ...part, ...data, index: part.index, state: data.event === 'progress' ? 'running' : (data.state || part.state) }
+    : part));
+  return { ...job, parts };
+}
+
 function render(job) {
   const p = job.progress || job;
   if (p.fraction != null) $('job-progress').value = p.fraction;
+  renderParts(job.parts);
   showStatus($('job-status'), describe(job), job.state);
   $('job-cancel').hidden = TERMINAL.has(job.state);
   $('job-retry').hidden = !['failed', 'cancelled'].includes(job.state);
@@ -63,6 +95,11 @@ async function watch(jobId) {
     let frame = job.progress.frame;
     job = await followJob(jobId, (event) => {
       if (ctl.signal.aborted) return;
+      if (event.kind === 'part') { // one part changed: its cell, not the job's progress
+        state.job = updatePart(state.job, event.data);
+        renderParts(state.job.parts);
+        return;
+      }
       const data = { ...state.job, ...event.data, progress: { ...state.job.progress, ...event.data } };
       state.job = data;
       render(data);
