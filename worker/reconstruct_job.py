@@ -172,11 +172,10 @@ class ReconstructJob:
                       "held-out views evaluated")
 
     def _save_state(self, run: Path, checkpoint: Path | None) -> None:
-        """Copy what a resume needs (config, metrics, this checkpoint and the note of a frame
-        re-keyed after losing track, which says whose checkpoint it is) to jobs/<id>/state/."""
+        """Copy what a resume needs (config, metrics, this checkpoint) to jobs/<id>/state/."""
         files = [run / "config.json", run / "metrics.json"]
         if checkpoint is not None:
-            files += [checkpoint, checkpoint.with_name(checkpoint.stem + ".rekey.json")]
+            files.append(checkpoint)
         for path in files:
             if path.is_file():
                 self.blobs.put_file(
