@@ -28,7 +28,7 @@ import httpx
 
 from core.evaluation import evaluate_run
 from service.client import Client
-from service.client.bars import JobBars
+from service.client.bars import JobBars, bar_line
 from service.settings import ServiceSettings
 
 __all__ = ["DemoServer", "ProgressBar", "run_service_demo"]
@@ -99,11 +99,6 @@ class DemoServer:
         self.stop()
 
 
-def _duration(seconds: float) -> str:
-    seconds = int(round(seconds))
-    return f"{seconds // 60}m{seconds % 60:02d}s" if seconds >= 60 else f"{seconds}s"
-
-
 class ProgressBar:
     """One line redrawn in place on a terminal (a line per tenth of the job otherwise): stage,
     fraction, frame and step, ETA, from a job's progress events."""
@@ -115,17 +110,7 @@ class ProgressBar:
         self._last_tenth, self._last_stage, self._open = -1, None, False
 
     def line(self, p: dict[str, Any]) -> str:
-        fraction = float(p.get("fraction") or 0.0)
-        filled = int(round(fraction * self.width))
-        text = f"      [{'#' * filled}{'.' * (self.width - filled)}] {fraction:6.1%}  " \
-               f"{p.get('stage') or '':<11}"
-        if p.get("frames"):
-            text += f" frame {p['frame']}/{p['frames']}"
-        if p.get("iterations"):
-            text += f" step {p['iteration']}/{p['iterations']}"
-        if p.get("eta_s") is not None:
-            text += f"  ETA {_duration(p['eta_s'])}"
-        return text
+        return bar_line("      ", p, self.width)
 
     def update(self, p: dict[str, Any]) -> None:
         text = self.line(p)
