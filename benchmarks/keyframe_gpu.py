@@ -16,7 +16,7 @@ same number of steps with the same step-to-view order rule (each view once per e
 Reported per system: seconds per stage and steps/s (the device synchronized at each stage
 boundary), the AO bake's seconds, the whole frame's seconds, peak GPU memory
 (`torch.cuda.max_memory_allocated` over the training), Gaussians at the end, held-out PSNR
-(whole image) and SSIM with `core.metrics.rgb_scores` on 8-bit renders (what `dgs eval`
+(whole image) and SSIM with `dgs eval`'s view scores on 8-bit renders (what `dgs eval`
 scores), normal agreement where the capture has ground-truth normals; then, for each, the
 host synchronisations per step (torch profiler over `--profile-steps` further steps: calls
 of cudaStreamSynchronize / cudaDeviceSynchronize / device-to-host copies) and the top CUDA
@@ -50,13 +50,13 @@ sys.path.insert(0, str(ROOT))
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from core.color import linear_to_srgb  # noqa: E402
 from core.config import train_config  # noqa: E402
 from core.data import CaptureDataset, import_capture, load_capture  # noqa: E402
-from core.evaluation.run import _reduce_normals  # noqa: E402
+from core.evaluation.run import _view_metrics  # noqa: E402
 from core.losses import depth_to_normals, photometric_loss  # noqa: E402
-from core.metrics import normal_agreement, rgb_scores  # noqa: E402
 from core.model import GaussianModel  # noqa: E402
-from core.pipeline.outputs import COVERAGE  # noqa: E402
+from core.pipeline.outputs import COVERAGE, _to8  # noqa: E402
 from core.render import RenderCamera, render  # noqa: E402
 from core.seeding import scene_extent, seed_points  # noqa: E402
 from core.training import Trainer  # noqa: E402
@@ -116,15 +116,11 @@ class StageClock(Callback):
                 for k, s in self.seconds.items()}
 
 
-def _to8(a: np.ndarray) -> np.ndarray:
-    return np.round(np.clip(a, 0, 1) * 255) / 255
-
-
 def held_out(capture, frame: str, downscale: float, draw, background: np.ndarray) -> dict:
     """Mean scores of `draw(camera) -> ((H, W, 3) rgb, (H, W, 3) unit normals, (H, W) covered)`
-    over the held-out cameras, as `dgs eval` scores them: 8-bit renders, PSNR over the whole
-    image, SSIM, and the normal picture ((n + 1) / 2, black where not covered) against the
-    capture's ground-truth normals (gt/normals, a synthetic capture) or its priors."""
+    over the held-out cameras, as `dgs eval` scores them (`core.evaluation.run._view_metrics`
+    on the pictures a run writes: 8-bit colour, the normal picture black where not covered,
+    against the capture's ground-truth normals or its priors)."""
     held = [c.id for i, c in enumerate(capture.cameras) if i % 8 == 0]
     ds = CaptureDataset(capture, frames=[frame], cameras=held, downscale=downscale)
     rows = []
@@ -132,24 +128,18 @@ def held_out(capture, frame: str, downscale: float, draw, background: np.ndarray
         s = ds[i]
         with torch.no_grad():
             rgb, normal, covered = draw(s.camera)
-        image = s.image.numpy()
-        mask = None if s.mask is None else s.mask.numpy()
-        target = image if mask is None else image * mask + background * (1 - mask)
-        fg = np.ones(target.shape[:2], bool) if mask is None else mask[..., 0] > 0.5
-        row = rgb_scores(_to8(rgb.float().cpu().numpy()).astype(np.float32), target, fg)
+        image = capture.image_path(frame, s.camera_id)
+        linear = image is not None and image.suffix.lower() == ".exr"
+        rgb = rgb.float().clamp(0, 1).cpu().numpy()
+        rgb8 = _to8(linear_to_srgb(rgb) if linear else rgb) / 255.0  # as the run's PNG
+        png = _to8(np.where(covered.cpu().numpy()[..., None],
+                            (normal.float().cpu().numpy() + 1) / 2, 0.0)) / 255.0
         gt = capture.root / "gt" / "normals" / frame / f"{s.camera_id}.npy"
-        ref = np.load(gt) if gt.is_file() else (None if s.normal is None
-                                                 else s.normal.numpy())
-        if ref is not None:
-            if ref.shape[:2] != image.shape[:2]:
-                ref = _reduce_normals(ref, image.shape[:2])
-            png = _to8(np.where(covered.cpu().numpy()[..., None],
-                                (normal.float().cpu().numpy() + 1) / 2, 0.0))
-            agree = normal_agreement(png, ref, (np.linalg.norm(ref, axis=-1) > 0.5) & fg)
-            row["normal_deg"] = None if agree is None else agree[1]
-        rows.append(row)
-    keys = {k for r in rows for k in r if r[k] is not None}
-    return {k: float(np.mean([r[k] for r in rows if r.get(k) is not None])) for k in keys}
+        rows.append(_view_metrics(s, rgb8.astype(np.float32), png.astype(np.float32),
+                                  np.load(gt) if gt.is_file() else None, background, linear))
+    keys = ("psnr", "psnr_full", "ssim", "normal_cos", "normal_deg")
+    return {k: float(np.mean([r[k] for r in rows if r.get(k) is not None]))
+            for k in keys if any(r.get(k) is not None for r in rows)}
 
 
 def host_syncs(step, n: int, out: Path, name: str) -> dict:

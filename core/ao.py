@@ -82,10 +82,7 @@ def filter_torch(ao: Tensor, guide: Tensor, config: AOConfig) -> Tensor:
     `ao` (H, W), `guide` (H, W, 3); returns (H, W)."""
     r = _filter_size(config) // 2
     h, w = ao.shape
-    if min(h, w) <= r:  # too small to reflect: filter a repeated border instead
-        mode = "replicate"
-    else:
-        mode = "reflect"
+    mode = "replicate" if min(h, w) <= r else "reflect"  # too small to reflect: repeat
     g = guide.permute(2, 0, 1).float()
     gp = torch.nn.functional.pad(g[None], (r, r, r, r), mode=mode)[0]
     ap = torch.nn.functional.pad(ao.float()[None, None], (r, r, r, r), mode=mode)[0, 0]

@@ -80,11 +80,12 @@ def check_inputs(means, quats, scales, opacity_c, opacity_g, colors, geometry, v
     _int("height", height)
     # A few numbers each: always on the CPU; on a GPU each read would stall the step (the host
     # waits for the device), so there they are checked with the values (a loop's first render).
-    if values or device.type == "cpu":
+    small = values or device.type == "cpu"
+    if small:
         for name in ("viewmat", "K", "background"):
             if name in named:
                 _finite(name, named[name])
-    _check_settings(beta, eps2d, near, far, K if values or device.type == "cpu" else None)
+    _check_settings(beta, eps2d, near, far, K if small else None)
     if values:
         _check_values(named, scales, opacity_c, opacity_g, quats, n)
 

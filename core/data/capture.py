@@ -114,18 +114,23 @@ class Camera:
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
         cam = pts @ self.R.T + self.t
         z = cam[:, 2]
-        x, y = cam[:, 0] / z, cam[:, 1] / z
+        u, v = self.pixels(cam[:, 0] / z, cam[:, 1] / z)
+        return np.stack([u, v], axis=1), z
+
+    def pixels(self, x, y):
+        """Pixel coordinates (u, v) of normalized camera coordinates (x, y) = (X/Z, Y/Z), with
+        the distortion applied: plain arithmetic on Python floats, so numpy arrays and torch
+        tensors (a GPU's, `core.mesh.build`) both go through it."""
         if self.distortion is not None:
-            k1, k2, p1, p2, k3 = self.distortion
+            k1, k2, p1, p2, k3 = (float(c) for c in self.distortion)
             r2 = x * x + y * y
             radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
             x, y = (
                 x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
                 y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y,
             )
-        u = self.K[0, 0] * x + self.K[0, 1] * y + self.K[0, 2]
-        v = self.K[1, 1] * y + self.K[1, 2]
-        return np.stack([u, v], axis=1), z
+        K = [[float(k) for k in row] for row in self.K[:2]]
+        return K[0][0] * x + K[0][1] * y + K[0][2], K[1][1] * y + K[1][2]
 
     def scaled(self, width: int, height: int) -> Camera:
         """The same camera seen at another resolution (intrinsics scaled per axis)."""

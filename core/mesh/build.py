@@ -88,20 +88,12 @@ def _fuse(model, cameras, settings, config: MeshConfig, lo, hi, voxel, device) -
 
 
 def _project(cam, pts: Tensor) -> tuple[Tensor, Tensor]:
-    """`core.data.Camera.project` in torch on `pts`' device (float64): pixels (N, 2), depth."""
+    """`core.data.Camera.project` of (N, 3) points on their device: pixels (N, 2), depth."""
     R = torch.as_tensor(np.asarray(cam.R), dtype=pts.dtype, device=pts.device)
     t = torch.as_tensor(np.asarray(cam.t), dtype=pts.dtype, device=pts.device)
     c = pts @ R.T + t
     z = c[:, 2]
-    x, y = c[:, 0] / z, c[:, 1] / z
-    if cam.distortion is not None:
-        k1, k2, p1, p2, k3 = (float(v) for v in cam.distortion)
-        r2 = x * x + y * y
-        radial = 1 + k1 * r2 + k2 * r2 * r2 + k3 * r2 * r2 * r2
-        x, y = (x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x),
-                y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y)
-    K = np.asarray(cam.K, np.float64)
-    return torch.stack([K[0, 0] * x + K[0, 1] * y + K[0, 2], K[1, 1] * y + K[1, 2]], 1), z
+    return torch.stack(cam.pixels(c[:, 0] / z, c[:, 1] / z), 1), z
 
 
 @torch.no_grad()
