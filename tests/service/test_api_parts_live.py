@@ -9,11 +9,10 @@ from __future__ import annotations
 import json
 import os
 import signal
-import time
 from pathlib import Path
 
 import pytest
-from live_server import LiveServer
+from live_server import LiveServer, wait_for
 
 from service.client import Client
 from worker.owner import Owner
@@ -39,17 +38,6 @@ def server(tmp_path_factory):
     live.wait_worker(timeout=300, name="worker-2.log")
     yield live
     live.stop()
-
-
-def wait_for(condition, timeout: float, what: str):
-    """Poll `condition` until it returns something truthy; fail naming `what`."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.2)
-    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
 
 
 def _checkpointed(server: LiveServer, part: dict) -> bool:

@@ -8,11 +8,11 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
 import pytest
+from live_server import wait_for
 
 ROOT = Path(__file__).resolve().parents[2]
 pytestmark = pytest.mark.timeout(300)
@@ -40,16 +40,6 @@ def _workers_of(data_dir: Path) -> list[int]:
     return out
 
 
-def _wait(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise AssertionError(f"timed out waiting for {what}")
-
-
 def test_serve_runs_the_api_and_an_embedded_worker(tmp_path):
     data, port = tmp_path / "data", _free_port()
     env = {k: v for k, v in os.environ.items() if not k.startswith("DGS_")}
@@ -65,12 +55,12 @@ def test_serve_runs_the_api_and_an_embedded_worker(tmp_path):
                 assert proc.poll() is None, proc.stdout.read()
                 return False
 
-        _wait(ready, 60, "the API")
+        wait_for(ready, 60, "the API")
         info = httpx.get(f"http://127.0.0.1:{port}/v1/info").json()
         assert info["tenant"] == "local" and info["keys_required"] is False
         assert (data / "dgs.sqlite3").is_file()
         log = data / "logs" / "worker.log"
-        _wait(lambda: log.is_file() and " ready." in log.read_text(errors="replace"), 120,
+        wait_for(lambda: log.is_file() and " ready." in log.read_text(errors="replace"), 120,
               "the embedded worker")
         workers = _workers_of(data)
         assert workers, "no embedded worker process"
@@ -79,4 +69,4 @@ def test_serve_runs_the_api_and_an_embedded_worker(tmp_path):
         out, _ = proc.communicate(timeout=60)
     assert proc.returncode == 0, out
     assert f"http://127.0.0.1:{port}" in out and str(data) in out and "tenant 'local'" in out
-    _wait(lambda: not _workers_of(data), 30, "the worker to stop with the server")
+    wait_for(lambda: not _workers_of(data), 30, "the worker to stop with the server")

@@ -8,10 +8,9 @@ import signal
 import subprocess
 import sys
 import time
-from collections.abc import Callable
 from pathlib import Path
 
-import pytest
+from live_server import wait_for  # noqa: F401  (the harness's callers take it from here)
 
 from worker.models import Capture
 from worker.store import JobStore
@@ -79,12 +78,3 @@ class WorkerProcess:
             self.kill_all()
 
 
-def wait_for(condition: Callable[[], object], timeout: float, what: str, every: float = 0.2):
-    """Poll `condition` until it returns something truthy; fail naming `what`."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(every)
-    pytest.fail(f"timed out after {timeout:.0f} s waiting for {what}")
