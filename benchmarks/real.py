@@ -6,10 +6,13 @@
   opacity, photometric loss only, no geometry branch, no AO) raising the SH degree from
   `sh_interval` on as 3DGS does (`Schedule.sh_start`), with the same initial points.
 Both from the same capture at the same downscale, then `dgs eval` (held-out views, every 8th
-camera): PSNR over the whole image and SSIM. Meshes are skipped (not scored here).
+camera): PSNR over the whole image and SSIM, and over the subject where the capture has masks
+(`benchmarks/subject_masks.py` makes a masked capture). Meshes are skipped unless `--mesh`
+(the method's: a plain 3DGS has no geometry branch). `--steps N` scales the preset's plan to N
+steps (`Schedule.scaled`: every boundary in proportion).
 
     nice python benchmarks/real.py CAPTURE --out DIR [--downscale 4] [--preset fast]
-                                   [--variants method plain] [--threads 1]
+                                   [--steps N] [--mesh] [--variants method plain] [--threads 1]
 
 Finished variants in DIR are scored again, not trained again; an interrupted one resumes.
 """
@@ -26,18 +29,28 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 VARIANTS = ("method", "plain")
 
 
-def overrides(variant: str, preset: str, downscale: float) -> dict:
+def overrides(variant: str, preset: str, downscale: float, steps: int | None = None,
+              mesh: bool = False) -> dict:
+    from dataclasses import asdict
+
     from core.config import train_config
 
-    out = {"downscale": downscale, "mesh": {"enabled": False}}
+    s = train_config(preset).schedule
+    if steps is not None:
+        s = s.scaled(steps)
+    out = {"downscale": downscale, "mesh": {"enabled": mesh and variant == "method"},
+           "train": {"schedule": asdict(s)}}
+    if steps is not None:
+        out["train"]["rates"] = {"means_decay_steps": steps}
     if variant == "plain":
-        s = train_config(preset).schedule
-        out["train"] = {"schedule": {"stage2_start": s.iterations, "stage3_start": s.iterations,
-                                     "sh_start": s.sh_interval}, "bake_ao": False}
+        out["train"]["schedule"].update(stage2_start=s.iterations, stage3_start=s.iterations,
+                                        sh_start=s.sh_interval)
+        out["train"]["bake_ao"] = False
     return out
 
 
-def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: float) -> dict:
+def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: float,
+                steps: int | None = None, mesh: bool = False) -> dict:
     from core.evaluation import evaluate_run
     from core.pipeline import reconstruct
 
@@ -46,11 +59,13 @@ def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: 
         metrics = json.loads((out / "metrics.json").read_text())
     else:
         metrics = reconstruct(capture, out, preset=preset, resume=True, progress=True,
-                              overrides=overrides(variant, preset, downscale))
+                              overrides=overrides(variant, preset, downscale, steps, mesh))
     ev = evaluate_run(out)
     frame = next(iter(metrics["frames"].values()))
     steps = frame["iterations"]
+    masked = ev["psnr"] != ev["psnr_full"]
     return {"variant": variant, "psnr": ev["psnr_full"], "ssim": ev["ssim"],
+            "psnr_subject": ev["psnr"] if masked else None, "normal_deg": ev["normal_deg"],
             "train_psnr": frame["train_psnr"], "gaussians": frame["gaussians"],
             "seconds": frame["seconds"], "ao_bake_seconds": frame.get("ao_bake_seconds"),
             "s_per_step": frame["seconds"] / steps, "seeds": frame["notes"][0]
@@ -64,6 +79,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, required=True)
     ap.add_argument("--downscale", type=float, default=4.0)
     ap.add_argument("--preset", default="fast")
+    ap.add_argument("--steps", type=int, default=None, help="the preset's plan scaled to N steps")
+    ap.add_argument("--mesh", action="store_true", help="mesh the method's frame")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     args = ap.parse_args()
@@ -74,14 +91,22 @@ def main() -> None:
     rows = []
     for variant in args.variants:
         rows.append(run_variant(args.capture, args.out / variant, variant, args.preset,
-                                args.downscale))
+                                args.downscale, args.steps, args.mesh))
         (args.out / f"{variant}.json").write_text(json.dumps(rows[-1], indent=2))
-    print(f"\n{args.capture} at 1/{args.downscale:g}, preset {args.preset}\n")
-    print("| variant | held-out PSNR | SSIM | train PSNR | Gaussians | s | s/step | AO bake s |")
-    print("|---|---|---|---|---|---|---|---|")
+    steps = f", {args.steps} steps" if args.steps else ""
+    print(f"\n{args.capture} at 1/{args.downscale:g}, preset {args.preset}{steps}\n")
+    print("| variant | held-out PSNR | subject PSNR | SSIM | normals (deg) | train PSNR | "
+          "Gaussians | s | s/step | AO bake s (share) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+
+    def num(v, fmt: str) -> str:
+        return "-" if v is None else format(v, fmt)
+
     for r in rows:
-        bake = "-" if r["ao_bake_seconds"] is None else f"{r['ao_bake_seconds']:.0f}"
-        print(f"| {r['variant']} | {r['psnr']:.2f} | {r['ssim']:.4f} | {r['train_psnr']:.2f} | "
+        bake = "-" if r["ao_bake_seconds"] is None else \
+            f"{r['ao_bake_seconds']:.0f} ({r['ao_bake_seconds'] / r['seconds']:.1%})"
+        print(f"| {r['variant']} | {r['psnr']:.2f} | {num(r['psnr_subject'], '.2f')} | "
+              f"{r['ssim']:.4f} | {num(r['normal_deg'], '.1f')} | {r['train_psnr']:.2f} | "
               f"{r['gaussians']} | {r['seconds']:.0f} | {r['s_per_step']:.3f} | {bake} |")
     for r in rows:
         print(f"- {r['variant']}: {r['seeds']}")
