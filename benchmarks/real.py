@@ -51,6 +51,7 @@ def overrides(variant: str, preset: str, downscale: float, steps: int | None = N
 
 def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: float,
                 steps: int | None = None, mesh: bool = False) -> dict:
+    from core.data import load_capture
     from core.evaluation import evaluate_run
     from core.pipeline import reconstruct
 
@@ -63,7 +64,8 @@ def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: 
     ev = evaluate_run(out)
     frame = next(iter(metrics["frames"].values()))
     steps = frame["iterations"]
-    masked = ev["psnr"] != ev["psnr_full"]
+    cap = load_capture(capture)
+    masked = any(cap.mask_path(f, c.id) for f in cap.frames for c in cap.cameras)
     return {"variant": variant, "psnr": ev["psnr_full"], "ssim": ev["ssim"],
             "psnr_subject": ev["psnr"] if masked else None, "normal_deg": ev["normal_deg"],
             "train_psnr": frame["train_psnr"], "gaussians": frame["gaussians"],

@@ -37,18 +37,13 @@ from scipy import ndimage
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from ao import load_model  # noqa: E402  (a run's PLY or checkpoint, as benchmarks/ao.py reads it)
+
 from core.data import load_capture  # noqa: E402
 from core.data.capture import Camera  # noqa: E402
 from core.model import GaussianModel  # noqa: E402
 from core.render import RenderCamera, render  # noqa: E402
 from core.seeding import look_at_center  # noqa: E402
-
-
-def load_model(path: Path) -> GaussianModel:
-    if path.suffix == ".pt":
-        blob = torch.load(path, map_location="cpu", weights_only=True)
-        return GaussianModel(blob["params"])
-    return GaussianModel.load_ply(path)
 
 
 def fit_plane(points: np.ndarray, tol: float, rng: np.random.Generator,
@@ -141,9 +136,9 @@ def view_mask(model: GaussianModel, cam: Camera, render_scale: float) -> np.ndar
     return _clean(src > 0.5)
 
 
-def write_capture(capture, src: Path, out: Path, masks: dict[tuple[str, str], np.ndarray]) -> None:
+def write_capture(capture, out: Path, masks: dict[tuple[str, str], np.ndarray]) -> None:
     out.mkdir(parents=True, exist_ok=False)
-    shutil.copy2(src / "capture.json", out / "capture.json")
+    shutil.copy2(capture.root / "capture.json", out / "capture.json")
     for (frame, cam_id), mask in masks.items():
         image = capture.image_path(frame, cam_id)
         (out / "images" / frame).mkdir(parents=True, exist_ok=True)
@@ -177,7 +172,7 @@ def main() -> None:
         for cam in capture.cameras:
             masks[frame, cam.id] = view_mask(model, cam, args.render_scale)
             cover.append(float(masks[frame, cam.id].mean()))
-    write_capture(capture, args.capture, args.out, masks)
+    write_capture(capture, args.out, masks)
     info.update(views=len(masks), coverage_mean=float(np.mean(cover)),
                 coverage_min=float(np.min(cover)), coverage_max=float(np.max(cover)))
     (args.out / "masks.json").write_text(json.dumps({**info, "source": str(args.capture),
