@@ -14,6 +14,8 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install --disable-pip-version-check -q torch==2.13.0
 	$(PIP) install --disable-pip-version-check -q -e ".[train,dev,service,worker]" "torch==2.13.0"
+	# LPIPS's calibrated layers, read as data: the package's own imports need torchvision.
+	$(PIP) install --disable-pip-version-check -q --no-deps lpips==0.1.4
 	touch $(STAMP)
 
 test: $(STAMP)

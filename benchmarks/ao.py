@@ -41,7 +41,7 @@ def training_views(capture_dir: Path, downscale: float):
 
     cap = load_capture(capture_dir)
     ds = CaptureDataset(cap, frames=cap.frames[:1],
-                        cameras=[c.id for c in training_cameras(cap.cameras)], downscale=downscale)
+                        cameras=[c.id for c in training_cameras(cap)], downscale=downscale)
     return [RenderCamera.from_camera(ds.served_camera(c)) for c in ds.cameras]
 
 

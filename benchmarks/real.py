@@ -2,9 +2,10 @@
 (issue 23).
 
 - method: `dgs reconstruct` with the preset (disentangled stages, AO bake, every loss);
-- plain 3DGS: the same trainer in appearance-only mode (stage 1 for the whole budget: one
-  opacity, photometric loss only, no geometry branch, no AO) raising the SH degree from
-  `sh_interval` on as 3DGS does (`Schedule.sh_start`), with the same initial points.
+- plain 3DGS: the same trainer as a plain 3D Gaussian Splatting (`train.method` 3dgs: one
+  opacity, photometric loss only, no geometry branch, no AO, the SH degree raised every
+  `sh_interval` steps from the start, 3DGS's densification and classic rasterization), with
+  the same initial points.
 Both from the same capture at the same downscale, then `dgs eval` (held-out views, every 8th
 camera): PSNR over the whole image and SSIM, and over the subject where the capture has masks
 (`benchmarks/subject_masks.py` makes a masked capture). Meshes are skipped unless `--mesh`
@@ -30,7 +31,7 @@ VARIANTS = ("method", "plain")
 
 
 def overrides(variant: str, preset: str, downscale: float, steps: int | None = None,
-              mesh: bool = False) -> dict:
+              mesh: bool = False, seed: int = 0) -> dict:
     from dataclasses import asdict
 
     from core.config import train_config
@@ -39,18 +40,19 @@ def overrides(variant: str, preset: str, downscale: float, steps: int | None = N
     if steps is not None:
         s = s.scaled(steps)
     out = {"downscale": downscale, "mesh": {"enabled": mesh and variant == "method"},
-           "train": {"schedule": asdict(s)}}
+           "train": {"schedule": asdict(s), "seed": seed}}
     if steps is not None:
         out["train"]["rates"] = {"means_decay_steps": steps}
     if variant == "plain":
-        out["train"]["schedule"].update(stage2_start=s.iterations, stage3_start=s.iterations,
-                                        sh_start=s.sh_interval)
-        out["train"]["bake_ao"] = False
+        out["train"]["method"] = "3dgs"
     return out
 
 
 def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: float,
-                steps: int | None = None, mesh: bool = False) -> dict:
+                steps: int | None = None, mesh: bool = False, seed: int = 0,
+                extra: dict | None = None) -> dict:
+    """Train (or resume, or re-score) one variant in `out`; `extra` train settings are laid
+    over the variant's (`benchmarks/plain_gap.py`)."""
     from core.data import load_capture
     from core.evaluation import evaluate_run
     from core.pipeline import reconstruct
@@ -59,14 +61,16 @@ def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: 
     if done:
         metrics = json.loads((out / "metrics.json").read_text())
     else:
+        over = overrides(variant, preset, downscale, steps, mesh, seed)
+        over["train"].update(extra or {})
         metrics = reconstruct(capture, out, preset=preset, resume=True, progress=True,
-                              overrides=overrides(variant, preset, downscale, steps, mesh))
+                              overrides=over)
     ev = evaluate_run(out)
     frame = next(iter(metrics["frames"].values()))
     steps = frame["iterations"]
     cap = load_capture(capture)
     masked = any(cap.mask_path(f, c.id) for f in cap.frames for c in cap.cameras)
-    return {"variant": variant, "psnr": ev["psnr_full"], "ssim": ev["ssim"],
+    return {"variant": variant, "seed": seed, "psnr": ev["psnr_full"], "ssim": ev["ssim"],
             "psnr_subject": ev["psnr"] if masked else None, "normal_deg": ev["normal_deg"],
             "train_psnr": frame["train_psnr"], "gaussians": frame["gaussians"],
             "seconds": frame["seconds"], "ao_bake_seconds": frame.get("ao_bake_seconds"),
@@ -85,6 +89,7 @@ def main() -> None:
     ap.add_argument("--mesh", action="store_true", help="mesh the method's frame")
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
+    ap.add_argument("--seed", type=int, default=0, help="train.seed (view order, splits)")
     args = ap.parse_args()
     if args.threads:
         import torch
@@ -93,7 +98,7 @@ def main() -> None:
     rows = []
     for variant in args.variants:
         rows.append(run_variant(args.capture, args.out / variant, variant, args.preset,
-                                args.downscale, args.steps, args.mesh))
+                                args.downscale, args.steps, args.mesh, args.seed))
         (args.out / f"{variant}.json").write_text(json.dumps(rows[-1], indent=2))
     steps = f", {args.steps} steps" if args.steps else ""
     print(f"\n{args.capture} at 1/{args.downscale:g}, preset {args.preset}{steps}\n")

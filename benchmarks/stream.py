@@ -27,14 +27,16 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 def _views(run: Path):
     from core.data import load_capture
+    from core.data.split import camera_split
     from core.relight.gbuffer import run_render
     from core.render import RenderCamera
 
     settings = run_render(run)
     capture = load_capture(settings.capture)
     ds = settings.downscale
+    scored = set(camera_split(capture, settings.split).scored)
     cams = [c.scaled(max(1, round(c.width / ds)), max(1, round(c.height / ds)))
-            for i, c in enumerate(capture.cameras) if i % 8 == 0]
+            for c in capture.cameras if c.id in scored]
     return settings, [RenderCamera.from_camera(c) for c in cams]
 
 
@@ -67,14 +69,16 @@ def compare(a, b) -> tuple[float, float, float]:
     return psnr, float(ang.mean()), float(np.percentile(ang, 99))
 
 
-def score_run(run: Path, out: Path, config) -> dict:
-    """Export `run` as SPZ and stream into `out` and score both against its PLYs."""
+def score_run(run: Path, out: Path, config, subject: bool = False) -> dict:
+    """Export `run` as SPZ and stream into `out` and score both against its PLYs (with
+    `subject`, the subject's alone against the subject's PLYs)."""
     from core.export.run import export_run
     from core.export.splats import read_frame_ply
     from core.export.spz import read_spz
     from core.export.stream import read_stream
 
-    record = export_run(run, out, formats=("spz", "stream"), config=config)
+    record = export_run(run, out, formats=("spz", "stream"), config=config, subject=subject)
+    plys = out / "ply" if subject else None
     settings, cams = _views(run)
     start = time.perf_counter()
     header, frames = read_stream(out / "stream.dgss")
@@ -82,7 +86,8 @@ def score_run(run: Path, out: Path, config) -> dict:
     decode_s = (time.perf_counter() - start) / len(decoded)
     rows = {"stream": [], "spz": []}
     for name, dec in zip(header["frames"], decoded):
-        ply = read_frame_ply(run / "frames" / name / "gaussians.ply")
+        ply = read_frame_ply(plys / f"{name}.ply" if plys is not None else
+                             run / "frames" / name / "gaussians.ply")
         spz = read_spz(out / "spz" / f"{name}.spz")
         spz.opacity_g, spz.normals, spz.visibility = ply.opacity_g, ply.normals, ply.visibility
         for cam in cams:

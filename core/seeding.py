@@ -24,7 +24,8 @@ from core.data.capture import Camera
 from core.data.points import PointCloud
 from core.triangulation import in_visual_hull, pixel_indices, triangulate_views
 
-__all__ = ["Seed", "look_at_center", "sample_points", "scene_extent",
+__all__ = ["ENCLOSURE_DEPTH", "ENCLOSURE_SPREAD", "Seed", "encloses", "look_at_center",
+           "sample_points", "scene_extent",
            "seed_points", "shell_points"]
 
 log = logging.getLogger("dgs.seeding")
@@ -41,6 +42,12 @@ class Seed:
     colors: torch.Tensor
     note: str
     """One line for the run's notes: the source and the counts."""
+
+
+ENCLOSURE_SPREAD = 0.5
+"""`encloses`: largest norm of the mean camera direction of cameras around a scene."""
+ENCLOSURE_DEPTH = 1.25
+"""`encloses`: largest ratio of the farthest camera's distance to the nearest's."""
 
 
 def scene_extent(cameras: Sequence[Camera]) -> float:
@@ -170,19 +177,41 @@ def _source_cloud(cameras: Sequence[Camera], images: Sequence[np.ndarray],
     return None, what
 
 
+def encloses(cameras: Sequence[Camera], center: np.ndarray) -> bool:
+    """Whether the cameras are mounted around `center` on one enclosure (a studio dome): they
+    surround it (the mean of the unit directions from it to them is under
+    `ENCLOSURE_SPREAD`) at nearly one distance (within `ENCLOSURE_DEPTH` of each other). The
+    Panoptic dome: 0.33 and 1.04; the fox (hand-held, one side): 0.81 and 1.67."""
+    d = np.stack([c.center for c in cameras]) - center
+    r = np.linalg.norm(d, axis=1)
+    if len(cameras) < 4 or r.min() <= 0:
+        return False
+    spread = float(np.linalg.norm((d / r[:, None]).mean(axis=0)))
+    return spread < ENCLOSURE_SPREAD and float(r.max() / r.min()) < ENCLOSURE_DEPTH
+
+
 def _background(cameras: Sequence[Camera], images: Sequence[np.ndarray],
                 masks: Sequence[np.ndarray | None], cloud: PointCloud, fraction: float,
-                seed: int) -> tuple[PointCloud, str]:
+                seed: int, n_random: int) -> tuple[PointCloud, str]:
     """The far shell of the views without masks: twice as far from the look-at centre as the
-    farther of the cameras and the seeds (99th percentile)."""
+    farther of the cameras and the seeds (99th percentile), `fraction` of the seeds. Inside an
+    enclosure (`encloses`) the background is the enclosure the cameras are mounted on, which
+    fills most of every view: the shell is at the cameras' distance, and it has at least
+    `fraction` x `n_random` points."""
     center = look_at_center(cameras)
-    reach = max(np.linalg.norm(np.stack([c.center for c in cameras]) - center, axis=1).max(),
-                float(np.percentile(np.linalg.norm(cloud.points - center, axis=1), 99)))
+    cams = np.linalg.norm(np.stack([c.center for c in cameras]) - center, axis=1)
     n = max(1, round(fraction * len(cloud)))
+    if encloses(cameras, center):
+        radius, what = float(cams.mean()), "the enclosure: a shell"
+        n = max(n, round(fraction * n_random))
+    else:
+        reach = max(cams.max(), float(np.percentile(np.linalg.norm(cloud.points - center,
+                                                                   axis=1), 99)))
+        radius, what = 2.0 * reach, "a shell"
     unmasked = [i for i, m in enumerate(masks) if m is None]
     shell = shell_points([cameras[i] for i in unmasked], [images[i] for i in unmasked], n,
-                         center, 2.0 * reach, seed)
-    return shell, f"{n} background points on a shell of radius {2 * reach:.3g}"
+                         center, radius, seed)
+    return shell, f"{n} background points on {what} of radius {radius:.3g}"
 
 
 def seed_points(cameras: Sequence[Camera], images: Sequence[np.ndarray],
@@ -214,7 +243,8 @@ def seed_points(cameras: Sequence[Camera], images: Sequence[np.ndarray],
                             what)
             notes.append(f"{len(pts)} random points {where}{fallback}")
     if not all(m is not None for m in masks) and config.background > 0 and cloud is not None:
-        shell, note = _background(cameras, images, masks, cloud, config.background, seed)
+        shell, note = _background(cameras, images, masks, cloud, config.background, seed,
+                                  n_random)
         parts.append(shell)
         notes.append(note)
     pts = np.concatenate([p.points for p in parts])

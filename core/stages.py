@@ -9,6 +9,9 @@ Paper preset, 30k iterations per key frame:
 Densification and opacity resets follow 3DGS (Kerbl et al. 2023, arguments/__init__.py):
 densify every 100 steps from 500 to 15k, opacity reset (and pruning) every 3000 steps.
 Other presets scale every step count by iterations / 30000.
+
+A plain 3DGS (`TrainConfig.method` "3dgs") stays in stage 1 throughout and raises the SH degree
+every `sh_interval` steps from the start (3DGS oneupSHdegree every 1000 iterations).
 """
 
 from __future__ import annotations
@@ -17,7 +20,7 @@ import math
 from dataclasses import dataclass
 from typing import Literal
 
-from core.config import Schedule
+from core.config import METHODS, Method, Schedule
 
 __all__ = ["StagePlan", "plan"]
 
@@ -54,21 +57,27 @@ class StagePlan:
     """Prune, then reset opacities, after this step's backward pass."""
 
 
-def plan(step: int, schedule: Schedule = Schedule()) -> StagePlan:
-    """The plan at `step` (0 <= step < schedule.iterations). Pure: same input, same output."""
+def plan(step: int, schedule: Schedule = Schedule(), method: Method = "disentangled") -> StagePlan:
+    """The plan at `step` (0 <= step < schedule.iterations) of `method`. Pure: same input,
+    same output."""
     if not isinstance(step, int) or not 0 <= step < schedule.iterations:
         raise ValueError(f"step: expected an integer in [0, {schedule.iterations}), got {step!r}")
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
     s = schedule
     stage: Literal[1, 2, 3] = 1 if step < s.stage2_start else (2 if step < s.stage3_start else 3)
+    if method == "3dgs":
+        stage = 1
     beta = 0.0
     if stage > 1:
         span = max(s.iterations - 1 - s.stage2_start, 1)
         t = min((step - s.stage2_start) / span, 1.0)
         beta = s.beta_max * 0.5 * (1.0 - math.cos(math.pi * t))
     sh = 0
-    sh_start = s.stage3_start if s.sh_start is None else s.sh_start
-    if step >= sh_start and (stage == 3 or s.sh_start is not None):
-        sh = min(s.sh_max_degree, 1 + (step - sh_start) // s.sh_interval)
+    if method == "3dgs":
+        sh = min(s.sh_max_degree, step // s.sh_interval)
+    elif stage == 3:
+        sh = min(s.sh_max_degree, 1 + (step - s.stage3_start) // s.sh_interval)
     in_window = s.densify_from < step < s.densify_until
     return StagePlan(
         step=step, stage=stage, beta=beta, sh_degree=sh, tie_opacity=stage == 1,

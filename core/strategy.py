@@ -3,16 +3,19 @@ object with explicit state, in the manner of gsplat's `strategy/` (called after 
 
 - Statistics: AbsGS (Ye et al. 2024) per branch, the mean over the views that saw a Gaussian of
   the norm of its per-view absolute screen-space gradient, in NDC units (pixel gradients times
-  W/2, H/2, as 3DGS and gsplat measure them).
+  W/2, H/2, as 3DGS and gsplat measure them); or (`gradient` mean) 3DGS's, the norm of the
+  per-view screen-space gradient itself.
 - A Gaussian is densified when either branch passes its threshold. Small ones are cloned, large
   ones split in two (3DGS: scale threshold percent_dense 0.01 x scene extent, split samples drawn
   from the Gaussian, scales divided by 1.6). In a branch that passed, both resulting Gaussians get
   opacity 1 - sqrt(1 - o) (Bulo et al. 2024, "Revising densification in Gaussian splatting"),
-  so that together they cover like the original; in a branch that did not pass, the original (or
-  first sample) keeps its opacity and the copy starts at 0.005.
+  so that together they cover like the original (`revised_opacity`; off, both keep o as in
+  3DGS); in a branch that did not pass, the original (or first sample) keeps its opacity and
+  the copy starts at 0.005.
 - At each opacity reset: drop the rho fraction with the lowest contribution (max over views of
   alpha*T in either branch since the last reset) and those transparent in both branches; then
-  rho *= 0.75 and opacities become min(o, 0.01) (3DGS reset).
+  rho *= 0.75 and opacities become min(o, 0.01) (3DGS reset). With `prune_at` densify the
+  transparent ones go at every densification instead, as in 3DGS.
 - From the first reset on, every densification and reset also drops Gaussians whose largest scale
   exceeds 0.1 x the scene extent (3DGS densify_and_prune `big_points_ws`; gsplat
   DefaultStrategy prune_scale3d 0.1): a sheet that large is a floater the training views cannot
@@ -56,16 +59,16 @@ class StrategyState:
     """Opacity resets done so far."""
     history: list[dict[str, int]] = field(default_factory=list)
     """One record per densification / reset: counts cloned, split, pruned."""
+    frozen: Tensor | None = None
+    """(N,) bool: Gaussians never densified or pruned (a tracked frame's static scene); None:
+    none. New rows inherit their parent's."""
 
     def select(self, index: Tensor) -> None:
         """Re-index every per-Gaussian tensor (a boolean mask or an index tensor)."""
         for name in ("grad_c", "grad_g", "count", "max_radii", "contribution"):
             setattr(self, name, getattr(self, name)[index])
-
-
-def _logit(p: Tensor) -> Tensor:
-    p = p.clamp(1e-6, 1 - 1e-6)
-    return torch.log(p / (1 - p))
+        if self.frozen is not None:
+            self.frozen = self.frozen[index]
 
 
 class DensifyStrategy:
@@ -91,8 +94,11 @@ class DensifyStrategy:
         with torch.no_grad():
             ndc = torch.tensor([width / 2.0, height / 2.0], device=state.count.device)
             seen = out.radii > 0
-            state.grad_c += torch.where(seen, (out.absgrad_c.detach() * ndc).norm(dim=1), 0)
-            state.grad_g += torch.where(seen, (out.absgrad_g.detach() * ndc).norm(dim=1), 0)
+            if self.config.gradient == "absolute":
+                state.grad_c += torch.where(seen, (out.absgrad_c.detach() * ndc).norm(dim=1), 0)
+                state.grad_g += torch.where(seen, (out.absgrad_g.detach() * ndc).norm(dim=1), 0)
+            elif out.means2d.grad is not None:  # both branches' gradient, in grad_c
+                state.grad_c += torch.where(seen, (out.means2d.grad * ndc).norm(dim=1), 0)
             state.count += seen.float()
             state.max_radii = torch.maximum(state.max_radii, out.radii.float())
             state.contribution = torch.maximum(state.contribution, out.contribution.detach())
@@ -114,10 +120,15 @@ class DensifyStrategy:
         return pass_c, pass_g
 
     def densify(self, model: GaussianModel, optimizer: torch.optim.Optimizer | None,
-                state: StrategyState, generator: torch.Generator | None = None) -> dict[str, int]:
-        """Clone / split where either branch passed its threshold; reset the gradient stats."""
+                state: StrategyState, generator: torch.Generator | None = None,
+                tied: bool = False) -> dict[str, int]:
+        """Clone / split where either branch passed its threshold; reset the gradient stats;
+        prune those too big (after the first reset) and, with `prune_at` densify, the
+        transparent (`tied` as in `prune_and_reset`). `state.frozen` rows are left alone."""
         with torch.no_grad():
             pass_c, pass_g = self._selection(model, state)
+            if state.frozen is not None:
+                pass_c, pass_g = pass_c & ~state.frozen, pass_g & ~state.frozen
             selected = pass_c | pass_g
             small = model.scales.max(dim=1).values <= self.config.clone_scale * self.extent
             clone, split = selected & small, selected & ~small
@@ -136,13 +147,20 @@ class DensifyStrategy:
             for name in ("grad_c", "grad_g", "count", "max_radii"):
                 getattr(state, name).zero_()
             big = self._too_big(model, state)
-            if bool(big.all()):
-                big[:] = False  # never leave an empty model
-            if bool(big.any()):
-                model.keep(~big, optimizer)
-                state.select(~big)
+            faint = self._transparent(model, tied) if self.config.prune_at == "densify" \
+                else torch.zeros_like(big)
+            drop = big | faint
+            if state.frozen is not None:
+                drop &= ~state.frozen
+            if bool(drop.all()):
+                drop[:] = False  # never leave an empty model
+            if bool(drop.any()):
+                model.keep(~drop, optimizer)
+                state.select(~drop)
         record = {"cloned": int(clone.sum()), "split": int(split.sum()),
-                  "pruned_big": int(big.sum()), "n": len(model)}
+                  "pruned_big": int((big & drop).sum()), "n": len(model)}
+        if self.config.prune_at == "densify":
+            record["pruned"] = int((faint & drop).sum())
         state.history.append(record)
         return record
 
@@ -153,14 +171,23 @@ class DensifyStrategy:
             return torch.zeros(len(model), dtype=torch.bool, device=model.device)
         return model.scales.max(dim=1).values > self.config.prune_scale * self.extent
 
+    def _transparent(self, model: GaussianModel, tied: bool) -> Tensor:
+        """(N,) below `transparent` in both branches (in the appearance one when `tied`)."""
+        o_c = model.opacity_c
+        o_g = o_c if tied else model.opacity_g
+        return (o_c < self.config.transparent) & (o_g < self.config.transparent)
+
     @staticmethod
     def _branch_opacities(raw: Tensor, passed: Tensor, cfg: DensifyConfig) -> tuple[Tensor, Tensor]:
-        """(kept, copy) opacity logits for one branch: Bulo where passed, else (o, 0.005)."""
-        o = torch.sigmoid(raw)
-        bulo = _logit(1 - torch.sqrt(1 - o))
-        copy = torch.where(passed, bulo, math.log(cfg.new_branch_opacity
-                                                  / (1 - cfg.new_branch_opacity)))
-        return torch.where(passed, bulo, raw), copy
+        """(kept, copy) opacity logits for one branch: where it passed, both Bulo's
+        (`revised_opacity`) or both the original's; elsewhere (o, 0.005)."""
+        if cfg.revised_opacity:
+            shared = torch.logit(1 - torch.sqrt(1 - torch.sigmoid(raw)), eps=1e-6)
+        else:
+            shared = raw
+        copy = torch.where(passed, shared, math.log(cfg.new_branch_opacity
+                                                    / (1 - cfg.new_branch_opacity)))
+        return torch.where(passed, shared, raw), copy
 
     def _clone(self, model: GaussianModel, mask: Tensor, pass_c: Tensor,
                pass_g: Tensor) -> dict[str, Tensor]:
@@ -196,9 +223,9 @@ class DensifyStrategy:
         cfg = self.config
         with torch.no_grad():
             n = len(model)
-            o_c = model.opacity_c
-            o_g = o_c if tied else model.opacity_g
-            drop = ((o_c < cfg.transparent) & (o_g < cfg.transparent)) | self._too_big(model, state)
+            drop = self._too_big(model, state)
+            if cfg.prune_at == "reset":
+                drop |= self._transparent(model, tied)
             k = int(math.floor(state.rho * n))
             if k > 0:
                 drop[state.contribution.argsort(stable=True)[:k]] = True

@@ -9,6 +9,7 @@ from typing import Annotated, Any, Literal
 from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, WithJsonSchema
 
 from core.config import schema
+from core.data.importers import FORMATS
 from service.errors import ErrorInfo
 from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJobParams
 
@@ -21,7 +22,8 @@ __all__ = [
     "ProgressOut", "ReadyOut", "RenderIn", "TusOut", "manifest_entries",
 ]
 
-Format = Literal["canonical", "transforms", "colmap", "actorshq", "idr", "auto"]
+# The importers' registry names the formats (core.data.importers.IMPORTERS).
+Format = Literal[("canonical", *FORMATS, "auto")]  # type: ignore[valid-type]
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 CaptureState = Literal["uploading", "committing", "ready", "failed"]
 FileState = Literal["received", "missing", "corrupt"]
@@ -322,6 +324,9 @@ class InfoOut(BaseModel):
     limits: LimitsOut
     tus: TusOut
     pipelines: list[str]
+    capture_formats: dict[str, str] = Field(
+        description="Source formats a capture may be uploaded in (besides canonical and auto), "
+                    "each with what it reads.")
     jobs: dict[str, int] = Field(description="The caller's jobs per state.")
     retention_days: float | None
 

@@ -101,6 +101,9 @@ class ExportJobParams(BaseModel):
         None, gt=0, lt=0.01, allow_inf_nan=False,
         description="Stream: largest centre error as a fraction of a group's bounding-box "
                     "diagonal (default 1e-4).")
+    subject: bool = Field(
+        False, description="Only the subject: the Gaussians inside the hull of the capture's "
+                           "masks (the performers without the stage); the capture needs masks.")
 
 
 @dataclass(frozen=True)

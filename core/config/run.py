@@ -16,6 +16,7 @@ from pydantic import Field
 from core.config.base import ConfigError, Device, Fraction, section, validate
 from core.config.sequence import SequenceConfig
 from core.config.train import PRESETS, TrainConfig, train_config
+from core.data.split import Split
 
 __all__ = ["MESH_FORMATS", "MeshConfig", "RunConfig", "apply_overrides", "load_config",
            "parse_frames", "preset_config"]
@@ -53,6 +54,9 @@ class MeshConfig:
     """Voxels per vectorized TSDF step (memory bound of the temporaries)."""
     device: Device | None = None
     """Torch device of the TSDF; None: CUDA when available, else the CPU."""
+    subject: bool = False
+    """Mesh only the subject: the Gaussians inside the hull of the frame's subject masks
+    (`core.sequence.hull`; the performers without the stage). The capture needs masks."""
 
 
 @section
@@ -73,6 +77,10 @@ class RunConfig:
     operator allows."""
     normal_estimator_space: Literal["camera", "world"] = "camera"
     """The space the estimator's normals are in."""
+    split: Split = "auto"
+    """Which cameras are held out (`core.data.split`): `auto` the capture's declared
+    test_cameras, else every 8th; `capture` the declared ones; `every8`; `none` (every camera
+    trains; renders and metrics then on training views, labelled so)."""
     downscale: Annotated[float, Field(ge=1, le=64)] = 1.0
     """Train on the images reduced by this factor (area averaging, intrinsics scaled);
     held-out views are rendered and scored at the same size."""
@@ -80,16 +88,16 @@ class RunConfig:
     """Meshes written with every finished frame."""
 
 
-def preset_config(preset: str) -> RunConfig:
-    """The named preset's run configuration (`paper`, `fast`, `test`)."""
+def preset_config(preset: str, method: str = "disentangled") -> RunConfig:
+    """The named preset's run configuration (`paper`, `fast`, `test`) for `method`."""
     if preset not in PRESETS:
         raise ConfigError([{"path": "preset", "message": f"expected one of "
                             f"{', '.join(PRESETS)}, got {json.dumps(preset)}"}])
+    train = train_config(preset, method)
     if preset == "test":
         # The test preset's tiny captures mesh at 128 voxels (a second a frame, not 15).
-        return RunConfig(train=train_config(preset), checkpoint_every=100,
-                         mesh=MeshConfig(resolution=128))
-    return RunConfig(train=train_config(preset))
+        return RunConfig(train=train, checkpoint_every=100, mesh=MeshConfig(resolution=128))
+    return RunConfig(train=train)
 
 
 def _merge(base: Any, over: Any) -> Any:
@@ -114,8 +122,10 @@ def load_config(preset: str = "fast", config_file: str | os.PathLike[str] | None
                 overrides: dict | None = None, *, gop: int | None = None,
                 where: str = "config") -> RunConfig:
     """The preset's configuration, then a JSON file's overrides, then `overrides` (both in the
-    shape of RUN/config.json), then `gop`; ConfigError on any bad setting."""
-    cfg = preset_config(preset)
+    shape of RUN/config.json), then `gop`; ConfigError on any bad setting. A `train.method`
+    among them brings that method's defaults under every override (`method_defaults`): the
+    preset's plan with 3DGS's densification, say, unless a setting names another value."""
+    layers: list[tuple[dict, str]] = []
     if config_file is not None:
         path = Path(config_file)
         try:
@@ -123,11 +133,18 @@ def load_config(preset: str = "fast", config_file: str | os.PathLike[str] | None
         except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise ConfigError([{"path": "config", "message": f"cannot read {path.name}: "
                                 f"{exc}"}]) from None
-        cfg = apply_overrides(cfg, data, where=path.name)
+        layers.append((data, path.name))
     if overrides:
-        cfg = apply_overrides(cfg, overrides, where=where)
+        layers.append((overrides, where))
     if gop is not None:
-        cfg = apply_overrides(cfg, {"gop": gop}, where="")
+        layers.append(({"gop": gop}, ""))
+    cfg = preset_config(preset)
+    for data, at in layers:
+        cfg = apply_overrides(cfg, data, where=at)
+    if cfg.train.method != "disentangled":  # again, on the method's defaults
+        cfg = preset_config(preset, cfg.train.method)
+        for data, at in layers:
+            cfg = apply_overrides(cfg, data, where=at)
     return cfg
 
 

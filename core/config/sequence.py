@@ -103,6 +103,18 @@ class SequenceConfig:
     frame's Gaussians."""
     bake_ao: bool = False
     """Refine stage: re-bake ambient occlusion of the deformed pose (visibility loss on)."""
+    moving: Literal["auto", "all", "subject"] = "auto"
+    """What a tracked frame moves: `all` its Gaussians; `subject` those inside the subject
+    masks' hull (`core.sequence.hull`) of this frame or the one before, while the rest of the
+    scene stays exactly as the key frame made it (nothing to fit, nothing to store, no drift);
+    `auto`: subject where the masks mark a subject inside a scene (`train.masks` subject),
+    all where they cut it out."""
+    hull_dilate: Annotated[int, Field(ge=0, le=256)] = 4
+    """Subject hull: masks grown by this many pixels at the training resolution (the rim,
+    and motion since the masks)."""
+    hull_share: Annotated[float, Field(gt=0, le=1)] = 0.8
+    """Subject hull: a Gaussian is the subject's when inside this share of the masked views
+    that see it (one wrong mask cannot cut a limb off)."""
 
     def nodes(self, gaussians: int) -> int:
         """Graph nodes for a model of `gaussians` Gaussians."""

@@ -12,9 +12,12 @@ from pydantic import Field
 from core.config.base import DEVICE_PATTERN, MAX_STEPS, Device, Fraction, Positive, Steps, Weight, section
 
 __all__ = ["AOConfig", "DEVICE_PATTERN", "DensifyConfig", "InitConfig", "LearningRates", "LossWeights",
-           "PRESETS", "Preset", "Schedule", "TrainConfig", "schedule_for", "train_config"]
+           "METHODS", "Method", "PRESETS", "Preset", "Schedule", "TrainConfig", "method_defaults",
+           "schedule_for", "train_config"]
 
 Preset = Literal["paper", "fast", "test"]
+Method = Literal["disentangled", "3dgs"]
+METHODS: tuple[str, ...] = ("disentangled", "3dgs")
 Rate = Annotated[float, Field(gt=0, le=1)]
 
 
@@ -35,10 +38,6 @@ class Schedule:
     """SH degree reached in stage 3."""
     sh_interval: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 1_000
     """Steps per SH degree increase in stage 3 (3DGS oneupSHdegree every 1000)."""
-    sh_start: Steps | None = None
-    """Step at which the SH degree first rises (then one more every `sh_interval`); None: the
-    start of stage 3. A plain 3DGS (the appearance-only baseline) rises from `sh_interval`
-    on, whatever the stage."""
     densify_from: Steps = 500
     """Densification runs at steps > densify_from (3DGS densify_from_iter)."""
     densify_until: Steps = 15_000
@@ -65,8 +64,6 @@ class Schedule:
             "stage2_start", "stage3_start", "sh_interval", "densify_from", "densify_until",
             "densify_interval", "reset_interval")}
         counts["stage3_start"] = max(counts["stage3_start"], counts["stage2_start"])
-        if self.sh_start is not None:
-            counts["sh_start"] = round(self.sh_start * f)
         return replace(self, iterations=iterations, **counts)
 
 
@@ -123,20 +120,33 @@ class LearningRates:
 class DensifyConfig:
     """Thresholds and factors of the densification strategy (`core.strategy`)."""
 
+    gradient: Literal["absolute", "mean"] = "absolute"
+    """The screen-space gradient statistic: `absolute`, AbsGS (Ye et al. 2024: per view the
+    sum over pixels of |dL/d mean2d|, per branch); `mean`, 3DGS (per view |dL/d mean2d|, both
+    branches together; gsplat DefaultStrategy absgrad=False). Either is averaged over the
+    views that drew the Gaussian and measured in NDC units."""
     grad_threshold_c: Positive = 0.0008
-    """AbsGS threshold of the appearance branch (AbsGS / gsplat absgrad default 0.0008)."""
+    """Densify above this statistic in the appearance branch (AbsGS / gsplat absgrad default
+    0.0008; 3DGS densify_grad_threshold 0.0002 with `gradient` mean)."""
     grad_threshold_g: Positive = 0.0008
-    """AbsGS threshold of the geometry branch."""
+    """... in the geometry branch (unused with `gradient` mean)."""
     clone_scale: Positive = 0.01
     """Clone when the largest scale <= clone_scale x extent, else split (3DGS percent_dense)."""
     split_factor: Annotated[float, Field(ge=1, le=100)] = 1.6
     """Split samples get scales / split_factor (3DGS: 0.8 x 2 samples)."""
+    revised_opacity: bool = True
+    """Both Gaussians of a clone or split take opacity 1 - sqrt(1 - o) in a branch that passed
+    (Bulo et al. 2024), so together they cover like the original; off: both keep o (3DGS)."""
     new_branch_opacity: Annotated[float, Field(gt=0, lt=1)] = 0.005
     """Opacity of the copy in a branch that did not pass its threshold."""
     transparent: Fraction = 0.005
     """Below this opacity in both branches a Gaussian is pruned (3DGS min_opacity)."""
+    prune_at: Literal["reset", "densify"] = "reset"
+    """When transparent Gaussians are pruned: at each opacity reset, or at each densification
+    (3DGS densify_and_prune, gsplat DefaultStrategy)."""
     rho: Fraction = 0.1
-    """Initial fraction pruned by lowest contribution at a reset (0.25 for ActorsHQ-like)."""
+    """Initial fraction pruned by lowest contribution at a reset (0.25 for ActorsHQ-like;
+    0: none, as in 3DGS)."""
     rho_decay: Fraction = 0.75
     """rho is multiplied by this after each reset."""
     reset_value: Annotated[float, Field(gt=0, lt=1)] = 0.01
@@ -211,6 +221,12 @@ Color = Annotated[float, Field(ge=0, le=1)]
 class TrainConfig:
     """Everything that decides how one key frame is reconstructed."""
 
+    method: Method = "disentangled"
+    """`disentangled`: the method (docs/design.md 5: two opacities, the staged schedule, the
+    geometry branch, AO). `3dgs`: a plain 3D Gaussian Splatting (Kerbl et al. 2023), the
+    comparison baseline: one opacity, no geometry branch, the SH degree raised every
+    `sh_interval` steps from the start, the photometric loss alone; with it a run's other
+    settings default to 3DGS's (`method_defaults`)."""
     schedule: Schedule = field(default_factory=Schedule)
     """Stage boundaries, beta ramp, densification and reset timing."""
     rates: LearningRates = field(default_factory=LearningRates)
@@ -232,6 +248,11 @@ class TrainConfig:
     """Apply the Mip-Splatting opacity compensation."""
     background: tuple[Color, Color, Color] = (0.0, 0.0, 0.0)
     """Colour behind the Gaussians; masked-out target pixels take it too."""
+    masks: Literal["capture", "matte", "subject"] = "capture"
+    """How the capture's masks are used: `matte`, they cut the subject out of each picture and
+    only it is reconstructed (on `background`); `subject`, the whole picture is reconstructed
+    and the masks only mark the subject (what tracked frames move, what a subject export
+    keeps); `capture`, what the capture says it has (capture.json `masks`, default matte)."""
     random_background: bool = True
     """Views with a mask train in front of a new random colour each step (render and target
     alike), so coverage must match the mask (3DGS --random_background)."""
@@ -258,13 +279,32 @@ class TrainConfig:
                        rates=replace(self.rates, means_decay_steps=decay))
 
 
-def train_config(preset: str) -> TrainConfig:
-    """Named presets: `paper` (30k steps), `fast` (7.5k) and `test` (500, tiny captures)."""
+def method_defaults(config: TrainConfig, method: str) -> TrainConfig:
+    """`config` with `method`'s defaults laid on it. For `3dgs` those of the reference 3DGS
+    (arguments/__init__.py, gaussian_model.densify_and_prune) and gsplat's DefaultStrategy:
+    the mean screen gradient above 0.0002, clones and splits keeping their opacity,
+    transparent Gaussians pruned at every densification, no pruning by contribution, the
+    classic rasterization (2D blur 0.3, no antialiasing compensation), no AO bake."""
+    if method not in METHODS:
+        raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
+    if method == "disentangled":
+        return replace(config, method="disentangled")
+    densify = replace(config.densify, gradient="mean", grad_threshold_c=0.0002,
+                      revised_opacity=False, prune_at="densify", rho=0.0)
+    return replace(config, method="3dgs", densify=densify, eps2d=0.3, antialiased=False,
+                   bake_ao=False)
+
+
+def train_config(preset: str, method: str = "disentangled") -> TrainConfig:
+    """Named presets: `paper` (30k steps), `fast` (7.5k) and `test` (500, tiny captures), for
+    `method` (`method_defaults`)."""
     schedule = schedule_for(preset)
-    if preset == "paper":
-        return TrainConfig(schedule=schedule)
     rates = replace(LearningRates(), means_decay_steps=schedule.iterations)
-    if preset == "fast":
-        return TrainConfig(schedule=schedule, init_points=50_000, rates=rates)
-    return TrainConfig(schedule=schedule, init_points=1_000, rates=rates,
-                       densify=replace(DensifyConfig(), max_gaussians=4_000))
+    if preset == "paper":
+        config = TrainConfig(schedule=schedule)
+    elif preset == "fast":
+        config = TrainConfig(schedule=schedule, init_points=50_000, rates=rates)
+    else:
+        config = TrainConfig(schedule=schedule, init_points=1_000, rates=rates,
+                             densify=replace(DensifyConfig(), max_gaussians=4_000))
+    return method_defaults(config, method)

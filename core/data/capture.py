@@ -174,6 +174,13 @@ class Capture:
     normals_space: Literal["world", "camera"] = "world"
     import_record: dict[str, Any] | None = None
     """How an importer produced this capture, including the transform back to the source."""
+    test_cameras: tuple[str, ...] | None = None
+    """The cameras its dataset holds out for evaluation (capture.json `test_cameras`), or None
+    when it declares none (`core.data.split`)."""
+    masks: Literal["matte", "subject"] = "matte"
+    """What its masks are (capture.json `masks`): `matte`, they cut the subject out of each
+    picture and only it is reconstructed; `subject`, they mark the subject (the performers)
+    inside a scene that is reconstructed whole (docs/capture-format.md)."""
     extra: dict[str, Any] = field(default_factory=dict)
     """Keys of capture.json this version does not interpret, kept so saving loses nothing."""
 
@@ -219,6 +226,10 @@ class Capture:
         }
         if self.normals_space != "world":
             data["normals_space"] = self.normals_space
+        if self.test_cameras is not None:
+            data["test_cameras"] = list(self.test_cameras)
+        if self.masks != "matte":
+            data["masks"] = self.masks
         if self.import_record is not None:
             data["import"] = self.import_record
         data.update({k: v for k, v in self.extra.items() if k not in data})

@@ -8,7 +8,7 @@ import sys
 
 from core.cli import command_help
 from core.data.capture import CaptureError
-from core.data.importers import import_capture
+from core.data.importers import FORMATS, import_capture
 from core.data.schema import load_capture
 from core.data.validate import validate_capture
 
@@ -26,7 +26,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     imp.add_argument("src", help="source folder (or transforms.json / calibration.csv / cameras.npz)")
     imp.add_argument("--out", required=True, help="new capture folder (must not exist or be empty)")
     imp.add_argument(
-        "--format", default="auto", choices=["auto", "transforms", "colmap", "actorshq", "idr"]
+        "--format", default="auto", choices=["auto", *FORMATS]
     )
     imp.add_argument(
         "--link",

@@ -119,6 +119,7 @@ class CaptureDataset(torch.utils.data.Dataset):
         downscale: float = 1.0,
         undistort: bool = True,
         cache_bytes: int = 1 << 30,
+        matte: bool = True,
     ):
         if not downscale >= 1.0:
             raise ValueError(f"downscale: expected a factor >= 1, got {downscale}")
@@ -131,6 +132,10 @@ class CaptureDataset(torch.utils.data.Dataset):
         self.cameras = [capture.camera(i) for i in ids]
         self.downscale = float(downscale)
         self.undistort = undistort
+        self.matte = matte
+        """The masks are mattes: a downscaled image keeps the straight colour of the masked
+        part at its edges. Off (masks that only mark a subject inside the picture): the
+        picture is resampled as it is."""
         self.cache = ByteLRUCache(cache_bytes)
 
     def __len__(self) -> int:
@@ -211,7 +216,7 @@ class CaptureDataset(torch.utils.data.Dataset):
         elif raw.shape[2] in (2, 4):
             mask = raw[:, :, -1:].copy()
         normal = self._read_normal(view.normal, cam) if view.normal is not None else None
-        image = self._resample(image, cam, weight=mask)
+        image = self._resample(image, cam, weight=mask if self.matte else None)
         mask = self._resample(mask, cam)
         normal = self._resample(normal, cam)
         if normal is not None:

@@ -86,14 +86,45 @@ def parse_capture_json(data: Any, root: Path) -> tuple[Capture | None, list[Prob
     space = data.get("normals_space", "world")
     if space not in ("world", "camera"):
         problems.append(Problem(where, f"normals_space must be 'world' or 'camera', got {space!r}"))
-    known = {"version", "up", "frames", "cameras", "normals_space", "import"}
+    known = {"version", "up", "frames", "cameras", "normals_space", "import", "test_cameras",
+             "masks"}
     extra = {k: v for k, v in data.items() if k not in known}
     record = data.get("import")
+    test = _parse_test_cameras(data.get("test_cameras"), cameras, problems)
+    masks = data.get("masks", "matte")
+    if masks not in ("matte", "subject"):
+        problems.append(Problem(where, f"masks must be 'matte' or 'subject', got "
+                                f"{json.dumps(masks)[:40]}"))
+        masks = "matte"
     if not frames or not isinstance(data.get("cameras"), list):
         return None, problems
     # Returned even with problems (bad cameras left out) so validation can go on to the files.
     valid_space = space if space in ("world", "camera") else "world"
-    return Capture(root, tuple(cameras), tuple(frames), up, valid_space, record, extra), problems
+    return Capture(root, tuple(cameras), tuple(frames), up, valid_space, record, test, masks,
+                   extra), problems
+
+
+def _parse_test_cameras(value: Any, cameras: list[Camera],
+                        problems: list[Problem]) -> tuple[str, ...] | None:
+    """capture.json `test_cameras`: absent/null, or a list of distinct ids of its cameras that
+    leaves at least one camera to train on."""
+    if value is None:
+        return None
+    ids = {c.id for c in cameras}
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        problems.append(Problem(CAPTURE_JSON, "test_cameras must be null or a list of camera "
+                                f"ids, got {json.dumps(value)[:80]}"))
+        return None
+    bad = [v for v in value if v not in ids]
+    if bad and cameras:
+        shown = ", ".join(repr(b)[:40] for b in bad[:5])
+        problems.append(Problem(CAPTURE_JSON, f"test_cameras: {shown} not among the cameras"))
+    if len(set(value)) != len(value):
+        problems.append(Problem(CAPTURE_JSON, "test_cameras: an id is listed twice"))
+    if cameras and set(value) >= ids:
+        problems.append(Problem(CAPTURE_JSON, "test_cameras: every camera is held out; leave "
+                                "at least one to train on"))
+    return tuple(v for v in value if v in ids)
 
 
 def _parse_up(value: Any, problems: list[Problem]) -> tuple[float, float, float]:

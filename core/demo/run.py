@@ -59,7 +59,7 @@ def report(capture, capture_dir: Path, run_dir: Path, metrics: dict, result: dic
     """Print the results of the evaluated run; returns its contact sheet (written by
     `evaluate_run`)."""
     frame = capture.frames[0]
-    held = [c.id for i, c in enumerate(capture.cameras) if i % 8 == 0]
+    held = result["split"]["heldout"]
     m = metrics["frames"][frame]
     print(f"{step} results", flush=True)
     print(f"      reconstruction: {train_s:.0f} s, {m['gaussians']} Gaussians, training PSNR "

@@ -1,5 +1,9 @@
 """`dgs eval`: quality of a run on its held-out views (docs/design.md 3.3 `eval.json`, section 5).
 
+The views are those the run's camera split scores (`core.data.split`, RUN/config.json `split`):
+its held-out cameras, or, for a run that trained on every camera, its training cameras, which
+eval.json's `split.scored_on` then says.
+
 - every view at the run's resolution (the capture reduced by RUN/config.json's `downscale`, the
   ground-truth normals area-averaged to it);
 - rgb: PSNR over foreground pixels when the capture has masks (else the whole image; `psnr_full`
@@ -10,7 +14,8 @@
   (gt/normals) when the capture has it, else against the normal priors (normals/), else null.
   Foreground pixels the run left uncovered (black in _normal.png) count as cosine 0, so a run
   cannot score well by drawing nothing;
-- lpips stays null (backbone weights cannot be downloaded at run time) and chamfer null until
+- lpips: LPIPS v0.1 (AlexNet) of the whole image (`core.evaluation.lpips`) when
+  $DGS_LPIPS_WEIGHTS names torchvision's AlexNet weights, else null; chamfer null until
   meshes are written.
 """
 
@@ -27,7 +32,9 @@ from PIL import Image
 
 from core.color import linear_to_srgb
 from core.data import CaptureDataset, load_capture
+from core.data.split import camera_split
 from core.device import resolve_device
+from core.evaluation.lpips import Lpips, load_lpips
 from core.files import write_json
 from core.mesh import mesh_distance
 from core.metrics import normal_agreement, rgb_scores
@@ -57,14 +64,19 @@ def _reduce_normals(normal: np.ndarray, shape: tuple[int, ...]) -> np.ndarray:
 
 
 def _view_metrics(sample, rgb: np.ndarray, normal_png: np.ndarray, gt_normal: np.ndarray | None,
-                  background: np.ndarray, linear: bool) -> dict:
+                  background: np.ndarray, linear: bool, matte: bool = True,
+                  lpips: Lpips | None = None) -> dict:
+    """One view's scores; `matte`: the mask cuts the subject out of the capture's picture (else
+    the picture is the target whole and the mask only says where the subject is); `lpips`
+    scores LPIPS of the whole image (None: null)."""
     image = sample.image.numpy()
     mask = None if sample.mask is None else sample.mask.numpy()
     if linear:
         image = linear_to_srgb(image).astype(np.float32)
-    target = image if mask is None else image * mask + background * (1 - mask)
+    target = image if mask is None or not matte else image * mask + background * (1 - mask)
     fg = np.ones(target.shape[:2], bool) if mask is None else mask[..., 0] > 0.5
-    out = {"camera": sample.camera_id, **rgb_scores(rgb, target, fg)}
+    out = {"camera": sample.camera_id, **rgb_scores(rgb, target, fg),
+           "lpips": None if lpips is None else lpips.score(rgb, target)}
     if gt_normal is not None:
         if gt_normal.shape[:2] != image.shape[:2]:  # a downscaled run: average, renormalise
             gt_normal = _reduce_normals(gt_normal, image.shape[:2])
@@ -88,7 +100,8 @@ def _mean(rows: list[dict], key: str) -> float | None:
 
 
 def _summary(rows: list[dict]) -> dict:
-    return {k: _mean(rows, k) for k in ("psnr", "psnr_full", "ssim", "normal_cos", "normal_deg")}
+    return {k: _mean(rows, k) for k in ("psnr", "psnr_full", "ssim", "lpips", "normal_cos",
+                                        "normal_deg")}
 
 
 def evaluate_run(run_dir: str | os.PathLike[str],
@@ -111,12 +124,17 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     frames = [f for f in capture.frames if f in done]
     if not frames:
         raise ValueError(f"run_dir: {run} has no finished frame of {capture_dir} to evaluate")
-    held = [c.id for i, c in enumerate(capture.cameras) if i % 8 == 0]
+    split = camera_split(capture, config.get("split", "auto"))
+    masks = config["train"].get("masks", "capture")
+    matte = (capture.masks if masks == "capture" else masks) == "matte"
+    held = list(split.scored)
     background = np.asarray(config["train"]["background"], np.float32)
+    lpips = load_lpips()
     per_frame, rows = [], []
     downscale = float(config.get("downscale", 1.0))  # the run's scoring resolution
     for frame in frames:
-        ds = CaptureDataset(capture, frames=[frame], cameras=held, downscale=downscale)
+        ds = CaptureDataset(capture, frames=[frame], cameras=held, downscale=downscale,
+                            matte=matte)
         views = []
         for i in range(len(ds)):
             s = ds[i]
@@ -127,12 +145,12 @@ def evaluate_run(run_dir: str | os.PathLike[str],
                 s, _read_png(Path(f"{base}_rgb.png"))[..., :3],
                 _read_png(Path(f"{base}_normal.png"))[..., :3],
                 np.load(gt_path) if gt_path.is_file() else None, background,
-                image is not None and image.suffix.lower() == ".exr"))
+                image is not None and image.suffix.lower() == ".exr", matte, lpips))
         rows += views
         per_frame.append({"frame": frame, **_summary(views), "views": views})
-    result = {**_summary(rows), "lpips": None, "chamfer": None,
+    result = {**_summary(rows), "chamfer": None,
               "normal_reference": rows[0]["normal_reference"], "capture": str(capture_dir),
-              "views": len(rows), "per_frame": per_frame}
+              "split": split.to_json(), "views": len(rows), "per_frame": per_frame}
     result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame,
                                       torch_device))
 

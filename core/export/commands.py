@@ -30,6 +30,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--capture", default=None, metavar="DIR",
                    help="the capture, when it moved since the run (cameras and up axis for "
                         "the stream's header)")
+    p.add_argument("--subject", action="store_true",
+                   help="only the subject: the Gaussians inside the hull of the capture's "
+                        "masks (the performers without the stage)")
     p.add_argument("--position-tolerance", type=float, default=None, metavar="F",
                    help="stream: largest centre error, fraction of a group's bounding-box "
                         "diagonal (default 1e-4)")
@@ -43,11 +46,14 @@ def _export(args: argparse.Namespace) -> int:
         record = export_run(args.run, args.out, formats=[f.strip() for f in
                                                         args.format.split(",") if f.strip()],
                             frames=args.frames, fps=args.fps, config=config,
-                            capture_dir=args.capture)
+                            capture_dir=args.capture, subject=args.subject)
     except ValueError as exc:
         return fail("export", exc)
     ply = record["ply_bytes_per_frame"]
     print(f"{len(record['frames'])} frame(s), PLY {ply / 1e6:.2f} MB a frame")
+    if "subject" in record:
+        print(f"subject: {record['subject']['gaussians_per_frame']:.0f} Gaussians a frame "
+              f"({record['subject']['share']:.1%} of the scene's)")
     for fmt in ("spz", "stream"):
         if fmt in record:
             r = record[fmt]

@@ -24,8 +24,10 @@ import numpy as np
 
 from core.config import Schedule, parse_frames
 from core.data import load_capture
+from core.data.split import camera_split
 from core.export.codec import StreamConfig
-from core.export.splats import read_frame_ply
+from core.export.splats import Splats, read_frame_ply, write_frame_ply
+from core.export.subject import subject_rows
 from core.export.spz import write_spz
 from core.export.stream import write_stream
 from core.relight.envmap import project_sh9
@@ -60,8 +62,8 @@ def stream_header(run: Path, frames: list[str], fps: float | None,
     albedo is divided by (uniform pi, docs/design.md section 5) and the capture's cameras (at the
     run's resolution) and up axis."""
     cfg = json.loads((run / "config.json").read_text())
-    p = plan(Schedule(**cfg["train"]["schedule"]).iterations - 1,
-             Schedule(**cfg["train"]["schedule"]))
+    schedule = Schedule(**cfg["train"]["schedule"])
+    p = plan(schedule.iterations - 1, schedule, cfg["train"].get("method", "disentangled"))
     header = {"frames": frames, "render": {
         "sh_degree": p.sh_degree, "beta": p.beta, "eps2d": float(cfg["train"]["eps2d"]),
         "antialiased": bool(cfg["train"]["antialiased"]),
@@ -74,11 +76,12 @@ def stream_header(run: Path, frames: list[str], fps: float | None,
         meta = json.loads((capture_path / "capture.json").read_text())
         ds = float(cfg.get("downscale", 1.0))
         header["up"] = [float(v) for v in capture.up]
-        for i, c in enumerate(capture.cameras):
+        scored = set(camera_split(capture, cfg.get("split", "auto")).scored)
+        for c in capture.cameras:
             s = c.scaled(max(1, round(c.width / ds)), max(1, round(c.height / ds)))
             header["cameras"].append({"id": s.id, "width": s.width, "height": s.height,
                                       "K": s.K.tolist(), "world_to_camera":
-                                      s.world_to_camera.tolist(), "heldout": i % 8 == 0})
+                                      s.world_to_camera.tolist(), "heldout": c.id in scored})
         first = capture.image_path(capture.frames[0], capture.cameras[0].id)
         header["render"]["linear"] = first is not None and first.suffix.lower() == ".exr"
     header["envmaps"] = _builtin_sh9()
@@ -96,14 +99,43 @@ def _builtin_sh9() -> dict[str, list]:
             for name in PRESETS}
 
 
+def _frames(run: Path, out: Path, groups: list[list[str]], subject: bool,
+            capture_dir) -> tuple[Callable[[str], Splats], dict]:
+    """(a reader of each frame's Splats, the record's start). With `subject` the frames are the
+    subject's (`core.export.subject`), written as OUT/ply/<frame>.ply, which is also what
+    the size a frame is measured on."""
+    order = [f for g in groups for f in g]
+    rows = subject_rows(run, groups, capture_dir) if subject else None
+
+    def frame(f: str) -> Splats:
+        splats = read_frame_ply(run / "frames" / f / "gaussians.ply")
+        return splats if rows is None else splats.take(rows[f])
+
+    if rows is not None:
+        (out / "ply").mkdir(exist_ok=True)
+        for f in order:
+            write_frame_ply(out / "ply" / f"{f}.ply", frame(f))
+    ply_bytes = [(out / "ply" / f"{f}.ply" if rows is not None else
+                  run / "frames" / f / "gaussians.ply").stat().st_size for f in order]
+    record: dict = {"run": str(run), "frames": order,
+                    "ply_bytes_per_frame": float(np.mean(ply_bytes))}
+    if rows is not None:
+        kept = [int(rows[f].sum()) for f in order]
+        record["subject"] = {"gaussians_per_frame": float(np.mean(kept)),
+                             "share": float(sum(kept) / sum(len(rows[f]) for f in order))}
+    return frame, record
+
+
 def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str], *,
                formats: Sequence[str] = ("stream",), frames: str | None = None,
                fps: float | None = None, config: StreamConfig = StreamConfig(),
                capture_dir: str | os.PathLike[str] | None = None,
-               on_progress: Callable[[str, int, int], None] | None = None) -> dict:
+               on_progress: Callable[[str, int, int], None] | None = None,
+               subject: bool = False) -> dict:
     """Export `run_dir` into `out_dir` in each of `formats`; returns (and writes as
     OUT/export.json) the record. `frames` (a slice) keeps whole groups for the stream: a group
-    is cut where the slice cuts it, its first kept frame becoming the key frame."""
+    is cut where the slice cuts it, its first kept frame becoming the key frame. `subject`:
+    only the Gaussians inside the subject masks' hull (`core.export.subject`)."""
     run, out = Path(run_dir), Path(out_dir)
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
@@ -118,9 +150,8 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     groups = [g for g in groups if g]
     order = [f for g in groups for f in g]
     out.mkdir(parents=True, exist_ok=True)
-    ply_bytes = {f: (run / "frames" / f / "gaussians.ply").stat().st_size for f in order}
-    record = {"run": str(run), "frames": order, "formats": list(formats),
-              "ply_bytes_per_frame": float(np.mean(list(ply_bytes.values())))}
+    frame, record = _frames(run, out, groups, subject, capture_dir)
+    record["formats"] = list(formats)
     total = len(order) * len(formats)
     done = 0
 
@@ -133,7 +164,8 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     if "ply" in formats:
         for f in order:
             (out / "ply").mkdir(exist_ok=True)
-            shutil.copyfile(run / "frames" / f / "gaussians.ply", out / "ply" / f"{f}.ply")
+            if not subject:
+                shutil.copyfile(run / "frames" / f / "gaussians.ply", out / "ply" / f"{f}.ply")
             step(f"ply {f}")
     header = stream_header(run, order, fps, capture_dir)
     sh_dim = (header["render"]["sh_degree"] + 1) ** 2 - 1
@@ -141,14 +173,14 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
         (out / "spz").mkdir(exist_ok=True)
         start, sizes = time.perf_counter(), []
         for f in order:
-            sizes.append(write_spz(out / "spz" / f"{f}.spz", read_frame_ply(
-                run / "frames" / f / "gaussians.ply"), sh_degree=header["render"]["sh_degree"]))
+            sizes.append(write_spz(out / "spz" / f"{f}.spz", frame(f),
+                                   sh_degree=header["render"]["sh_degree"]))
             step(f"spz {f}")
         record["spz"] = {"bytes_per_frame": float(np.mean(sizes)),
                          "ratio_to_ply": record["ply_bytes_per_frame"] / float(np.mean(sizes)),
                          "encode_seconds_per_frame": (time.perf_counter() - start) / len(order)}
     if "stream" in formats:
-        record["stream"] = _write_stream(run, out, groups, header, config, sh_dim, step)
+        record["stream"] = _write_stream(out, groups, header, config, sh_dim, step, frame)
         record["stream"]["ratio_to_ply"] = (record["ply_bytes_per_frame"]
                                             / record["stream"]["bytes_per_frame"])
     tmp = out / "export.json.tmp"
@@ -157,13 +189,13 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     return record
 
 
-def _write_stream(run: Path, out: Path, groups: list[list[str]], header: dict,
-                  config: StreamConfig, sh_dim: int, step) -> dict:
+def _write_stream(out: Path, groups: list[list[str]], header: dict, config: StreamConfig,
+                  sh_dim: int, step, frame: Callable[[str], Splats]) -> dict:
     splats = []
     for g in groups:
         splats.append([])
         for f in g:
-            splats[-1].append(read_frame_ply(run / "frames" / f / "gaussians.ply"))
+            splats[-1].append(frame(f))
             step(f"stream {f}")
     header = {**header, "tolerances": asdict(config)}
     stats = write_stream(out / "stream.dgss", splats, header, config, sh_dim=sh_dim)

@@ -29,6 +29,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument("--depth", default="geometry", choices=("geometry", "appearance"),
                    help="which branch's depth to fuse (appearance: the baseline)")
     m.add_argument("--no-colors", action="store_true", help="no vertex colours")
+    m.add_argument("--subject", action="store_true",
+                   help="only the subject: the Gaussians inside the hull of the capture's masks")
     m.add_argument("--device", default=None, help="torch device of the TSDF (default: cuda if "
                                                   "available, else cpu)")
     m.add_argument("--capture", default=None, help="capture folder (default: the run's own)")
@@ -42,7 +44,7 @@ def _mesh(args: argparse.Namespace) -> int:
     try:
         config = validate(MeshConfig, {
             "resolution": args.resolution, "depth": args.depth, "colors": not args.no_colors,
-            "device": args.device,
+            "device": args.device, "subject": args.subject,
             "formats": [f.strip() for f in args.formats.split(",") if f.strip()]})
     except ValueError as exc:
         return fail("mesh", exc)

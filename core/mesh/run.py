@@ -19,9 +19,11 @@ from pathlib import Path
 from typing import Literal
 
 import numpy as np
+import torch
 
 from core.config import MeshConfig, parse_frames
 from core.data import load_capture
+from core.export.subject import subject_rows
 from core.files import write_json
 from core.mesh.build import mesh_model
 from core.mesh.surface import export_mesh, transform_mesh
@@ -46,10 +48,10 @@ def source_from_world(capture) -> np.ndarray | None:
     return None if np.allclose(m, np.eye(4)) else m
 
 
-def training_views(capture, downscale: float) -> list:
-    """The training cameras (index % 8 != 0) at the run's resolution."""
+def training_views(capture, downscale: float, split: str = "auto") -> list:
+    """The training cameras (under `split`, `core.data.split`) at the run's resolution."""
     return [c.scaled(max(1, round(c.width / downscale)), max(1, round(c.height / downscale)))
-            for c in training_cameras(capture.cameras)]
+            for c in training_cameras(capture, split)]
 
 
 def _chosen(frames, finished: list[str]) -> list[str]:
@@ -87,7 +89,7 @@ def mesh_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str] | 
     chosen = _chosen(frames, finished)
     out = Path(out_dir) if out_dir is not None else run / "meshes"
     to_source = source_from_world(capture)
-    cameras = training_views(capture, settings.downscale)
+    cameras = training_views(capture, settings.downscale, settings.split)
     first = capture.image_path(capture.frames[0], capture.cameras[0].id)
     linear = first is not None and first.suffix.lower() == ".exr"
     old = {}
@@ -103,6 +105,9 @@ def mesh_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str] | 
         start = time.perf_counter()
         model = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
         try:
+            if config.subject:
+                rows = subject_rows(run, [[frame]], capture_dir)[frame]
+                model.keep(torch.from_numpy(rows))
             mesh, info = mesh_model(model, cameras, settings, config, linear_capture=linear)
         except ValueError as exc:
             if errors == "raise":

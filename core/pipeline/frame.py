@@ -56,9 +56,9 @@ def _fitter(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None,
         grouped = cfg.sequence.enabled and role.size > 1
         train = cfg.train.stretched(cfg.sequence.key_steps) if grouped else cfg.train
         return Trainer.from_capture(job.capture, role.frame, train, callbacks=callbacks,
-                                    downscale=cfg.downscale)
+                                    downscale=cfg.downscale, split=cfg.split)
     return tracker_for(job.capture, role.frame, job.run, inputs, cfg.train, cfg.sequence,
-                       downscale=cfg.downscale, callbacks=callbacks)
+                       downscale=cfg.downscale, split=cfg.split, callbacks=callbacks)
 
 
 def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, label: str,
@@ -76,7 +76,7 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
     fitter.train()
     tracked = inputs is not None
     save_frame(job.run.ply(role.frame), fitter.model, fitter.ids if tracked else None)
-    render_heldout(job.capture, role.frame, fitter, job.run, job.cfg.downscale)
+    render_heldout(job.capture, role.frame, fitter, job.run, job.cfg.downscale, job.cfg.split)
     mesh = mesh_frame(job.run, job.capture, role.frame, job.cfg.mesh)
     last = history.records[-1] if history.records else {}
     record = FrameRecord(

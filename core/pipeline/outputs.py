@@ -10,6 +10,7 @@ from core.color import linear_to_srgb
 from core.config import MeshConfig
 from core.data.dataset import CaptureDataset
 from core.data.images import write_png
+from core.data.split import camera_split
 from core.mesh import mesh_run
 from core.render import RenderCamera, render, safe_divide
 from core.rundir import RunDir, save_array
@@ -30,18 +31,20 @@ def _to8(a: np.ndarray) -> np.ndarray:
 
 @torch.no_grad()
 def render_heldout(capture, frame: str, fitter: FrameFitter, run: RunDir,
-                   downscale: float = 1.0) -> list[str]:
-    """Write <camera>_rgb.png, _normal.png, _ao.png and _depth.npy of the held-out cameras
-    (index % 8 == 0) into RUN/renders/<frame>/ at the training resolution (the input reduced
-    by `downscale`); returns their ids."""
+                   downscale: float = 1.0, split: str = "auto") -> list[str]:
+    """Write <camera>_rgb.png, _normal.png, _ao.png and _depth.npy of the cameras `split`
+    scores (`core.data.split`: the held-out ones, or the training ones with `none`) into
+    RUN/renders/<frame>/ at the training resolution (the input reduced by `downscale`);
+    returns their ids."""
     cfg = fitter.config
-    p = plan(cfg.schedule.iterations - 1, cfg.schedule)
+    p = plan(cfg.schedule.iterations - 1, cfg.schedule, cfg.method)
+    scored = set(camera_split(capture, split).scored)
     device = fitter.model.device
     bg = torch.tensor(cfg.background, dtype=torch.float32, device=device)
     out, ids = run.renders(frame), []
     served = CaptureDataset(capture, frames=[frame], downscale=downscale).served_camera
-    for index, cam in enumerate(capture.cameras):
-        if index % 8:
+    for cam in capture.cameras:
+        if cam.id not in scored:
             continue
         r = render(fitter.model, RenderCamera.from_camera(served(cam), device=device),
                    sh_degree=p.sh_degree, beta=p.beta, geometry=True, tie_opacity=False,

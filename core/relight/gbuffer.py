@@ -47,6 +47,8 @@ class RunRender:
     """The run's image reduction (held-out renders are at this resolution)."""
     capture: Path
     """The capture the run was made from."""
+    split: str = "auto"
+    """The run's camera split (`core.data.split`; runs before it existed: auto)."""
 
 
 def run_render(run_dir, capture_dir=None) -> RunRender:
@@ -56,13 +58,13 @@ def run_render(run_dir, capture_dir=None) -> RunRender:
         raise ValueError(f"run_dir: {Path(run_dir)} is not a run directory (no config.json)")
     cfg = json.loads(path.read_text())
     schedule = Schedule(**cfg["train"]["schedule"])
-    p = plan(schedule.iterations - 1, schedule)
+    p = plan(schedule.iterations - 1, schedule, cfg["train"].get("method", "disentangled"))
     capture = Path(capture_dir if capture_dir is not None else cfg["capture"])
     if not (capture / "capture.json").is_file():
         raise ValueError(f"capture_dir: {capture} has no capture.json (pass the capture folder)")
     return RunRender(p.sh_degree, p.beta, float(cfg["train"]["eps2d"]),
                      bool(cfg["train"]["antialiased"]), tuple(cfg["train"]["background"]),
-                     float(cfg.get("downscale", 1.0)), capture)
+                     float(cfg.get("downscale", 1.0)), capture, cfg.get("split", "auto"))
 
 
 @dataclass

@@ -24,15 +24,23 @@ __all__ = ["DeformedGaussians", "blur", "blur_sigma", "deform_losses"]
 
 class DeformedGaussians:
     """A read-only view of `base` with deformed means, quaternions and normals (differentiable
-    with respect to the graph's node parameters); `core.render.render` draws it like a model."""
+    with respect to the graph's node parameters); `core.render.render` draws it like a model.
+    With `rows` (indices) the graph moves those Gaussians (it was built on them) and the rest
+    stay where they are."""
 
     def __init__(self, base: GaussianModel, graph: DeformationGraph, rotations: Tensor,
-                 translations: Tensor):
+                 translations: Tensor, rows: Tensor | None = None):
         self.base = base
         p = base.params
-        self._means, quats, normals = graph.deform(p["means"].detach(), p["quats"].detach(),
-                                                   p["normals"].detach(), rotations,
-                                                   translations)
+        means, quats, normals = (p[k].detach() for k in ("means", "quats", "normals"))
+        if rows is None:
+            self._means, quats, normals = graph.deform(means, quats, normals, rotations,
+                                                       translations)
+        else:
+            moved = graph.deform(means[rows], quats[rows], normals[rows], rotations,
+                                 translations)
+            self._means, quats, normals = (whole.index_put((rows,), part) for whole, part in
+                                           zip((means, quats, normals), moved))
         self._quats = F.normalize(quats, dim=-1)
         self._normals = F.normalize(normals, dim=-1)
         self.raw_quats, self.raw_normals = quats, normals

@@ -50,23 +50,26 @@ def anchors_of(model: GaussianModel) -> dict[str, Tensor]:
 
 
 def temporal_loss(model: GaussianModel, anchor: dict[str, Tensor],
-                  weights: TemporalWeights = TemporalWeights()) -> dict[str, Tensor]:
+                  weights: TemporalWeights = TemporalWeights(),
+                  rows: Tensor | None = None) -> dict[str, Tensor]:
     """The weighted L1 terms {name: w * mean |value - anchor|} (means over Gaussians and
-    components). A quaternion q and -q are one rotation: q is compared after flipping it onto the
-    anchor's hemisphere."""
+    components; over `rows` alone when given). A quaternion q and -q are one rotation: q is
+    compared after flipping it onto the anchor's hemisphere."""
     n = len(model)
     for name in ANCHORED:
         if anchor[name].shape[0] != n:
             raise ValueError(f"anchor[{name!r}]: expected {n} rows like the model, got "
                              f"{anchor[name].shape[0]}")
-    q = model.quats
-    sign = torch.where((q * anchor["quats"]).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
+    pick = (lambda t: t) if rows is None else (lambda t: t[rows])
+    a = {k: pick(v) for k, v in anchor.items()}
+    q = pick(model.quats)
+    sign = torch.where((q * a["quats"]).sum(dim=1, keepdim=True) < 0, -1.0, 1.0)
     return {
-        "temporal_means": weights.means * (model.means - anchor["means"]).abs().mean(),
-        "temporal_quats": weights.quats * (q * sign - anchor["quats"]).abs().mean(),
-        "temporal_normals": weights.normals * (model.normals - anchor["normals"]).abs().mean(),
-        "temporal_opacity_g": weights.opacity_g * (model.opacity_g
-                                                   - anchor["opacity_g"]).abs().mean(),
+        "temporal_means": weights.means * (pick(model.means) - a["means"]).abs().mean(),
+        "temporal_quats": weights.quats * (q * sign - a["quats"]).abs().mean(),
+        "temporal_normals": weights.normals * (pick(model.normals) - a["normals"]).abs().mean(),
+        "temporal_opacity_g": weights.opacity_g * (pick(model.opacity_g)
+                                                   - a["opacity_g"]).abs().mean(),
     }
 
 
@@ -121,8 +124,11 @@ def relabel(state: TrackedState, model: GaussianModel) -> int:
 @torch.no_grad()
 def prune_transparent(model: GaussianModel, optimizer, state: TrackedState,
                       threshold: float = 0.005) -> int:
-    """Drop Gaussians below `threshold` opacity in both branches (never all); returns how many."""
+    """Drop Gaussians below `threshold` opacity in both branches (never all, never
+    `state.frozen` ones); returns how many."""
     drop = (model.opacity_c < threshold) & (model.opacity_g < threshold)
+    if state.frozen is not None:
+        drop &= ~state.frozen
     if bool(drop.all()):
         drop[model.opacity_c.argmax()] = False
     if bool(drop.any()):

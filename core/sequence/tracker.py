@@ -9,6 +9,10 @@ of its last sixth of steps) is the frame's `deform_loss`, which sets the refine 
 (`core.sequence.budget`). Steps [D, D + R) are the refine stage: every attribute, temporal L1 to
 the deformed values, anisotropy, densification and pruning that keep track ids. Both stages
 render with the key frame's last-step plan (full SH degree, final beta, geometry branch on).
+
+With `moving` (a scene whose subject masks say what moves, `SequenceConfig.moving`) only those
+Gaussians take part: the graph is built on them, the refine stage updates, densifies and prunes
+only them, and the rest of the scene stays bit for bit as the previous frame had it.
 """
 
 from __future__ import annotations
@@ -66,9 +70,12 @@ class FrameTracker(FrameFitter):
                  reference_loss: float | None = None,
                  earlier: tuple[Tensor, Tensor] | None = None, refine_credit: int = 0,
                  refine_reference: float | None = None,
-                 earliest: tuple[Tensor, Tensor] | None = None):
+                 earliest: tuple[Tensor, Tensor] | None = None, moving: Tensor | None = None):
         if tuple(ids.shape) != (len(previous),):
             raise ValueError(f"ids: expected ({len(previous)},) track ids, got {tuple(ids.shape)}")
+        if moving is not None and tuple(moving.shape) != (len(previous),):
+            raise ValueError(f"moving: expected ({len(previous)},) bool, got "
+                             f"{tuple(moving.shape)}")
         super().__init__(views, config, callbacks=callbacks)
         self.seq = sequence
         previous, ids = previous.to(self.device), ids.long().to(self.device)
@@ -79,13 +86,23 @@ class FrameTracker(FrameFitter):
         """The nominal until the refine stage starts, then `_refine_budget()`."""
         self.reference_loss, self.refine_reference = reference_loss, refine_reference
         self.refine_credit = int(refine_credit)
-        # The key frame's last-step plan, the geometry branch on whatever the schedule.
-        self.plan = replace(plan(config.schedule.iterations - 1, config.schedule),
-                            geometry_branch=True, tie_opacity=False)
+        # The key frame's last-step plan; the method's geometry branch on whatever the schedule.
+        self.plan = plan(config.schedule.iterations - 1, config.schedule, config.method)
+        if config.method == "disentangled":
+            self.plan = replace(self.plan, geometry_branch=True, tie_opacity=False)
         if ao_baker is None and sequence.bake_ao and config.bake_ao:
             ao_baker = GaussianAOBaker(config.ao)
         self.ao_baker = ao_baker if sequence.bake_ao and config.bake_ao else None
-        self.graph = build_graph(previous.means.detach(), sequence.nodes(len(previous)),
+        self.moving = None if moving is None or bool(moving.all()) else moving.to(self.device)
+        """(N,) bool: the Gaussians this frame moves (None: all)."""
+        if self.moving is not None and int(self.moving.sum()) < 5:
+            self.moving = None  # no subject to speak of: move everything
+            self.notes.append("fewer than 5 Gaussians inside the subject hull: all move")
+        self.rows = None if self.moving is None else self.moving.nonzero()[:, 0]
+        """Indices of the moving Gaussians in `previous` (None: all)."""
+        moved = previous.means.detach() if self.rows is None else \
+            previous.means.detach()[self.rows]
+        self.graph = build_graph(moved, sequence.nodes(len(moved)),
                                  node_neighbors=sequence.node_neighbors)
         self.starts, self.race = self._race_starts(earlier, earliest)
         """The candidate starts' node parameters by name, and the race that ordered them
@@ -111,19 +128,26 @@ class FrameTracker(FrameFitter):
         """The candidate starts (`core.sequence.starts.candidate_starts`) and the race that
         ordered them (`SequenceConfig.start_views`, `start_race`)."""
         s = self.seq
-        starts = candidate_starts(self.graph, self.previous.means.detach(), earlier, earliest,
-                                  s.motion_candidates, s.second_order)
+        pick = (lambda t: t) if self.rows is None else (lambda t: t[self.rows])
+        earlier, earliest = ((None if e is None else (pick(e[0]), pick(e[1])))
+                             for e in (earlier, earliest))
+        starts = candidate_starts(self.graph, pick(self.previous.means.detach()), earlier,
+                                  earliest, s.motion_candidates, s.second_order)
         posed: dict[str, DeformedGaussians] = {}
 
         def loss(name: str, index: int) -> float:
             if name not in posed:
-                posed[name] = DeformedGaussians(self.previous, self.graph, *starts[name])
+                posed[name] = self._posed(*starts[name])
             return self._start_loss(posed[name], index)
 
         centres = torch.stack([c.center for c in self.cameras])
         race = race_starts(list(starts), loss, view_order(centres.cpu()), s.start_views,
                            s.start_race)
         return starts, race
+
+    def _posed(self, rotations: Tensor, translations: Tensor) -> DeformedGaussians:
+        """The previous frame's Gaussians moved by node parameters (the moving ones)."""
+        return DeformedGaussians(self.previous, self.graph, rotations, translations, self.rows)
 
     @torch.no_grad()
     def _start_loss(self, posed: DeformedGaussians, index: int) -> float:
@@ -163,7 +187,7 @@ class FrameTracker(FrameFitter):
         for group, base in zip(self.optimizer.param_groups,
                                (s.lr_rotation, s.lr_translation * self.extent)):
             group["lr"] = base * decay
-        posed = DeformedGaussians(self.previous, self.graph, self.node_q, self.node_t)
+        posed = self._posed(self.node_q, self.node_t)
         sigma = blur_sigma(k, self.deform_steps, s.coarse_sigma)
         views = [(index, bg)] + [(i, self.step_background(i)) for i in
                                  (self.next_view() for _ in range(s.deform_views - 1))]
@@ -192,13 +216,14 @@ class FrameTracker(FrameFitter):
         if self.ao_targets is not None:
             terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index], view.mask,
                                                   self.config.losses)
+        rows = None if self.state.frozen is None else (~self.state.frozen).nonzero()[:, 0]
         if s.temporal:
             weights = TemporalWeights(s.temporal_opacity_g, s.temporal_means, s.temporal_quats,
                                       s.temporal_normals)
-            terms.update(temporal_loss(self.model, self.state.anchor, weights))
+            terms.update(temporal_loss(self.model, self.state.anchor, weights, rows))
         if s.anisotropy > 0:
-            terms["anisotropy"] = anisotropy_loss(self.model.scales, s.anisotropy,
-                                                  s.anisotropy_ratio)
+            scales = self.model.scales if rows is None else self.model.scales[rows]
+            terms["anisotropy"] = anisotropy_loss(scales, s.anisotropy, s.anisotropy_ratio)
         return terms, r
 
     def _end_deform(self) -> None:
@@ -212,8 +237,7 @@ class FrameTracker(FrameFitter):
                                          self.reference_loss or self.refine_reference,
                                          self.refine_credit, self.scoring_extra)
         with torch.no_grad():
-            self.model = DeformedGaussians(self.previous, self.graph, self.node_q,
-                                           self.node_t).to_model()
+            self.model = self._posed(self.node_q, self.node_t).to_model()
         self.optimizer = self.model.make_optimizer(cfg.rates, self.extent)
         for group in self.optimizer.param_groups:
             if group["name"] == "means":
@@ -226,7 +250,8 @@ class FrameTracker(FrameFitter):
         # resets=1: the key frame's resets are behind it, so too-big Gaussians are pruned.
         self.state = TrackedState(z.clone(), z.clone(), z.clone(), z.clone(), z.clone(),
                                   rho=cfg.densify.rho, resets=1, ids=self.prev_ids.clone(),
-                                  anchor=anchors_of(self.model), next_id=self.next_id)
+                                  anchor=anchors_of(self.model), next_id=self.next_id,
+                                  frozen=None if self.moving is None else ~self.moving)
         if bake and self.ao_baker is not None:
             start = time.perf_counter()
             self.ao_targets = to_device(list(self.ao_baker(self.model, self.cameras,
@@ -255,6 +280,14 @@ class FrameTracker(FrameFitter):
         terms, r = (self._deform_terms if deforming else self._refine_terms)(index, background)
         return terms, r, self.plan
 
+    def before_update(self) -> None:
+        """The static scene gets no update (its Adam moments stay 0, so it does not move)."""
+        if self.state is None or self.state.frozen is None:
+            return
+        for p in self.model.params.values():
+            if p.grad is not None:
+                p.grad[self.state.frozen] = 0
+
     def after_step(self, r, index: int, p: StagePlan) -> None:
         if self.state is None:
             return
@@ -268,8 +301,7 @@ class FrameTracker(FrameFitter):
                               self.config.densify.transparent)
 
     def current(self) -> tuple[object, StagePlan]:
-        model = self.model if self.state is not None else DeformedGaussians(
-            self.previous, self.graph, self.node_q, self.node_t)
+        model = self.model if self.state is not None else self._posed(self.node_q, self.node_t)
         return model, self.plan
 
     def state_blob(self) -> dict:

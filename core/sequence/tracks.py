@@ -17,6 +17,8 @@ from core.plyio import read_track_ids, write_gaussian_ply
 from core.rundir import RunDir
 from core.sequence.motion import align_tracks
 from core.sequence.plan import TrackedInputs
+from core.render import RenderCamera
+from core.sequence.hull import inside_hull
 from core.sequence.tracker import FrameTracker
 from core.training import frame_views
 
@@ -42,8 +44,8 @@ def load_frame(path: str | os.PathLike[str]) -> tuple[GaussianModel, torch.Tenso
 
 
 def tracker_for(capture, frame: str, run: RunDir, inputs: TrackedInputs, train: TrainConfig,
-                sequence: SequenceConfig, *, downscale: float = 1.0, callbacks=(),
-                ao_baker=None) -> FrameTracker:
+                sequence: SequenceConfig, *, downscale: float = 1.0, split: str = "auto",
+                callbacks=(), ao_baker=None) -> FrameTracker:
     """A `FrameTracker` on the training cameras of `frame`, starting from the finished frames
     `inputs` names in `run`."""
     previous = run.ply(inputs.previous)
@@ -56,11 +58,37 @@ def tracker_for(capture, frame: str, run: RunDir, inputs: TrackedInputs, train: 
         earlier = _aligned(run.ply(inputs.earlier), track)
         if inputs.earliest is not None and sequence.second_order:
             earliest = _aligned(run.ply(inputs.earliest), track)
-    return FrameTracker(frame_views(capture, frame, downscale), model, track, inputs.next_id,
+    views = frame_views(capture, frame, downscale, split, train.masks)
+    moving = None
+    if moves_subject(capture, train, sequence):
+        before = frame_views(capture, inputs.previous, downscale, split, train.masks)
+        moving = subject_rows(model.means, [views, before], sequence)
+    return FrameTracker(views, model, track, inputs.next_id,
                         train, sequence, callbacks=callbacks, ao_baker=ao_baker,
                         reference_loss=inputs.reference_loss, earlier=earlier,
                         refine_credit=inputs.refine_credit,
-                        refine_reference=inputs.refine_reference, earliest=earliest)
+                        refine_reference=inputs.refine_reference, earliest=earliest,
+                        moving=moving)
+
+
+def moves_subject(capture, train: TrainConfig, sequence: SequenceConfig) -> bool:
+    """Whether tracked frames move only the subject (`SequenceConfig.moving`)."""
+    if sequence.moving != "auto":
+        return sequence.moving == "subject"
+    masks = capture.masks if train.masks == "capture" else train.masks
+    return masks == "subject"
+
+
+def subject_rows(means: torch.Tensor, frames: list[list], sequence: SequenceConfig
+                 ) -> torch.Tensor:
+    """(N,) bool: `means` inside the subject hull (`core.sequence.hull`) of any of `frames`
+    (each a list of `core.training.View`)."""
+    inside = torch.zeros(means.shape[0], dtype=torch.bool, device=means.device)
+    for views in frames:
+        cams = [RenderCamera.from_camera(v.camera, device=means.device) for v in views]
+        inside |= inside_hull(means, cams, [v.subject_mask for v in views],
+                              dilate_pixels=sequence.hull_dilate, share=sequence.hull_share)
+    return inside
 
 
 def _aligned(ply: Path, track: torch.Tensor):

@@ -63,15 +63,16 @@ class Trainer(FrameFitter):
 
     @classmethod
     def from_capture(cls, capture, frame: str, config: TrainConfig = TrainConfig(), *,
-                     downscale: float = 1.0, **kwargs) -> Trainer:
-        """A trainer on the training cameras of one frame of a `core.data.Capture`, seeded
-        from its points.ply when it has one; `kwargs` go to the constructor (model, callbacks,
-        ao_baker)."""
+                     downscale: float = 1.0, split: str = "auto", **kwargs) -> Trainer:
+        """A trainer on the training cameras (under `split`, `core.data.split`) of one frame of
+        a `core.data.Capture`, seeded from its points.ply when it has one; `kwargs` go to the
+        constructor (model, callbacks, ao_baker)."""
         path = capture.points_path()
         if path is not None and config.init.source in ("auto", "points") \
                 and kwargs.get("model") is None:
             kwargs["points"] = read_points_ply(path)
-        return cls(frame_views(capture, frame, downscale), config, **kwargs)
+        views = frame_views(capture, frame, downscale, split, config.masks)
+        return cls(views, config, **kwargs)
 
     def _initial_model(self, points: PointCloud | None) -> GaussianModel:
         seed = seed_points(
@@ -93,15 +94,16 @@ class Trainer(FrameFitter):
         return self.iterations
 
     def current(self) -> tuple[GaussianModel, StagePlan]:
-        return self.model, plan(min(self.step, self.iterations - 1), self.config.schedule)
+        return self.model, self.plan_at(min(self.step, self.iterations - 1))
+
+    def plan_at(self, step: int) -> StagePlan:
+        """The stage plan of `step` for the configured method."""
+        return plan(step, self.config.schedule, self.config.method)
 
     def before_step(self) -> None:
-        p = plan(self.step, self.config.schedule)
+        p = self.plan_at(self.step)
         if p.start_geometry:
-            centers = torch.stack([c.center for c in self.cameras])
-            seen = seen_directions(self.model, self.cameras, eps2d=self.config.eps2d,
-                                   antialiased=self.config.antialiased)
-            self.model.init_geometry(centers, self.optimizer, seen)
+            self._start_geometry()
         if p.bake_ao:
             if self.ao_baker is None:
                 self.notes.append(f"step {p.step}: AO baking skipped (bake_ao is off); "
@@ -117,7 +119,7 @@ class Trainer(FrameFitter):
                 group["lr"] = lr
 
     def step_terms(self, index: int, background: Tensor) -> tuple[dict, object, StagePlan]:
-        p = plan(self.step, self.config.schedule)
+        p = self.plan_at(self.step)
         r = self.render_view(self.model, index, p, background)
         w, view, cam = self.config.losses, self.views[index], self.cameras[index]
         terms = {"photometric": photometric_loss(r.rgb, self.target(index, background), w)}
@@ -134,11 +136,28 @@ class Trainer(FrameFitter):
                                                   view.mask, w)
         return terms, r, p
 
+    def train(self) -> GaussianModel:
+        """Run the remaining steps; a plain 3DGS then gets the geometry a 3DGS user reads off
+        it (normals along each Gaussian's shortest axis, facing the cameras that see it, and
+        the geometry opacity equal to its one opacity), so that its renders, meshes and
+        relighting show what a 3DGS gives."""
+        super().train()
+        if self.config.method == "3dgs":
+            self._start_geometry()
+        return self.model
+
+    def _start_geometry(self) -> None:
+        centers = torch.stack([c.center for c in self.cameras])
+        seen = seen_directions(self.model, self.cameras, eps2d=self.config.eps2d,
+                               antialiased=self.config.antialiased)
+        self.model.init_geometry(centers, self.optimizer, seen)
+
     def after_step(self, r, index: int, p: StagePlan) -> None:
         cam = self.cameras[index]
         self.strategy.update(self.state, r.raster, cam.width, cam.height)
         if p.densify:
-            self.strategy.densify(self.model, self.optimizer, self.state, self.generator)
+            self.strategy.densify(self.model, self.optimizer, self.state, self.generator,
+                                  p.tie_opacity)
         if p.reset_opacity:
             self.strategy.prune_and_reset(self.model, self.optimizer, self.state, p.tie_opacity)
 

@@ -81,6 +81,9 @@ class FrameFitter:
     def step_terms(self, index: int, background: Tensor) -> tuple[dict, object, StagePlan]:
         raise NotImplementedError
 
+    def before_update(self) -> None:
+        """Between the backward pass and the optimizer step (gradients may be edited)."""
+
     def after_step(self, r, index: int, p: StagePlan) -> None:
         """After the optimizer step (densification, pruning)."""
 
@@ -138,6 +141,7 @@ class FrameFitter:
         terms, r, p = self.step_terms(index, bg)
         total = sum(terms.values())
         total.backward()
+        self.before_update()
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         self.after_step(r, index, p)

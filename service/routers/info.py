@@ -10,6 +10,7 @@ from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 from sqlalchemy import func, select, text
 
+from core.data.importers import IMPORTERS
 from service.auth import TenantDep, has_active_key
 from service.deps import Services, ServicesDep
 from service.errors import error_responses
@@ -80,6 +81,7 @@ def info(services: ServicesDep, tenant: TenantDep) -> InfoOut:
         tus=TusOut(endpoint="/v1/uploads", version=TUS_VERSION, extensions=list(EXTENSIONS),
                    checksum_algorithms=sorted(ALGORITHMS), max_size=s.max_file_bytes),
         pipelines=sorted(PIPELINES),
+        capture_formats={name: i.summary for name, i in IMPORTERS.items()},
         jobs={state: int(counts.get(state, 0)) for state in
               ("queued", "running", "succeeded", "failed", "cancelled")},
         retention_days=s.retention_days)

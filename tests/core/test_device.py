@@ -44,7 +44,7 @@ def no_cuda(monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.fixture(scope="module")
 def views(synth_capture: Path) -> list[View]:
     cap = load_capture(synth_capture)
-    ids = [c.id for c in training_cameras(cap.cameras)]
+    ids = [c.id for c in training_cameras(cap)]
     ds = CaptureDataset(cap, frames=[cap.frames[0]], cameras=ids)
     return [View.from_sample(ds[i]) for i in range(len(ds))]
 

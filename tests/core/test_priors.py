@@ -56,7 +56,7 @@ def model_file(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 def _views(capture: Path) -> list[View]:
     cap = load_capture(capture)
-    ds = CaptureDataset(cap, cameras=[c.id for c in training_cameras(cap.cameras)])
+    ds = CaptureDataset(cap, cameras=[c.id for c in training_cameras(cap)])
     return [View.from_sample(ds[i]) for i in range(len(ds))]
 
 

@@ -219,6 +219,19 @@ def test_bad_environment_maps(tmp_path: Path):
         load_envmap(_write(tmp_path, "ok.exr", good), exposure=float("nan"))
 
 
+def test_a_map_ringing_slightly_below_zero_is_clamped(tmp_path: Path):
+    """Resampled HDRIs (Poly Haven's) dip to about -2e-3 beside bright lights: loaded as 0."""
+    from core.relight.envmap import check_radiance
+
+    ring = np.ones((8, 16, 3), np.float32)
+    ring[2, 3, 1] = -2e-3
+    clamped = check_radiance(ring, "ring.exr")
+    assert clamped.min() == 0.0 and clamped[2, 3, 1] == 0.0 and clamped[0, 0, 0] == 1.0
+    ring[2, 3, 1] = -0.05  # 5% of the mean: not ringing
+    with pytest.raises(ValueError, match="1 pixel"):
+        check_radiance(ring, "ring.exr")
+
+
 @pytest.mark.parametrize("spec, message", [
     ("directional:0,0,1:0", "needs an intensity > 0"),
     ("point:0,0,1:-2", "needs an intensity > 0"),

@@ -17,7 +17,7 @@ from core.data.importers.colmap import export_colmap
 from core.data.importers.transforms import export_transforms
 from core.data.points import PointCloud, read_colmap_points, read_points_ply, write_points_ply
 from core.config import InitConfig, train_config
-from core.seeding import seed_points
+from core.seeding import encloses, look_at_center, seed_points
 from core.synth import SynthConfig, synthesize
 from core.training import Trainer
 
@@ -140,7 +140,7 @@ def test_triangulated_points_lie_on_the_surface(textured: Path):
     from core.triangulation import triangulate_views
 
     cap = load_capture(textured)
-    ds = CaptureDataset(cap, cameras=[c.id for c in training_cameras(cap.cameras)])
+    ds = CaptureDataset(cap, cameras=[c.id for c in training_cameras(cap)])
     views = [ds[i] for i in range(len(ds))]
     cloud, stats = triangulate_views([v.camera for v in views], [v.image.numpy() for v in views],
                                      [v.mask.numpy() for v in views])
@@ -172,12 +172,18 @@ def test_unmasked_views_get_a_background_shell_and_random_is_the_last_resort(tex
     ds = CaptureDataset(cap, cameras=[c.id for c in cap.cameras[1:8]])
     views = [ds[i] for i in range(len(ds))]
     cams, images = [v.camera for v in views], [v.image.numpy() for v in views]
-    seed = seed_points(cams, images, [None] * len(cams), InitConfig(background=0.5),
+    # Cameras on one side see a far background; a studio's ring is inside its enclosure.
+    side = [c for c in cap.cameras if c.center[0] > 1.0]  # six on the +x side
+    assert len(side) == 6 and not encloses(side, look_at_center(side))
+    assert encloses(cams, look_at_center(cams))
+    # Seven around it (a studio's ring): the background is the enclosure they are mounted on,
+    # at their distance, with at least background x init_points points.
+    ring = seed_points(cams, images, [None] * len(cams), InitConfig(background=0.5),
                        n_random=100)
-    assert "background points on a shell" in seed.note
-    centre = seed.points.double().mean(0)
-    far = (seed.points.double() - centre).norm(dim=-1) > 4.0  # cameras stand 3.2 from the figure
-    assert far.sum() > 0
+    assert "background points on the enclosure: a shell of radius 3.2" in ring.note
+    look = torch.from_numpy(look_at_center(cams))
+    dist = (ring.points.double() - look).norm(dim=-1)
+    assert int(((dist - 3.2).abs() < 0.01).sum()) >= 50
     # Blank images: no feature, no point; random points with a warning.
     blank = [np.zeros_like(i) for i in images]
     with caplog.at_level(logging.WARNING, logger="dgs.seeding"):

@@ -39,7 +39,7 @@ def tiny_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def views(tiny_capture: Path) -> list[View]:
     cap = load_capture(tiny_capture)
-    cams = training_cameras(cap.cameras)
+    cams = training_cameras(cap)
     ds = CaptureDataset(cap, frames=[cap.frames[0]], cameras=[c.id for c in cams])
     return [View.from_sample(ds[i]) for i in range(len(ds))]
 
@@ -60,7 +60,7 @@ def test_presets_resolve_to_json():
 
 def test_training_cameras_hold_out_every_eighth(tiny_capture: Path):
     cap = load_capture(tiny_capture)
-    ids = [c.id for c in training_cameras(cap.cameras)]
+    ids = [c.id for c in training_cameras(cap)]
     assert len(ids) == 7 and cap.cameras[0].id not in ids
 
 

@@ -3,18 +3,22 @@
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 from core.data.capture import Capture, CaptureError, Problem
 from core.data.importers.actorshq import find_calibration, read_actorshq
 from core.data.importers.colmap import find_model, read_colmap
 from core.data.importers.common import ImportedCapture, SourceView, write_canonical
 from core.data.importers.idr import find_cameras_npz, read_idr
+from core.data.importers.panoptic import find_meta, read_panoptic
 from core.data.importers.transforms import find_transforms, read_transforms
 
 __all__ = [
     "FORMATS",
+    "IMPORTERS",
+    "Importer",
     "ImportedCapture",
     "SourceView",
     "detect_format",
@@ -23,24 +27,43 @@ __all__ = [
     "write_canonical",
 ]
 
-Format = Literal["transforms", "colmap", "actorshq", "idr"]
-FORMATS: tuple[str, ...] = ("transforms", "colmap", "actorshq", "idr")
+
+@dataclass(frozen=True)
+class Importer:
+    """One source format: how to recognise it and how to read it."""
+
+    finds: Callable[[Path], bool]
+    """True when a source folder (or file) has this format's files."""
+    read: Callable[[Path], ImportedCapture]
+    """The reader (raises CaptureError listing every problem)."""
+    summary: str
+    """What it reads, in a few words (the CLI's help, the API's schema)."""
 
 
-def detect_format(src: str | os.PathLike[str]) -> Format:
+# The one list of capture formats: the CLI, the API's schema (and so openapi.yaml) and the web
+# page (GET /v1/info) read it.
+IMPORTERS: dict[str, Importer] = {
+    "transforms": Importer(lambda src: bool(find_transforms(src)), read_transforms,
+                           "transforms.json (NeRF synthetic, instant-ngp, nerfstudio)"),
+    "colmap": Importer(lambda src: src.is_dir() and find_model(src) is not None, read_colmap,
+                       "a COLMAP sparse model (text or binary)"),
+    "actorshq": Importer(lambda src: find_calibration(src) is not None, read_actorshq,
+                         "ActorsHQ calibration.csv + rgbs/ + masks/"),
+    "idr": Importer(lambda src: find_cameras_npz(src) is not None, read_idr,
+                    "IDR / NeuS cameras.npz + image/ + mask/"),
+    "panoptic": Importer(lambda src: find_meta(src) is not None, read_panoptic,
+                         "CMU Panoptic as Dynamic 3D Gaussians prepares it: train_meta.json, "
+                         "test_meta.json, ims/, seg/"),
+}
+FORMATS: tuple[str, ...] = tuple(IMPORTERS)
+
+
+def detect_format(src: str | os.PathLike[str]) -> str:
     """Guess the source format from the files present; raises CaptureError when unclear."""
     src = Path(src)
     if not src.exists():
         raise CaptureError([Problem(str(src), "source not found")])
-    found: list[Format] = []
-    if find_transforms(src):
-        found.append("transforms")
-    if src.is_dir() and find_model(src) is not None:
-        found.append("colmap")
-    if find_calibration(src) is not None:
-        found.append("actorshq")
-    if find_cameras_npz(src) is not None:
-        found.append("idr")
+    found = [name for name, importer in IMPORTERS.items() if importer.finds(src)]
     if len(found) != 1:
         what = "no known format" if not found else f"several formats ({', '.join(found)})"
         raise CaptureError([Problem(str(src), f"{what}: pass --format " + "|".join(FORMATS))])
@@ -51,15 +74,9 @@ def read_source(src: str | os.PathLike[str], fmt: str = "auto") -> ImportedCaptu
     """Read a source of format ``fmt`` (or detected) without writing anything."""
     if fmt == "auto":
         fmt = detect_format(src)
-    if fmt == "transforms":
-        return read_transforms(Path(src))
-    if fmt == "colmap":
-        return read_colmap(Path(src))
-    if fmt == "actorshq":
-        return read_actorshq(Path(src))
-    if fmt == "idr":
-        return read_idr(Path(src))
-    raise ValueError(f"fmt: expected auto or one of {FORMATS}, got {fmt!r}")
+    if fmt not in IMPORTERS:
+        raise ValueError(f"fmt: expected auto or one of {FORMATS}, got {fmt!r}")
+    return IMPORTERS[fmt].read(Path(src))
 
 
 def import_capture(

@@ -72,6 +72,11 @@ class ImportedCapture:
     """Source files copied verbatim into ``source/`` so nothing is lost."""
     points: PointCloud | None = None
     """The source's point cloud (COLMAP points3D, a nerfstudio PLY), written as points.ply."""
+    test_cameras: list[str] | None = None
+    """The cameras the source's dataset holds out for evaluation (its published split), kept
+    as capture.json `test_cameras`; None when it has none."""
+    masks: str = "matte"
+    """What its masks are (`core.data.Capture.masks`)."""
 
 
 def source_transform(camera_axes: np.ndarray, pose: str) -> dict[str, Any]:
@@ -184,6 +189,8 @@ def write_canonical(
             tuple(imported.frames),
             imported.up,
             import_record=imported.record,
+            test_cameras=None if imported.test_cameras is None else tuple(imported.test_cameras),
+            masks=imported.masks,  # type: ignore[arg-type]
         )
         save_capture(capture)
         problems = validate_capture(tmp, max_pixels=max_pixels)

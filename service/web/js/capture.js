@@ -171,7 +171,10 @@ async function cancel() {
   emit('captures');
 }
 
-export function initCapture() {
+export function initCapture(info) {
+  // The source formats come from the server's importers (GET /v1/info), never a list here.
+  $('capture-format').append(...Object.entries(info.capture_formats || {}).map(
+    ([name, what]) => el('option', { value: name, textContent: name, title: what })));
   $('capture-folder').addEventListener('change', refreshPicked);
   $('capture-format').addEventListener('change', refreshPicked);
   $('capture-select').addEventListener('change', () => {

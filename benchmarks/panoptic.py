@@ -1,0 +1,255 @@
+"""Real volumetric video (issue 29): the CMU Panoptic basketball sequence as Dynamic 3D Gaussians
+prepared it (31 cameras, 150 frames, 640x360), end to end, scored by that paper's protocol.
+
+Steps, each written under OUT as it ends (a run cut short keeps what it measured):
+
+1. `dgs capture import` of SRC (format `panoptic`, hard links) into OUT/source, and a canonical
+   capture of the chosen frames (`--frames`, hard links) in OUT/capture;
+2. the reconstruction through `dgs reconstruct` (in this process: per frame its seconds, key
+   and tracked frames apart, and the peak GPU memory) into OUT/run, resumed when it exists;
+   with `--serve N` also through a real `dgs serve --workers N` (the job as parts, one per
+   group of pictures) into OUT/service-N/run;
+3. `dgs eval`: PSNR and SSIM of the whole image on the dataset's test cameras (0, 10, 15, 30:
+   capture.json test_cameras, the run's `split` auto), every frame; RUN/contact_sheet.png;
+4. the subject (the Gaussians inside the masks' hull: the players and the ball) exported as the
+   relightable stream, its bytes a frame and its decoded renders against the uncompressed
+   subject's on the test cameras; the subject's meshes per frame (`mesh.subject`);
+5. the relit MP4 of the first test camera over the frames under an HDRI (`--hdri`).
+
+The schedule: `--preset`'s plan scaled to `--steps` a key frame (`Schedule.scaled`), groups of
+`--gop` frames. The CPU twin (docs/benchmarks.md): `--frames 0:10 --downscale 2` with the
+steps that finish in about 30 minutes on two cores; the GPU run: every frame at 640x360.
+
+    python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
+        [--preset fast] [--steps N] [--gop 10] [--mesh-voxels 256] [--serve N] [--hdri EXR]
+        [--device auto] [--threads N]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+SRC = ROOT.parent / "shared" / "data" / "panoptic_basketball"
+HDRI = ROOT.parent / "shared" / "data" / "hdri"
+
+# Published on this sequence by the protocol above (PSNR dB, SSIM, LPIPS; None: not given).
+PUBLISHED = (
+    ("Dynamic 3D Gaussians (Luiten et al. 2024)", 28.22, 0.91, 0.18),
+    ("Dynamic 3D Gaussians, re-run in later papers", "27.81-28.54", "0.893-0.903", None),
+    ("S4D", 27.72, 0.920, 0.142),
+    ("HiCoM", 27.29, None, None),
+    ("MAGS", 29.60, 0.918, 0.164),
+)
+
+
+def prepare(src: Path, out: Path, frames: str | None) -> Path:
+    """OUT/capture: the chosen frames of SRC in the canonical layout (hard links)."""
+    from core.config import parse_frames
+    from core.data import import_capture, load_capture, save_capture
+
+    source = out / "source"
+    if not (source / "capture.json").is_file():
+        import_capture(src, source, "panoptic", link=True)
+    full = load_capture(source)
+    chosen = parse_frames(frames, full.frames)
+    capture = out / "capture"
+    if (capture / "capture.json").is_file() and list(load_capture(capture).frames) == chosen:
+        return capture
+    for frame in chosen:
+        for kind in ("images", "masks"):
+            folder = source / kind / frame
+            if not folder.is_dir():
+                continue
+            (capture / kind / frame).mkdir(parents=True, exist_ok=True)
+            for f in folder.iterdir():
+                dst = capture / kind / frame / f.name
+                if not dst.exists():
+                    os.link(f, dst)
+    full.frames = tuple(chosen)
+    save_capture(full, capture)
+    return capture
+
+
+def overrides(args) -> dict:
+    from dataclasses import asdict
+
+    from core.config import train_config
+
+    s = train_config(args.preset).schedule
+    if args.steps:
+        s = s.scaled(args.steps)
+    return {"downscale": args.downscale, "gop": args.gop,
+            "train": {"schedule": asdict(s), "rates": {"means_decay_steps": s.iterations},
+                      "device": args.device},
+            "mesh": {"enabled": args.mesh_voxels > 0, "subject": True,
+                     "resolution": max(args.mesh_voxels, 16)}}
+
+
+def reconstruct_here(capture: Path, run: Path, args) -> dict:
+    """`dgs reconstruct` in this process; per frame the peak GPU memory (bytes, CUDA only)."""
+    import torch
+
+    from core.pipeline import reconstruct
+
+    peaks: dict[str, int] = {}
+    cuda = torch.cuda.is_available() and args.device != "cpu"
+
+    def on_progress(event) -> None:
+        if not cuda:
+            return
+        if event.kind == "frame_start":
+            torch.cuda.reset_peak_memory_stats()
+        elif event.kind == "frame_done":
+            peaks[event.frame] = int(torch.cuda.max_memory_allocated())
+
+    start = time.perf_counter()
+    reconstruct(capture, run, preset=args.preset, overrides=overrides(args), resume=True,
+                progress=True, on_progress=on_progress)
+    old = json.loads((run / "peaks.json").read_text()) if (run / "peaks.json").is_file() else {}
+    peaks = {**old, **peaks}
+    (run / "peaks.json").write_text(json.dumps(peaks))
+    return {"wall": time.perf_counter() - start, "peaks": peaks}
+
+
+def reconstruct_served(capture: Path, out: Path, args) -> dict:
+    """The same job through a real `dgs serve --workers N` (as parts)."""
+    from benchmarks.scaleout import part_times, service
+
+    params = {"preset": args.preset, "config": overrides(args)}
+    result = service(capture, out, params, args.serve)
+    spans, assembly = part_times(result["job"])
+    return {"wall": result["wall"], "run": str(result["run"]), "parts": spans,
+            "assembly": assembly}
+
+
+def frame_rows(run: Path, ev: dict, peaks: dict) -> list[dict]:
+    metrics = json.loads((run / "metrics.json").read_text())["frames"]
+    scores = {f["frame"]: f for f in ev["per_frame"]}
+    rows = []
+    for frame, m in metrics.items():
+        mesh = m.get("mesh") or {}
+        rows.append({"frame": frame, "kind": "key" if m["stages"].startswith("static")
+                     else "tracked", "seconds": m["seconds"], "gaussians": m["gaussians"],
+                     "ao_bake_seconds": m.get("ao_bake_seconds"),
+                     "mesh_seconds": (mesh.get("seconds") or {}).get("total"),
+                     "peak_gb": peaks.get(frame, 0) / 1e9 or None,
+                     "psnr": scores[frame]["psnr_full"], "ssim": scores[frame]["ssim"]})
+    return rows
+
+
+def subject_stream(run: Path, out: Path) -> dict:
+    from benchmarks.stream import score_run
+    from core.export.codec import StreamConfig
+
+    r = score_run(run, out, StreamConfig(), subject=True)
+    record = json.loads((out / "export.json").read_text())
+    return {"bytes_per_frame": r["stream"]["bytes"], "psnr_min": r["stream"]["psnr_min"],
+            "psnr_mean": r["stream"]["psnr_mean"], "gaussians": r["gaussians"],
+            "share": record["subject"]["share"], "ply_bytes": r["ply_bytes"]}
+
+
+def relit_video(run: Path, out: Path, hdri: Path, camera: str) -> str:
+    from core.relight.run import relight_run
+
+    record = relight_run(run, out, envmap=hdri, cameras=camera, fps=30.0)
+    return str(out / record["videos"][0]) if record["videos"] else ""
+
+
+def _fmt(v, spec: str) -> str:
+    return "-" if v is None else (v if isinstance(v, str) else format(v, spec))
+
+
+def report(rows: list[dict], ev: dict, stream: dict | None, args) -> None:
+    import numpy as np
+
+    key = [r for r in rows if r["kind"] == "key"]
+    tracked = [r for r in rows if r["kind"] == "tracked"]
+    print(f"\nPanoptic basketball, frames {args.frames or 'all'} ({len(rows)}), 1/"
+          f"{args.downscale:g}, preset {args.preset}{f' at {args.steps} steps' if args.steps else ''}"
+          f", groups of {args.gop}; test cameras {', '.join(ev['split']['heldout'])}\n")
+    print("| frame | kind | s | Gaussians | peak GB | PSNR | SSIM |")
+    print("|---|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['frame']} | {r['kind']} | {r['seconds']:.1f} | {r['gaussians']} | "
+              f"{_fmt(r['peak_gb'], '.2f')} | {r['psnr']:.2f} | {r['ssim']:.4f} |")
+    print("\n| | PSNR | SSIM | LPIPS |\n|---|---|---|---|")
+    for name, p, s, lp in PUBLISHED:
+        print(f"| {name} (published) | {_fmt(p, '.2f')} | {_fmt(s, '.3f')} | {_fmt(lp, '.2f')} |")
+    print(f"| ours, relightable | {ev['psnr_full']:.2f} | {ev['ssim']:.4f} | "
+          f"{_fmt(ev.get('lpips'), '.3f')} |")
+    mean = (lambda xs: float(np.mean(xs)) if xs else None)
+    bake = [r["ao_bake_seconds"] / r["seconds"] for r in key if r["ao_bake_seconds"]]
+    meshes = [r["mesh_seconds"] for r in rows if r["mesh_seconds"]]
+    print(f"\nkey frame {_fmt(mean([r['seconds'] for r in key]), '.1f')} s (AO bake "
+          f"{_fmt(mean(bake), '.1%')}), tracked frame {_fmt(mean([r['seconds'] for r in tracked]), '.1f')} s"
+          f", subject mesh {_fmt(mean(meshes), '.2f')} s a frame")
+    if stream:
+        print(f"subject stream: {stream['bytes_per_frame'] / 1e6:.3f} MB a frame "
+              f"({stream['gaussians']:.0f} Gaussians, {stream['share']:.1%} of the scene's), "
+              f"{stream['psnr_min']:.1f} dB worst / {stream['psnr_mean']:.1f} dB mean against "
+              "the uncompressed subject")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("src", type=Path, nargs="?", default=SRC)
+    ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--frames", default=None, help="slice of the 150 frames (default all)")
+    ap.add_argument("--downscale", type=float, default=1.0)
+    ap.add_argument("--preset", default="fast")
+    ap.add_argument("--steps", type=int, default=None, help="a key frame's steps")
+    ap.add_argument("--gop", type=int, default=10)
+    ap.add_argument("--mesh-voxels", type=int, default=256, help="0: no meshes")
+    ap.add_argument("--serve", type=int, default=0, metavar="N",
+                    help="also run through dgs serve --workers N")
+    ap.add_argument("--hdri", type=Path, default=HDRI / "studio.exr")
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--threads", type=int, default=None)
+    args = ap.parse_args(argv)
+    if not (args.src / "train_meta.json").is_file():
+        print(f"no Panoptic capture at {args.src} (see ../shared/data/README.md)")
+        return 2
+    import torch
+
+    from core.evaluation import evaluate_run
+
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    args.out.mkdir(parents=True, exist_ok=True)
+    result: dict = {"args": {k: str(v) for k, v in vars(args).items()}}
+
+    def save() -> None:
+        (args.out / "result.json").write_text(json.dumps(result, indent=2))
+
+    capture = prepare(args.src, args.out, args.frames)
+    run = args.out / "run"
+    result["reconstruct"] = reconstruct_here(capture, run, args)
+    save()
+    ev = evaluate_run(run)
+    result["rows"] = frame_rows(run, ev, result["reconstruct"]["peaks"])
+    result["eval"] = {k: ev[k] for k in ("psnr_full", "ssim", "lpips", "split")}
+    save()
+    result["subject_stream"] = subject_stream(run, args.out / "subject")
+    save()
+    if args.hdri.is_file():
+        test = ev["split"]["heldout"][0]
+        result["relit_video"] = relit_video(run, args.out / "relit", args.hdri, test)
+        save()
+    if args.serve:
+        result["service"] = reconstruct_served(capture, args.out, args)
+        save()
+    report(result["rows"], ev, result["subject_stream"], args)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
