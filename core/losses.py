@@ -5,7 +5,8 @@
 - normal prior: 0.2 L1 + 0.05 edge-aware smoothness |grad N| exp(-|grad N_prior|).
 - depth-normal consistency: 0.01 mean(sg(O_g) - N . n(D)), n(D) the normal of the
   back-projected expected depth by central differences, in world space like N.
-- visibility: 0.1 L1 + 0.01 smoothness.
+- visibility: 0.1 L1 + 0.01 smoothness |grad V| exp(-|grad N_prior|) (the paper's Eq. 10: AO
+  may change across a crease of the prior normals; without a prior, unweighted).
 The weights are the defaults of `LossWeights`; each function returns the weighted term.
 """
 
@@ -181,14 +182,24 @@ def depth_normal_consistency(normal: Tensor, depth: Tensor, alpha_g: Tensor, K: 
 
 
 def visibility_loss(visibility: Tensor, target: Tensor, mask: Tensor | None = None,
-                    weights: LossWeights = LossWeights()) -> Tensor:
-    """0.1 L1(V, V_target) + 0.01 mean |grad V| on (H, W, 1) maps (mask: pixels that count)."""
+                    weights: LossWeights = LossWeights(), prior: Tensor | None = None) -> Tensor:
+    """0.1 L1(V, V_target) + 0.01 mean(|grad V| exp(-|grad N_prior|)) on (H, W, 1) maps (mask:
+    pixels that count; `prior` (H, W, 3) normals, None: the smoothness unweighted), |grad N|
+    the channel mean of |diff| as in `normal_prior_loss`."""
     if visibility.shape != target.shape:
         raise ValueError(f"visibility, target: expected equal shapes, got "
                          f"{tuple(visibility.shape)} and {tuple(target.shape)}")
+    if prior is not None and prior.shape[:2] != visibility.shape[:2]:
+        raise ValueError(f"prior: expected ({visibility.shape[0]}, {visibility.shape[1]}, 3) "
+                         f"normals, got {tuple(prior.shape)}")
     m = torch.ones_like(target) if mask is None else (mask > 0.5).to(target)
     l1 = ((visibility - target).abs() * m).sum() / m.sum().clamp_min(1.0)
-    smooth = _dx(visibility).abs().mean() + _dy(visibility).abs().mean()
+    smooth = visibility.new_zeros(())
+    for d in (_dx, _dy):
+        g = d(visibility).abs()
+        if prior is not None:
+            g = g * torch.exp(-d(prior).abs().mean(dim=-1, keepdim=True))
+        smooth = smooth + g.mean()
     return weights.visibility_l1 * l1 + weights.visibility_smooth * smooth
 
 

@@ -137,9 +137,10 @@ def vertex_colors(mesh, model, cameras, settings, *, voxel: float, alpha_thresho
 
 
 def mesh_model(model, cameras, settings, config: MeshConfig = MeshConfig(), *,
-               linear_capture: bool = False):
+               linear_capture: bool = False, up=None):
     """(trimesh.Trimesh in the model's world coordinates, info dict) of one frame's model seen
-    by the training `cameras` (core.data.Camera at the run's resolution)."""
+    by the training `cameras` (core.data.Camera at the run's resolution); with the capture's
+    `up` an unseen bottom is closed at the lowest observed surface (`TSDFVolume.values`)."""
     if not cameras:
         raise ValueError("cameras: expected at least one training camera")
     device = config.device or ("cuda" if torch.cuda.is_available() else "cpu")
@@ -150,7 +151,7 @@ def mesh_model(model, cameras, settings, config: MeshConfig = MeshConfig(), *,
     pad = config.margin * diag + (config.truncation_voxels + 2) * voxel
     vol = _fuse(model, cameras, settings, config, lo - pad, hi + pad, voxel, device)
     t1 = time.perf_counter()
-    mesh = clean_mesh(extract_surface(vol.values(), vol.lo, voxel), config.min_component)
+    mesh = clean_mesh(extract_surface(vol.values(up), vol.lo, voxel), config.min_component)
     t2 = time.perf_counter()
     if config.colors:
         mesh.visual.vertex_colors = vertex_colors(

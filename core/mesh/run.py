@@ -108,7 +108,8 @@ def mesh_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str] | 
             if config.subject:
                 rows = subject_rows(run, [[frame]], capture_dir)[frame]
                 model.keep(torch.from_numpy(rows))
-            mesh, info = mesh_model(model, cameras, settings, config, linear_capture=linear)
+            mesh, info = mesh_model(model, cameras, settings, config, linear_capture=linear,
+                                    up=capture.up)
         except ValueError as exc:
             if errors == "raise":
                 raise ValueError(f"frame {frame}: {exc}") from None

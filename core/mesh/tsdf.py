@@ -15,7 +15,10 @@ Per camera and voxel (projective distance along the optical axis, sdf = depth - 
   hull, a several-fold saving since the hull fills a small part of the box;
 - on a silhouette (the four pixels disagree) or outside the image: nothing.
 After fusion a voxel nobody observed is inside (-1) when some camera's view contains it (it is
-behind every surface that saw it) and outside (+1) when none does.
+behind every surface that saw it) and outside (+1) when none does. Unseen space is not surface,
+though: below the lowest observed surface (along the capture's up axis) an unobserved voxel is
+outside, so a subject filmed only from above is closed at its lowest visible surface instead of
+standing on the cone of its silhouettes down to the box.
 """
 
 from __future__ import annotations
@@ -26,7 +29,10 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["TSDFVolume"]
+__all__ = ["LOW_SURFACE_QUANTILE", "TSDFVolume"]
+
+LOW_SURFACE_QUANTILE = 0.001
+"""The share of observed surface voxels allowed below the floor `TSDFVolume.values` closes at."""
 
 
 def _sample_depth(depth: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -155,9 +161,30 @@ class TSDFVolume:
         valid = inside & surface & (sdf > -self.truncation)
         return obs, valid, inside, inside & empty
 
-    def values(self) -> np.ndarray:
+    def values(self, up=None) -> np.ndarray:
         """(X, Y, Z) float32 signed field for marching cubes: the fused mean where observed,
-        else -1 inside some view and +1 outside every view."""
+        else -1 inside some view and +1 outside every view; with `up` (3,) also +1 where
+        unobserved below the lowest observed surface (module docstring)."""
         unobserved = torch.where(self.seen, -1.0, 1.0)
+        if up is not None:
+            unobserved = torch.where(self._below_surface(up), 1.0, unobserved)
         fused = torch.where(self.weight > 0, self.tsdf, unobserved)
         return torch.where(self.carved, 1.0, fused).cpu().numpy()
+
+    def _below_surface(self, up) -> Tensor:
+        """(X, Y, Z) bool: voxel centres lower along `up` than every observed surface voxel
+        (fused, within a voxel of the surface), less `LOW_SURFACE_QUANTILE` of them (a stray
+        depth does not lower the floor)."""
+        dev = self.tsdf.device
+        u = torch.as_tensor(np.asarray(up, np.float64) / np.linalg.norm(up), dtype=torch.float32,
+                            device=dev)
+        axes = [torch.arange(n, device=dev, dtype=torch.float32) for n in self.shape]
+        lo = torch.as_tensor(self.lo, dtype=torch.float32, device=dev)
+        h = sum(((a + 0.5) * self.voxel + lo[i]).view(*[-1 if j == i else 1 for j in range(3)])
+                * u[i] for i, a in enumerate(axes))
+        surface = (self.weight > 0) & (self.tsdf.abs() * self.truncation < self.voxel)
+        if not bool(surface.any()):
+            return torch.zeros(self.shape, dtype=torch.bool, device=dev)
+        floor = torch.quantile(h.expand(self.shape)[surface].float()[:2**24],
+                               LOW_SURFACE_QUANTILE)
+        return h.expand(self.shape) < floor

@@ -215,7 +215,7 @@ class FrameTracker(FrameFitter):
         terms = self._image_terms(r, index, bg)
         if self.ao_targets is not None:
             terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index], view.mask,
-                                                  self.config.losses)
+                                                  self.config.losses, view.normal)
         rows = None if self.state.frozen is None else (~self.state.frozen).nonzero()[:, 0]
         if s.temporal:
             weights = TemporalWeights(s.temporal_opacity_g, s.temporal_means, s.temporal_quats,

@@ -133,7 +133,7 @@ class Trainer(FrameFitter):
                                                             cam.viewmat, w)
         if p.visibility and self.ao_targets is not None:
             terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index],
-                                                  view.mask, w)
+                                                  view.mask, w, view.normal)
         return terms, r, p
 
     def train(self) -> GaussianModel:

@@ -208,6 +208,19 @@ def test_visibility_loss_known_values():
     assert torch.isfinite(v.grad).all()
     with pytest.raises(ValueError, match="visibility, target"):
         visibility_loss(v, torch.zeros(5, 6, 1))
+    # The paper's Eq. 10: the smoothness weighted by exp(-|grad N_prior|). Prior normals that
+    # flip between +z and -z at every column (channel mean |dx| = 2/3) leave exp(-2/3) of it;
+    # a flat prior leaves it whole.
+    flip = torch.zeros(6, 6, 3)
+    flip[..., 2] = 1.0
+    flip[:, ::2, 2] = -1.0
+    assert visibility_loss(stripes, stripes, prior=flip).item() == pytest.approx(
+        0.01 * math.exp(-2 / 3))
+    flat = torch.zeros(6, 6, 3)
+    flat[..., 2] = 1.0
+    assert visibility_loss(stripes, stripes, prior=flat).item() == pytest.approx(0.01)
+    with pytest.raises(ValueError, match="prior"):
+        visibility_loss(stripes, stripes, prior=torch.zeros(5, 6, 3))
 
 
 def test_geometry_mask_loss_known_values():
