@@ -7,7 +7,8 @@ import argparse
 import time
 
 from core.cli import command_help, fail
-from core.config import PRESETS
+from core.config import METHODS, PRESETS
+from core.data.split import SPLITS
 from core.pipeline.run import reconstruct
 
 __all__ = ["register"]
@@ -21,12 +22,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="slice of the capture's frame list (Python slice, default all)")
     p.add_argument("--gop", type=int, default=None,
-                   help="frames per group of pictures (recorded; used once sequences land)")
+                   help="frames per group of pictures: the first a key frame, the others "
+                        "tracked from it (default 20)")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="JSON file overriding fields of the preset (shape of RUN/config.json)")
     p.add_argument("--downscale", type=float, default=None, metavar="F",
                    help="train and score on the images reduced by F (e.g. 4 for 1/4 resolution; "
                         "recorded in config.json)")
+    p.add_argument("--split", default=None, choices=SPLITS,
+                   help="held-out cameras: auto (the capture's test_cameras, else every 8th; "
+                        "the default), capture, every8, or none (train on every camera; "
+                        "metrics on training views)")
+    p.add_argument("--method", default=None, choices=METHODS,
+                   help="disentangled (the method, default) or 3dgs (a plain 3D Gaussian "
+                        "Splatting, the baseline to compare with)")
     p.add_argument("--device", default=None, metavar="DEVICE",
                    help="auto | cpu | cuda | cuda:N: where to train (default: the config's "
                         "train.device, auto = CUDA when usable, else CPU; recorded in "
@@ -43,11 +52,17 @@ def _reconstruct(args: argparse.Namespace) -> int:
                                     f"got {args.preset!r}")
     start = time.perf_counter()
     try:
+        overrides: dict = {}
+        if args.downscale is not None:
+            overrides["downscale"] = args.downscale
+        if args.split is not None:
+            overrides["split"] = args.split
+        if args.method is not None:
+            overrides["train"] = {"method": args.method}
         metrics = reconstruct(args.capture, args.out, preset=args.preset, frames=args.frames,
                               config_file=args.config, resume=args.resume, gop=args.gop,
                               progress=not args.no_progress, device=args.device,
-                              overrides=None if args.downscale is None
-                              else {"downscale": args.downscale})
+                              overrides=overrides or None)
     except ValueError as exc:  # CaptureError is a ValueError
         return fail("reconstruct", exc)
     n = len(metrics["frames"])
