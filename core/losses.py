@@ -21,6 +21,7 @@ from torch import Tensor
 from core.config import LossWeights
 
 __all__ = [
+    "blur",
     "depth_normal_consistency",
     "depth_to_normals",
     "depth_to_points",
@@ -88,6 +89,30 @@ def ssim_reference(a: Tensor, b: Tensor, window: int = 11, sigma: float = 1.5) -
         return F.conv2d(t, w, padding=window // 2, groups=c)
 
     return _ssim_map(blur(x), blur(y), blur(x * x), blur(y * y), blur(x * y)).mean()
+
+
+@functools.lru_cache(maxsize=16)
+def _blur_kernel(sigma: float, device: torch.device = torch.device("cpu")) -> Tensor:
+    # Computed on the CPU and cached per device: no host-to-device copy per call.
+    radius = max(1, int(3 * sigma + 0.5))
+    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
+    g = torch.exp(-x * x / (2 * sigma * sigma))
+    return (g / g.sum()).float().to(device)
+
+
+def blur(image: Tensor, sigma: float) -> Tensor:
+    """(H, W, C) image blurred by a separable Gaussian of `sigma` pixels (replicated edges);
+    returned unchanged for sigma < 0.3."""
+    if sigma < 0.3:
+        return image
+    k = _blur_kernel(float(sigma), image.device).to(image)
+    c, r = image.shape[2], k.shape[0] // 2
+    x = image.permute(2, 0, 1)[None]
+    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(c, 1, 1, -1),
+                 groups=c)
+    x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(c, 1, -1, 1),
+                 groups=c)
+    return x[0].permute(1, 2, 0)
 
 
 def photometric_loss(pred: Tensor, target: Tensor, weights: LossWeights = LossWeights()) -> Tensor:

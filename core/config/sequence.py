@@ -103,6 +103,9 @@ class SequenceConfig:
     frame's Gaussians."""
     bake_ao: bool = False
     """Refine stage: re-bake ambient occlusion of the deformed pose (visibility loss on)."""
+    geometry_mask: bool = False
+    """Tracked frames: the geometry mask loss of the key frame (`losses.geometry_mask`) on
+    views with a matte; off, as tracked frames have always been fitted."""
     moving: Literal["auto", "all", "subject"] = "auto"
     """What a tracked frame moves: `all` its Gaussians; `subject` those inside the subject
     masks' hull (`core.sequence.hull`) of this frame or the one before, while the rest of the

@@ -10,12 +10,10 @@ shrinking to none (coarse to fine, as image-alignment methods since Lucas-Kanade
 
 from __future__ import annotations
 
-import functools
-
-import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from core.losses import blur
 from core.model import GaussianModel
 from core.sequence.graph import DeformationGraph, arap_loss, quat_norm_loss
 
@@ -64,30 +62,6 @@ class DeformedGaussians:
         params.update(means=self._means.detach(), quats=self.raw_quats.detach(),
                       normals=self.raw_normals.detach())
         return GaussianModel(params)
-
-
-@functools.lru_cache(maxsize=16)
-def _kernel(sigma: float, device: torch.device = torch.device("cpu")) -> Tensor:
-    # Computed on the CPU and cached per device: no host-to-device copy per call.
-    radius = max(1, int(3 * sigma + 0.5))
-    x = torch.arange(-radius, radius + 1, dtype=torch.float64)
-    g = torch.exp(-x * x / (2 * sigma * sigma))
-    return (g / g.sum()).float().to(device)
-
-
-def blur(image: Tensor, sigma: float) -> Tensor:
-    """(H, W, C) image blurred by a separable Gaussian of `sigma` pixels (replicated edges);
-    returned unchanged for sigma < 0.3."""
-    if sigma < 0.3:
-        return image
-    k = _kernel(float(sigma), image.device).to(image)
-    c, r = image.shape[2], k.shape[0] // 2
-    x = image.permute(2, 0, 1)[None]
-    x = F.conv2d(F.pad(x, (r, r, 0, 0), mode="replicate"), k.view(1, 1, 1, -1).expand(c, 1, 1, -1),
-                 groups=c)
-    x = F.conv2d(F.pad(x, (0, 0, r, r), mode="replicate"), k.view(1, 1, -1, 1).expand(c, 1, -1, 1),
-                 groups=c)
-    return x[0].permute(1, 2, 0)
 
 
 def blur_sigma(step: int, steps: int, sigma0: float) -> float:

@@ -27,16 +27,10 @@ from torch import Tensor
 from core.ao import GaussianAOBaker
 from core.config import SequenceConfig, TrainConfig
 from core.device import to_device
-from core.losses import (
-    coverage_l1,
-    depth_normal_consistency,
-    normal_prior_loss,
-    photometric_loss,
-    visibility_loss,
-)
+from core.losses import blur, coverage_l1, photometric_loss
 from core.model import GaussianModel
 from core.sequence.budget import refine_steps
-from core.sequence.deform import DeformedGaussians, blur, blur_sigma, deform_losses
+from core.sequence.deform import DeformedGaussians, blur_sigma, deform_losses
 from core.sequence.graph import build_graph
 from core.sequence.refine import (
     TemporalWeights,
@@ -51,6 +45,7 @@ from core.sequence.starts import StartRace, candidate_starts, race_starts, view_
 from core.stages import StagePlan, plan
 from core.strategy import DensifyStrategy
 from core.training import Callback, FrameFitter, View
+from core.training.terms import image_terms
 
 __all__ = ["FrameTracker"]
 
@@ -161,6 +156,7 @@ class FrameTracker(FrameFitter):
 
     # -- losses --------------------------------------------------------------------------------
     def _photometric(self, r, index: int, background: Tensor, sigma: float) -> Tensor:
+        """The blurred photometric term alone (the start race's score)."""
         return photometric_loss(blur(r.rgb, sigma), blur(self.target(index, background), sigma),
                                 self.config.losses)
 
@@ -171,14 +167,16 @@ class FrameTracker(FrameFitter):
             return None
         return self.seq.deform_mask * coverage_l1(blur(r.alpha_c, sigma), blur(mask, sigma))
 
-    def _image_terms(self, r, index: int, background: Tensor, sigma: float = 0.0) -> dict:
-        w, view, cam = self.config.losses, self.views[index], self.cameras[index]
-        terms = {"photometric": self._photometric(r, index, background, sigma)}
-        if view.normal is not None:
-            terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
-        terms["consistency"] = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K,
-                                                        cam.viewmat, w)
-        return terms
+    def _image_terms(self, r, index: int, background: Tensor, sigma: float = 0.0,
+                     ao: bool = False) -> dict:
+        """`core.training.terms.image_terms` with the tracked frame's settings: the geometry
+        mask term as `sequence.geometry_mask` says, the visibility term when `ao` (refine) and
+        AO was baked."""
+        ao_target = self.ao_targets[index] if ao and self.ao_targets is not None else None
+        return image_terms(r, self.views[index], self.cameras[index],
+                           self.target(index, background), self.plan, self.config.losses,
+                           blur_sigma=sigma, mask_term=self.seq.geometry_mask,
+                           ao_target=ao_target)
 
     # -- the stages ----------------------------------------------------------------------------
     def _deform_terms(self, index: int, bg: Tensor) -> tuple[dict, object]:
@@ -210,12 +208,9 @@ class FrameTracker(FrameFitter):
         return terms, first
 
     def _refine_terms(self, index: int, bg: Tensor) -> tuple[dict, object]:
-        s, view = self.seq, self.views[index]
+        s = self.seq
         r = self.render_view(self.model, index, self.plan, bg)
-        terms = self._image_terms(r, index, bg)
-        if self.ao_targets is not None:
-            terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index], view.mask,
-                                                  self.config.losses, view.normal)
+        terms = self._image_terms(r, index, bg, ao=True)
         rows = None if self.state.frozen is None else (~self.state.frozen).nonzero()[:, 0]
         if s.temporal:
             weights = TemporalWeights(s.temporal_opacity_g, s.temporal_means, s.temporal_quats,

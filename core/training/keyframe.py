@@ -17,13 +17,6 @@ from torch import Tensor
 from core.ao import GaussianAOBaker
 from core.config import TrainConfig
 from core.device import to_device
-from core.losses import (
-    depth_normal_consistency,
-    geometry_mask_loss,
-    normal_prior_loss,
-    photometric_loss,
-    visibility_loss,
-)
 from core.data.points import PointCloud, read_points_ply
 from core.model import GaussianModel, means_lr
 from core.render import RenderCamera, seen_directions
@@ -32,6 +25,7 @@ from core.stages import StagePlan, plan
 from core.strategy import DensifyStrategy, StrategyState
 from core.training.callbacks import Callback
 from core.training.loop import FrameFitter
+from core.training.terms import image_terms
 from core.training.views import View, frame_views
 
 __all__ = ["AOBaker", "Trainer"]
@@ -121,19 +115,9 @@ class Trainer(FrameFitter):
     def step_terms(self, index: int, background: Tensor) -> tuple[dict, object, StagePlan]:
         p = self.plan_at(self.step)
         r = self.render_view(self.model, index, p, background)
-        w, view, cam = self.config.losses, self.views[index], self.cameras[index]
-        terms = {"photometric": photometric_loss(r.rgb, self.target(index, background), w)}
-        if p.normal_prior and view.normal is not None:
-            terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, w)
-        if p.geometry_branch and not p.tie_opacity and view.mask is not None \
-                and w.geometry_mask > 0:
-            terms["mask"] = geometry_mask_loss(r.alpha_g, view.mask, w)
-        if p.consistency:
-            terms["consistency"] = depth_normal_consistency(r.normal, r.depth, r.alpha_g, cam.K,
-                                                            cam.viewmat, w)
-        if p.visibility and self.ao_targets is not None:
-            terms["visibility"] = visibility_loss(r.visibility, self.ao_targets[index],
-                                                  view.mask, w, view.normal)
+        terms = image_terms(r, self.views[index], self.cameras[index],
+                            self.target(index, background), p, self.config.losses,
+                            ao_target=None if self.ao_targets is None else self.ao_targets[index])
         return terms, r, p
 
     def train(self) -> GaussianModel:
