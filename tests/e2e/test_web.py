@@ -147,7 +147,10 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     assert "tenant studio" in text(d, "whoami")
     assert server.key not in d.current_url
 
-    # 1. The capture folder, uploaded with tus and committed.
+    # 1. The capture folder, uploaded with tus and committed. The source formats come from the
+    # server's importers.
+    formats = [o.text for o in Select(d.find_element(By.ID, "capture-format")).options]
+    assert formats[:2] == ["auto", "canonical"] and {"colmap", "panoptic"} <= set(formats)
     Select(d.find_element(By.ID, "capture-format")).select_by_visible_text("canonical")
     d.find_element(By.ID, "capture-folder").send_keys(str(capture_folder))
     wait_for(d, "the picked files", lambda d: d.find_element(By.ID, "upload-start").is_enabled())
@@ -159,6 +162,7 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     # 2. A test-preset job, followed live to the end.
     wait_for(d, "the ready capture", lambda d: text(d, "job-capture") != "")
     Select(d.find_element(By.ID, "job-preset")).select_by_value("test")
+    Select(d.find_element(By.ID, "job-split")).select_by_value("every8")
     d.execute_script("document.getElementById('job-config').value = arguments[0];",
                      json.dumps(TINY))
     d.find_element(By.ID, "job-start").click()
@@ -175,6 +179,7 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     maps = [i.get_attribute("data-path") for i in d.find_elements(By.CSS_SELECTOR, "#maps img")]
     assert any(p.endswith("_rgb.png") for p in maps) and any(p.endswith("_normal.png") for p in maps)
     assert any(p.endswith("_depth.npy") for p in maps) and any(p.endswith("_ao.png") for p in maps)
+    wait_for(d, "the metrics", lambda d: "held-out views" in text(d, "metrics-on"), 30)
     wait_for(d, "the training plots", lambda d: image_loaded(d, "#plots img"), 30)
     pictures = [i.get_attribute("data-path")
                 for i in d.find_elements(By.CSS_SELECTOR, "#plots img")]

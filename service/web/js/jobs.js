@@ -147,6 +147,8 @@ async function start() {
     showError(status, `configuration overrides: not JSON (${err.message})`);
     return;
   }
+  // The select sets the split unless the JSON overrides name one themselves.
+  if (config.split === undefined && $('job-split').value !== 'auto') config.split = $('job-split').value;
   const params = { preset: $('job-preset').value, config };
   const frames = $('job-frames').value.trim();
   if (frames) params.frames = frames;

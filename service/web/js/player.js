@@ -242,13 +242,15 @@ async function relook() {
   }
 }
 
-/** The succeeded export job with a stream of reconstruction `job`, made when there is none. */
-async function streamJob(job, status) {
+/** The succeeded export job with a stream of reconstruction `job` (of its subject alone when
+ * `subject`: the Gaussians inside the masks' hull), made when there is none. */
+async function streamJob(job, status, subject = false) {
   const jobs = await listAll('/v1/jobs', { state: 'succeeded' });
-  const done = jobs.find((j) => j.source_job_id === job.id && j.pipeline === 'export');
+  const done = jobs.find((j) => j.source_job_id === job.id && j.pipeline === 'export'
+    && (j.params.formats || ['stream']).includes('stream') && Boolean(j.params.subject) === subject);
   if (done) return done;
-  showStatus(status, 'making the stream (an export job)…', 'busy');
-  const queued = await (await request('POST', '/v1/exports', { json: { job_id: job.id, formats: ['stream'] } })).json();
+  showStatus(status, `making the ${subject ? "subject's " : ''}stream (an export job)…`, 'busy');
+  const queued = await (await request('POST', '/v1/exports', { json: { job_id: job.id, formats: ['stream'], subject } })).json();
   const out = await followJob(queued.id, (e) => {
     if (e.data.fraction != null) showStatus(status, `exporting: ${Math.round(100 * e.data.fraction)}%`, 'busy');
   });
@@ -286,7 +288,7 @@ async function openFor(job) {
     return;
   }
   try {
-    const exp = await streamJob(job, status);
+    const exp = await streamJob(job, status, $('player-subject').checked);
     await openStream(`/v1/jobs/${exp.id}/artifacts/export/stream.dgss`);
   } catch (err) {
     showError(status, err, 'player: ');

@@ -101,6 +101,10 @@ async function showMetrics() {
   const evalFile = state.artifacts.find((a) => a.kind === 'eval');
   if (!evalFile) { table.replaceChildren(); return; }
   const data = JSON.parse(new TextDecoder().decode(await arrayBuffer(url(evalFile))));
+  // What the metrics are on: held-out views, or training views for a run that held none out.
+  const on = data.split ? data.split.scored_on : 'held-out views';
+  $('metrics-on').textContent = `on ${on}${data.split && data.split.heldout.length ? ` (${data.split.heldout.join(', ')})` : ''}`;
+  $('camera-select').options[0].textContent = `all ${on.replace(' views', '')}`;
   // Numbers at the top level, and one level down (relight.psnr, mesh.chamfer_relative, ...).
   const rows = Object.entries(data).flatMap(([k, v]) => (v !== null && typeof v === 'object' && !Array.isArray(v)
     ? Object.entries(v).map(([k2, v2]) => [`${k}.${k2}`, v2]) : [[k, v]]))
