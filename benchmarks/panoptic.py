@@ -20,6 +20,7 @@ The schedule: `--preset`'s plan scaled to `--steps` a key frame (`Schedule.scale
 `--gop` frames. The CPU twin (docs/benchmarks.md): `--frames 0:10 --downscale 2` with the
 steps that finish in about 30 minutes on two cores; the GPU run: every frame at 640x360.
 
+    python benchmarks/panoptic.py [SRC] --out DIR --pack --frames 0:50   (a slice to carry)
     python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
         [--preset fast] [--steps N] [--gop 10] [--mesh-voxels 256] [--serve N] [--hdri EXR]
         [--device auto] [--threads N]
@@ -48,6 +49,37 @@ PUBLISHED = (
     ("HiCoM", 27.29, None, None),
     ("MAGS", 29.60, 0.918, 0.164),
 )
+
+
+def pack(src: Path, dst: Path, frames: str | None) -> int:
+    """A copy of the source layout holding only the chosen frames (what a GPU machine that
+    takes at most 64 MiB is sent: `--pack DIR` here, then the script there on DIR); returns
+    its bytes."""
+    import shutil
+
+    from core.config import parse_frames
+
+    meta = json.loads((src / "train_meta.json").read_text())
+    names = [fn.rsplit("/", 1)[-1].rsplit(".", 1)[0] for fn in (f[0] for f in meta["fn"])]
+    keep = [names.index(n) for n in parse_frames(frames, names)]
+    total = 0
+    for split in ("train_meta.json", "test_meta.json"):
+        if not (src / split).is_file():
+            continue
+        meta = json.loads((src / split).read_text())
+        for key in ("k", "w2c", "fn", "cam_id"):
+            meta[key] = [meta[key][t] for t in keep]
+        dst.mkdir(parents=True, exist_ok=True)
+        (dst / split).write_text(json.dumps(meta))
+        for fns in meta["fn"]:
+            for fn in fns:
+                stem = fn.rsplit(".", 1)[0]
+                for kind, rel in (("ims", fn), ("seg", f"{stem}.png")):
+                    if (src / kind / rel).is_file():
+                        (dst / kind / rel).parent.mkdir(parents=True, exist_ok=True)
+                        shutil.copyfile(src / kind / rel, dst / kind / rel)
+                        total += (dst / kind / rel).stat().st_size
+    return total
 
 
 def prepare(src: Path, out: Path, frames: str | None) -> Path:
@@ -203,6 +235,9 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("src", type=Path, nargs="?", default=SRC)
     ap.add_argument("--out", type=Path, required=True)
+    ap.add_argument("--pack", action="store_true",
+                    help="only copy the chosen frames of SRC, in its own layout, into OUT (to "
+                         "carry a slice to a GPU machine)")
     ap.add_argument("--frames", default=None, help="slice of the 150 frames (default all)")
     ap.add_argument("--downscale", type=float, default=1.0)
     ap.add_argument("--preset", default="fast")
@@ -218,6 +253,10 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.src / "train_meta.json").is_file():
         print(f"no Panoptic capture at {args.src} (see ../shared/data/README.md)")
         return 2
+    if args.pack:
+        size = pack(args.src, args.out, args.frames)
+        print(f"packed frames {args.frames or 'all'} into {args.out}: {size / 2**20:.1f} MiB")
+        return 0
     import torch
 
     from core.evaluation import evaluate_run
