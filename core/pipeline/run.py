@@ -15,6 +15,7 @@ from pathlib import Path
 
 from core.config import RunConfig, load_config, parse_frames
 from core.data import check_capture
+from core.data.split import camera_split
 from core.device import check_device_spec, resolve_device
 from core.pipeline.events import Hooks, Progress
 from core.pipeline.frame import FrameJob, display_mode, fit_frame
@@ -100,6 +101,7 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     estimator = load_estimator((model_files or {}).get(named, named), cfg.normal_estimator_space)
     capture = check_capture(capture_dir)
     chosen = parse_frames(frames, capture.frames)
+    camera_split(capture, cfg.split)  # a split the capture cannot follow, before any file
     _start(run, _config_record(capture_dir, preset, chosen, cfg), resume)
     metrics = run.read_metrics()
     metrics.update({"version": 1, "preset": preset, "gop": cfg.gop,

@@ -102,3 +102,43 @@ def test_bad_test_cameras_fail_validation(capture_copy: Path) -> None:
     path.write_text(json.dumps(data))
     messages = " ".join(p.message for p in validate_capture(capture_copy))
     assert "every camera is held out" in messages and "masks must be" in messages
+
+
+TINY_RUN = ["--preset", "test", "--frames", "0:1", "--no-progress"]
+TINY_CONFIG = {"train": {"schedule": {"iterations": 30, "stage2_start": 10, "stage3_start": 20,
+                                      "densify_from": 2, "densify_until": 16,
+                                      "densify_interval": 4, "reset_interval": 8,
+                                      "sh_interval": 5}, "init_points": 200},
+               "mesh": {"enabled": False}}
+
+
+def test_a_run_trains_on_every_camera_and_says_so(synth_capture: Path, tmp_path: Path,
+                                                   one_thread) -> None:
+    from core.cli import main
+    from core.evaluation import evaluate_run
+
+    cfg = tmp_path / "cfg.json"
+    cfg.write_text(json.dumps(TINY_CONFIG))
+    run = tmp_path / "run"
+    assert main(["reconstruct", str(synth_capture), "--out", str(run), "--split", "none",
+                 "--method", "3dgs", "--config", str(cfg), *TINY_RUN]) == 0
+    config = json.loads((run / "config.json").read_text())
+    assert config["split"] == "none" and config["train"]["method"] == "3dgs"
+    # The method's defaults came under the file's settings, which still hold.
+    assert config["train"]["densify"]["gradient"] == "mean"
+    assert config["train"]["eps2d"] == 0.3 and config["train"]["init_points"] == 200
+    renders = sorted(p.name for p in (run / "renders" / "000000").glob("*_rgb.png"))
+    assert len(renders) == 8  # every camera trained, and is scored
+    ev = evaluate_run(run)
+    assert ev["split"] == {"rule": "none", "heldout": [], "scored_on": "training views",
+                           "training_cameras": 8}
+    assert ev["views"] == 8
+
+
+def test_the_split_a_capture_cannot_follow_is_refused(synth_capture: Path,
+                                                      tmp_path: Path) -> None:
+    from core.cli import main
+
+    code = main(["reconstruct", str(synth_capture), "--out", str(tmp_path / "run"),
+                 "--split", "capture", *TINY_RUN])
+    assert code == 2 and not (tmp_path / "run").exists()  # checked before anything is written
