@@ -230,3 +230,44 @@ def test_rendered_gradients_drive_densification():
     r2 = render(m, cam, sh_degree=0, beta=0.3)
     ((r2.rgb - target).abs().mean()).backward()
     opt.step()
+
+
+def test_the_plain_3dgs_settings():
+    """3DGS / gsplat DefaultStrategy: the norm of each view's screen gradient (its pixels'
+    opposite pulls cancel within the view), clones and splits keeping the opacity, transparent
+    Gaussians pruned at every densification, frozen rows left alone."""
+    from dataclasses import replace
+
+    from core.config import TrainConfig, method_defaults
+
+    cfg = method_defaults(TrainConfig(), "3dgs").densify
+    assert (cfg.gradient, cfg.grad_threshold_c, cfg.revised_opacity, cfg.prune_at, cfg.rho) == (
+        "mean", 0.0002, False, "densify", 0.0)
+    s = DensifyStrategy(cfg, extent=1.0)
+    st = s.initialize_state(3)
+    out = fake_output(3, [[1.0, 1.0]] * 3, [[1.0, 1.0]] * 3, [2, 7, 3], [0.2, 0.5, 0.9])
+    out.means2d.grad = torch.tensor([[2e-5, 0.0], [0.0, 3e-5], [0.0, 0.0]])
+    s.update(st, out, width=40, height=20)
+    out.means2d.grad = torch.tensor([[2e-5, 0.0], [0.0, -3e-5], [0.0, 0.0]])
+    s.update(st, out, width=40, height=20)
+    # Each view's gradient norm in NDC units (x times 20, y times 10); the absgrads are unused.
+    torch.testing.assert_close(st.grad_c, torch.tensor([8e-4, 6e-4, 0.0]))
+    torch.testing.assert_close(st.grad_g, torch.zeros(3))
+    m = tiny_model()
+    with torch.no_grad():  # Gaussian 2 transparent, 0 small (clone), 1 large (split)
+        m.params["opacity_c"][2] = logit(0.001)
+    before = m.opacity_c.detach().clone()
+    record = s.densify(m, None, st, torch.Generator().manual_seed(0), tied=True)
+    assert (record["cloned"], record["split"], record["pruned"]) == (1, 1, 1)
+    # Gaussian 0 and its clone keep 0.6; both samples of the split keep 0.5.
+    keep = [float(before[0])] * 2 + [float(before[1])] * 2
+    assert sorted(m.opacity_c.tolist()) == pytest.approx(sorted(keep))
+    frozen = s.initialize_state(3)
+    frozen.frozen = torch.tensor([True, True, True])
+    frozen.grad_c += 1.0
+    frozen.count += 1.0
+    m2 = tiny_model()
+    with torch.no_grad():
+        m2.params["opacity_c"][2] = logit(0.001)
+    assert s.densify(m2, None, frozen, tied=True)["n"] == 3  # nothing grown, nothing pruned
+    assert replace(cfg, prune_at="reset").prune_at == "reset"
