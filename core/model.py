@@ -275,4 +275,4 @@ class GaussianModel:
     def load_ply(cls, path, device: torch.device | str = "cpu") -> GaussianModel:
         """Read a file written by :meth:`save_ply`, or a plain 3DGS PLY (geometry defaults),
         onto `device`."""
-        return cls({k: v.to(device) for k, v in read_gaussian_ply(path).items()})
+        return cls({k: torch.from_numpy(v).to(device) for k, v in read_gaussian_ply(path).items()})
