@@ -15,6 +15,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    PrivateAttr,
     WithJsonSchema,
 )
 
@@ -54,13 +55,20 @@ class ReconstructParams(BaseModel):
                     "(e.g. {\"train\": {\"seed\": 3}}); every key, type and bound is checked "
                     "before the job is made (422 naming the setting).")
 
+    _resolved: RunConfig | None = PrivateAttr(None)
+
     def run_config(self) -> RunConfig:
         """The configuration this job runs with: the preset, `config`, then `checkpoint_every`
-        and `gop` (core.config.ConfigError naming each bad setting under 'config')."""
-        overrides = dict(self.config)
-        if self.checkpoint_every is not None:
-            overrides["checkpoint_every"] = self.checkpoint_every
-        return load_config(self.preset, overrides=overrides, gop=self.gop, where="config")
+        and `gop` (core.config.ConfigError naming each bad setting under 'config'). The one
+        place a job's configuration is resolved: the API checks it (service.checks, the split
+        into parts) and the worker runs it (worker.reconstruct_job); resolved once per object."""
+        if self._resolved is None:
+            overrides = dict(self.config)
+            if self.checkpoint_every is not None:
+                overrides["checkpoint_every"] = self.checkpoint_every
+            self._resolved = load_config(self.preset, overrides=overrides, gop=self.gop,
+                                         where="config")
+        return self._resolved
 
 
 class RelightJobParams(RelightSettings):

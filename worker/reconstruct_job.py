@@ -83,15 +83,12 @@ class ReconstructJob:
 
     def _reconstruct(self, capture: Path, run: Path) -> None:
         params, link = self.params, self.link
-        overrides = dict(params.config)
-        if params.checkpoint_every is not None:
-            overrides["checkpoint_every"] = params.checkpoint_every
         resume = (run / "config.json").is_file()
         if resume:
             link.log("resuming from the run directory's last checkpoint")
         run.parent.mkdir(parents=True, exist_ok=True)
-        reconstruct(capture, run, preset=params.preset, frames=params.frames, gop=params.gop,
-                    overrides=overrides or None, resume=resume, progress=False,
+        reconstruct(capture, run, preset=params.preset, config=params.run_config(),
+                    frames=params.frames, resume=resume, progress=False,
                     model_files=self._model_files(run.parent),
                     on_progress=self._on_progress(run), should_stop=link.should_stop,
                     gops=[self.job.part_index] if self.part else None)
@@ -100,7 +97,7 @@ class ReconstructJob:
         """Where the models the configuration names are on this worker: an operator's
         allow-listed file, or the tenant's model asset fetched into the job's folder. A name
         that is neither fails the job (the API refuses it first; a path is never opened)."""
-        name = self.params.config.get("normal_estimator")
+        name = self.params.run_config().normal_estimator
         if name is None:
             return {}
         allowed = self.runner.settings.normal_estimators

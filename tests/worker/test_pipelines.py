@@ -20,3 +20,19 @@ def test_a_bad_setting_is_named_under_config():
     with pytest.raises(ValueError) as err:
         ReconstructParams(config={"train": {"schedule": {"iterations": 0}}}).run_config()
     assert err.value.details[0]["path"] == "config.train.schedule.iterations"
+
+
+def test_resolved_once_and_the_same_on_the_worker(tmp_path):
+    params = ReconstructParams(preset="test", gop=2, checkpoint_every=9,
+                               config={"train": {"seed": 3}})
+    cfg = params.run_config()
+    assert params.run_config() is cfg  # the API's checks and its split share one resolution
+    assert (cfg.gop, cfg.checkpoint_every, cfg.train.seed) == (2, 9, 3)
+    # The worker's params come back from the job's stored JSON and resolve to the same.
+    stored = ReconstructParams.model_validate(params.model_dump(mode="json"))
+    assert stored.run_config() == cfg
+    from core.pipeline import reconstruct  # lazy: torch, which this module needs nowhere else
+
+    with pytest.raises(ValueError, match="not both"):
+        reconstruct(tmp_path / "capture", tmp_path / "run", config=cfg, gop=3)
+    assert not (tmp_path / "run").exists()
