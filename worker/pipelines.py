@@ -21,6 +21,7 @@ from pydantic import (
 
 from core.config import RunConfig, load_config, schema
 from core.config.relight import BUILTIN_ENVMAPS, FRAMES, Light, RelightSettings
+from core.rundir import kinds_written_by
 from worker.settings import WorkerSettings
 
 __all__ = ["BUILTIN_ENVMAPS", "ExportJobParams", "Light", "MODEL_KIND", "PIPELINES",
@@ -141,7 +142,7 @@ PIPELINES: dict[str, Pipeline] = {
         description="Reconstruct every selected frame of a capture: disentangled Gaussians "
                     "(PLY), held-out renders (rgb, normal, AO, depth), metrics, plots.",
         params=ReconstructParams,
-        artifacts=("ply", "render", "depth", "plot", "metrics", "config", "eval", "image"),
+        artifacts=kinds_written_by("reconstruct"),
         soft_limit="reconstruct_soft_limit_seconds",
         check=ReconstructParams.run_config,
     ),
@@ -152,7 +153,7 @@ PIPELINES: dict[str, Pipeline] = {
                     "(linear); with an orbit relit/<frame>.mp4, over several frames "
                     "relit/videos/<camera>.mp4; relit/relight.json.",
         params=RelightJobParams,
-        artifacts=("relit", "video", "relight"),
+        artifacts=kinds_written_by("relight"),
         soft_limit="relight_soft_limit_seconds",
         source="job",
     ),
@@ -162,8 +163,8 @@ PIPELINES: dict[str, Pipeline] = {
                     "(the relightable sequence stream), export/spz/<frame>.spz, "
                     "export/ply/<frame>.ply, export/export.json (sizes, timings).",
         params=ExportJobParams,
-        artifacts=("stream", "spz", "ply", "export"),
-        soft_limit="relight_soft_limit_seconds",
+        artifacts=kinds_written_by("export"),
+        soft_limit="export_soft_limit_seconds",
         source="job",
     ),
 }

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from worker.pipelines import ReconstructParams
+from worker.pipelines import PIPELINES, ReconstructParams
 
 
 def test_top_level_parameters_and_config_agree():
@@ -36,3 +36,22 @@ def test_resolved_once_and_the_same_on_the_worker(tmp_path):
     with pytest.raises(ValueError, match="not both"):
         reconstruct(tmp_path / "capture", tmp_path / "run", config=cfg, gop=3)
     assert not (tmp_path / "run").exists()
+
+
+def test_each_pipeline_lists_the_kinds_of_what_it_writes():
+    from core.rundir import classify
+
+    written = {  # docs/design.md 3.3, docs/stream.md
+        "reconstruct": ["frames/000000/gaussians.ply", "meshes/000000.ply", "meshes/000000.glb",
+                        "renders/000000/cam00_rgb.png", "renders/000000/cam00_normal.png",
+                        "renders/000000/cam00_ao.png", "renders/000000/cam00_depth.npy",
+                        "renders/000000/cam00_relit.png", "plots/loss.png", "config.json",
+                        "metrics.json", "sequence.json", "eval.json", "contact_sheet.png"],
+        "relight": ["relit/000000/cam00.png", "relit/000000/cam00.exr", "relit/000000.mp4",
+                    "relit/videos/cam00.mp4", "relit/relight.json"],
+        "export": ["export/stream.dgss", "export/spz/000000.spz", "export/ply/000000.ply",
+                   "export/export.json"],
+    }
+    for name, paths in written.items():
+        assert {classify(p).kind for p in paths} == set(PIPELINES[name].artifacts), name
+    assert {"mesh", "normal", "ao"} <= set(PIPELINES["reconstruct"].artifacts)
