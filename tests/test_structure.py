@@ -320,3 +320,29 @@ def test_test_modules_have_unique_names():
     for path in (ROOT / "tests").rglob("test_*.py"):
         names.setdefault(path.name, []).append(_rel(path))
     assert not {n: p for n, p in names.items() if len(p) > 1}
+
+
+def test_every_name_a_package_exports_exists():
+    """`__all__` of each package names what it defines or imports (or serves lazily, `_LAZY`
+with a module `__getattr__`), or one of its modules."""
+    missing = []
+    for init in sorted(p for p in _sources() if p.name == "__init__.py"):
+        tree = ast.parse(init.read_text())
+        names: list[str] = []
+        bound: set[str] = set()
+        for node in tree.body:
+            if isinstance(node, ast.Assign | ast.AnnAssign):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
+                    names = list(ast.literal_eval(node.value))
+                if any(isinstance(t, ast.Name) and t.id == "_LAZY" for t in targets):
+                    bound.update(ast.literal_eval(node.value))  # served by __getattr__
+                bound.update(t.id for t in targets if isinstance(t, ast.Name))
+            elif isinstance(node, ast.ImportFrom | ast.Import):
+                bound.update((a.asname or a.name).split(".")[0] for a in node.names)
+            elif isinstance(node, ast.FunctionDef | ast.ClassDef):
+                bound.add(node.name)
+        here = init.parent
+        missing += [f"{_rel(init)}: {n}" for n in names if n not in bound and not (
+            (here / f"{n}.py").is_file() or (here / n / "__init__.py").is_file())]
+    assert not missing, f"__all__ names nothing of that name: {missing}"
