@@ -35,7 +35,8 @@ MODEL_KIND = "normal_model"
 class ReconstructParams(BaseModel):
     """Parameters of `reconstruct` (the `dgs reconstruct` command line, docs/design.md 3.2)."""
 
-    model_config = ConfigDict(extra="forbid")
+    # frozen: the configuration `run_config` resolved stays the parameters' own
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
     preset: Literal["paper", "fast", "test"] = Field(
         "fast", description="Training schedule: paper (30k steps per key frame), fast (7.5k), "

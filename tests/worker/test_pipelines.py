@@ -27,6 +27,8 @@ def test_resolved_once_and_the_same_on_the_worker(tmp_path):
                                config={"train": {"seed": 3}})
     cfg = params.run_config()
     assert params.run_config() is cfg  # the API's checks and its split share one resolution
+    with pytest.raises(ValueError, match="frozen"):  # so it cannot go stale
+        params.gop = 3
     assert (cfg.gop, cfg.checkpoint_every, cfg.train.seed) == (2, 9, 3)
     # The worker's params come back from the job's stored JSON and resolve to the same.
     stored = ReconstructParams.model_validate(params.model_dump(mode="json"))
