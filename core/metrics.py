@@ -25,10 +25,11 @@ def psnr(pred: Tensor, target: Tensor) -> float:
 
 
 def rgb_scores(rgb: np.ndarray, target: np.ndarray, foreground: np.ndarray) -> dict:
-    """{"psnr" over `foreground` (H, W) pixels, "psnr_full" over the image, "ssim" (11x11
-    Gaussian window) over the image} of images (H, W, 3) in 0..1."""
+    """{"psnr" over `foreground` (H, W) pixels (None when the view has none: nothing to score,
+    and means skip it), "psnr_full" over the image, "ssim" (11x11 Gaussian window) over the
+    image} of images (H, W, 3) in 0..1."""
     err = (rgb - target) ** 2
-    return {"psnr": psnr_of_mse(float(err[foreground].mean()) if foreground.any() else 0.0),
+    return {"psnr": psnr_of_mse(float(err[foreground].mean())) if foreground.any() else None,
             "psnr_full": psnr_of_mse(float(err.mean())),
             "ssim": float(ssim(torch.from_numpy(np.ascontiguousarray(rgb, np.float32)),
                                torch.from_numpy(np.ascontiguousarray(target, np.float32))))}

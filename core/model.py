@@ -15,7 +15,9 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 
+import numpy as np
 import torch
+from scipy.spatial import cKDTree
 from torch import Tensor
 
 from core.config import LearningRates
@@ -44,23 +46,17 @@ def means_lr(rates: LearningRates, extent: float, step: int) -> float:
     return math.exp((1 - t) * math.log(lr0) + t * math.log(lr1))
 
 
-def _logit(p: float) -> float:
-    return math.log(p / (1 - p))
-
-
-def _nn_sq_dist(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
-    """Mean squared distance to the k nearest other points (N,), in chunks to bound memory."""
+def _nn_sq_dist(points: Tensor, k: int = 3) -> Tensor:
+    """Mean squared distance to the k nearest other points (N,), by a k-d tree (float64)."""
     n = points.shape[0]
     k = min(k, n - 1)
     if k <= 0:
         return torch.full((n,), 1e-4, dtype=points.dtype, device=points.device)
-    out = []
-    for start in range(0, n, chunk):
-        d = torch.cdist(points[start:start + chunk], points).square()
-        rows = torch.arange(d.shape[0], device=d.device)
-        d[rows, rows + start] = float("inf")
-        out.append(d.topk(k, largest=False).values.mean(dim=1))
-    return torch.cat(out)
+    pts = points.detach().cpu().double().numpy()
+    # Each point is its own nearest (at 0); where points coincide, a twin may come first
+    # instead, which leaves the same distances.
+    dist, _ = cKDTree(pts).query(pts, k=k + 1)
+    return torch.from_numpy(np.square(dist[:, 1:]).mean(axis=1)).to(points)
 
 
 class GaussianModel:
@@ -108,6 +104,9 @@ class GaussianModel:
         if tuple(colors.shape) != (n, 3):
             raise ValueError(f"colors: expected shape ({n}, 3), got {tuple(colors.shape)}")
         dist = torch.sqrt(_nn_sq_dist(pts).clamp_min(1e-7))
+        # The initial logits in float64, rounded once to the parameters' float32.
+        opacity_logit, visibility_logit = torch.logit(
+            torch.tensor([opacity, visibility], dtype=torch.float64)).tolist()
         quats = torch.zeros(n, 4, device=dev)
         quats[:, 0] = 1.0
         return cls({
@@ -116,10 +115,10 @@ class GaussianModel:
             "quats": quats,
             "sh0": ((colors.to(dev).float() - 0.5) / SH_C0)[:, None, :],
             "shN": torch.zeros(n, 15, 3, device=dev),
-            "opacity_c": torch.full((n,), _logit(opacity), device=dev),
-            "opacity_g": torch.full((n,), _logit(opacity), device=dev),
+            "opacity_c": torch.full((n,), opacity_logit, device=dev),
+            "opacity_g": torch.full((n,), opacity_logit, device=dev),
             "normals": torch.tensor([[0.0, 0.0, 1.0]], device=dev).repeat(n, 1),
-            "visibility": torch.full((n, 1), _logit(visibility), device=dev),
+            "visibility": torch.full((n, 1), visibility_logit, device=dev),
         })
 
     @property
@@ -275,4 +274,4 @@ class GaussianModel:
     def load_ply(cls, path, device: torch.device | str = "cpu") -> GaussianModel:
         """Read a file written by :meth:`save_ply`, or a plain 3DGS PLY (geometry defaults),
         onto `device`."""
-        return cls({k: v.to(device) for k, v in read_gaussian_ply(path).items()})
+        return cls({k: torch.from_numpy(v).to(device) for k, v in read_gaussian_ply(path).items()})

@@ -1,6 +1,7 @@
 """How a command-line reconstruction shows its progress: a tqdm bar on a terminal, and on
 anything else (a log file, `nohup`, a CI console) one line every so many seconds, so that a run
-of hours is never silent. Both show the frame, stage, step, loss, Gaussians and an ETA.
+of hours is never silent. Both show the frame, stage, step, loss, Gaussians and an ETA (times in
+tqdm's [h:]mm:ss).
 """
 
 from __future__ import annotations
@@ -13,17 +14,7 @@ from tqdm import tqdm
 
 from core.training import Callback, StepInfo
 
-__all__ = ["LogLines", "TerminalBar", "format_seconds"]
-
-
-def format_seconds(seconds: float) -> str:
-    """'1h02m', '4m05s' or '12s'."""
-    s = max(0, int(round(seconds)))
-    if s >= 3600:
-        return f"{s // 3600}h{s % 3600 // 60:02d}m"
-    if s >= 60:
-        return f"{s // 60}m{s % 60:02d}s"
-    return f"{s}s"
+__all__ = ["LogLines", "TerminalBar"]
 
 
 class TerminalBar(Callback):
@@ -73,7 +64,7 @@ class LogLines(Callback):
         if now - self.last < self.every_s and done < total:
             return
         rate = (now - self.last) / max(done - self.last_step, 1)
-        eta = "" if done >= total else f", ETA {format_seconds(rate * (total - done))}"
+        eta = "" if done >= total else f", ETA {tqdm.format_interval(rate * (total - done))}"
         self._print(f"step {done}/{total} stage {info.plan.stage} loss "
                     f"{info.losses['total']:.4f} gaussians {info.n_gaussians} "
                     f"({rate:.2f} s/step{eta})")
@@ -81,4 +72,5 @@ class LogLines(Callback):
 
     def on_train_end(self, trainer) -> None:
         steps = trainer.step - self.start_step
-        self._print(f"trained {steps} step(s) in {format_seconds(self.clock() - self.start)}")
+        took = tqdm.format_interval(self.clock() - self.start)
+        self._print(f"trained {steps} step(s) in {took}")

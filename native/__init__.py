@@ -1,5 +1,6 @@
 """The differentiable disentangled rasterizer and the Gaussian ray tracer for ambient occlusion
-(C++ CPU now, CUDA later), with their plain PyTorch references.
+(C++ kernels for the CPU, CUDA kernels compiled in where a GPU and nvcc are found), with their
+plain PyTorch references.
 
 Importing this package never builds the extension; the first native call does (see _backend).
 """

@@ -22,16 +22,13 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any, TextIO
 
 import httpx
 
-from core.evaluation import evaluate_run
-from service.client import Client
-from service.client.bars import JobBars, bar_line
+from service.client import Client, JobBars
 from service.settings import ServiceSettings
 
-__all__ = ["DemoServer", "ProgressBar", "run_service_demo"]
+__all__ = ["DemoServer", "run_service_demo"]
 
 STEPS = 6
 
@@ -99,39 +96,6 @@ class DemoServer:
         self.stop()
 
 
-class ProgressBar:
-    """One line redrawn in place on a terminal (a line per tenth of the job otherwise): stage,
-    fraction, frame and step, ETA, from a job's progress events."""
-
-    def __init__(self, stream: TextIO | None = None, width: int = 30):
-        self.stream = stream or sys.stdout
-        self.width = width
-        self.tty = self.stream.isatty()
-        self._last_tenth, self._last_stage, self._open = -1, None, False
-
-    def line(self, p: dict[str, Any]) -> str:
-        return bar_line("      ", p, self.width)
-
-    def update(self, p: dict[str, Any]) -> None:
-        text = self.line(p)
-        if self.tty:
-            self.stream.write("\r" + text.ljust(100))
-            self._open = True
-        else:
-            tenth = int(float(p.get("fraction") or 0.0) * 10)
-            if tenth == self._last_tenth and p.get("stage") == self._last_stage:
-                return
-            self._last_tenth, self._last_stage = tenth, p.get("stage")
-            self.stream.write(text + "\n")
-        self.stream.flush()
-
-    def close(self) -> None:
-        if self._open:
-            self.stream.write("\n")
-            self.stream.flush()
-            self._open = False
-
-
 def _upload(client, capture_dir: Path) -> dict:
     capture = client.create_capture(capture_dir, name="dgs demo")
     total = capture["total_bytes"]
@@ -165,8 +129,9 @@ def run_service_demo(out: str = "demo", *, synth: dict | None = None,
                      overrides: dict | None = None, preset: str = "test") -> int:
     """The demo through the service (see the module docstring); `synth` (SynthConfig fields)
     and `overrides` (the job's config) default to core's demo."""
-    # lazy: the demo loads torch; `dgs serve` imports this package without it
+    # lazy: the demo's capture loads torch; `dgs serve` and the API import this module
     from core.demo import DEMO_OVERRIDES, demo_capture, report
+    from core.evaluation import evaluate_run  # lazy: torch too (the held-out renders)
 
     root = Path(out)
     capture_dir, run_dir, data_dir = root / "capture", root / "run", root / "service"

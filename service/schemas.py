@@ -1,5 +1,5 @@
-"""Request (…In) and response (…Out) bodies of the API; inputs and outputs never share a model
-(STYLE.md 11), so a field added to a response can never become settable by clients."""
+"""Request (…In) and response (…Out) bodies of the API; inputs and outputs never share a model,
+so a field added to a response can never become settable by clients."""
 
 from __future__ import annotations
 

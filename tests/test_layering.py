@@ -1,5 +1,6 @@
 """Imports go one way: service -> worker (contract only) -> core -> native (docs/design.md section 2),
-and the API process (service) never imports torch."""
+and the API process (service) never imports torch directly (tests/test_structure.py follows the
+imports transitively)."""
 
 from __future__ import annotations
 

@@ -1,8 +1,9 @@
 """The shape of the code (docs/design.md section 2): modules of at most ~400 lines, functions of
-at most ~60 (docstrings aside), no import circle between the project's modules, every import at
-the top of its module unless it says why it is lazy (`# lazy: ...` on the line or the one
-above), and nothing outside `benchmarks/` referring to the shared folder beside the repository
-(a clone has none)."""
+at most ~60 (docstrings aside), no import circle between the project's modules (imports for
+types only included), the API process loading no torch through any chain of imports, every
+import at the top of its module unless it says why it is lazy (`# lazy: ...` on the line or the
+one above), and nothing outside `benchmarks/` referring to the shared folder beside the
+repository (a clone has none)."""
 
 from __future__ import annotations
 
@@ -66,26 +67,29 @@ def test_functions_are_at_most_60_lines():
 
 
 def _imports(path: Path, modules: set[str]) -> list[str]:
-    """The project modules `path` imports when it runs (at its top or inside its functions;
-    `if TYPE_CHECKING:` blocks never run)."""
-    tree = ast.parse(path.read_text())
-    typing_only = {id(n) for top in tree.body if isinstance(top, ast.If)
-                   and "TYPE_CHECKING" in ast.unparse(top.test) for n in ast.walk(top)}
+    """The project modules `path` imports: at its top, inside its functions, and under `if
+    TYPE_CHECKING:` (a circle of types is a circle too: neither side stands alone)."""
     out = []
-    for node in ast.walk(tree):
-        if id(node) in typing_only:
-            continue
-        names = []
-        if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names = [f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules
-                     else node.module for a in node.names]
-        for name in names:
-            while name and name not in modules:
-                name = name.rpartition(".")[0]
-            if name:
-                out.append(name)
+    for node in ast.walk(ast.parse(path.read_text())):
+        out += _project_modules(node, modules)
+    return out
+
+
+def _project_modules(node: ast.AST, modules: set[str]) -> list[str]:
+    """The project modules an import statement names (`from a.b import c` names a.b.c when
+    that is a module, else a.b; the project has no relative imports)."""
+    names = []
+    if isinstance(node, ast.Import):
+        names = [a.name for a in node.names]
+    elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+        names = [f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in modules
+                 else node.module for a in node.names]
+    out = []
+    for name in names:
+        while name and name not in modules:
+            name = name.rpartition(".")[0]
+        if name:
+            out.append(name)
     return out
 
 
@@ -131,12 +135,119 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 
 
 def test_no_import_circles():
-    assert not _cycles(_graph()), "these modules import each other (directly or lazily)"
+    assert not _cycles(_graph()), ("these modules import each other (directly, lazily or for "
+                                   "types)")
 
 
 def test_the_cycle_finder_sees_a_circle():
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
     assert _cycles({"a": {"b"}, "b": set()}) == []
+
+
+# The API process never loads torch (docs/design.md 2.2): nothing it imports may, through any
+# chain of imports that run at import time. These core modules are the ones it relies on.
+TORCH_FREE_ROOTS = ("service", "core.config", "core.data.capture", "core.data.schema",
+                    "core.data.validate")
+TORCH = ("torch", "native")
+
+
+def _at_import_time(tree: ast.Module):
+    """The import statements that run when the module is imported: at its top, in top-level
+    `if` (not `if TYPE_CHECKING:`), `try` and `with` blocks and in class bodies; not inside
+    functions (lazy) nor under TYPE_CHECKING."""
+    stack: list[ast.AST] = list(tree.body)
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node
+        elif isinstance(node, ast.If):
+            typing_only = "TYPE_CHECKING" in ast.unparse(node.test)
+            stack += node.orelse if typing_only else node.body + node.orelse
+        elif isinstance(node, ast.Try):
+            stack += node.body + node.orelse + node.finalbody
+            stack += [n for h in node.handlers for n in h.body]
+        elif isinstance(node, (ast.With, ast.ClassDef)):
+            stack += node.body
+
+
+def _load_graph() -> dict[str, tuple[set[str], set[str]]]:
+    """Per project module: (the project modules importing it loads, its own package's and
+    theirs included; the outside top-level packages it imports), at import time."""
+    paths = {_module_name(p): p for p in _sources()}
+    graph = {}
+    for name, path in paths.items():
+        inside, outside = set(), set()
+        for node in _at_import_time(ast.parse(path.read_text())):
+            found = _project_modules(node, set(paths))
+            inside.update(found)
+            if found:
+                continue
+            if isinstance(node, ast.Import):
+                outside.update(a.name.split(".")[0] for a in node.names)
+            else:
+                outside.add((node.module or "").split(".")[0])
+        graph[name] = (inside, outside)
+    for name, (inside, _) in graph.items():  # importing a.b.c runs a/__init__ and a/b/__init__
+        for module in [name, *inside]:
+            parts = module.split(".")
+            inside.update(".".join(parts[:i]) for i in range(1, len(parts))
+                          if ".".join(parts[:i]) in graph and ".".join(parts[:i]) != name)
+    return graph
+
+
+def _loads(graph: dict[str, tuple[set[str], set[str]]], roots: tuple[str, ...],
+           forbidden: tuple[str, ...]) -> dict[str, list[str]]:
+    """For each module under `roots` that loads a `forbidden` package, directly or through
+    others, the chain of imports that does it."""
+    bad = {}
+    for root in sorted(m for m in graph if any(m == r or m.startswith(r + ".") for r in roots)):
+        seen, queue = {root: [root]}, [root]
+        while queue:
+            module = queue.pop(0)
+            inside, outside = graph[module]
+            hit = [f for f in forbidden if f in outside or module.split(".")[0] == f]
+            if hit:
+                bad[root] = seen[module] + [hit[0]] * (hit[0] in outside)
+                break
+            for nxt in sorted(inside - set(seen)):
+                seen[nxt] = seen[module] + [nxt]
+                queue.append(nxt)
+    return bad
+
+
+def test_the_api_process_never_loads_torch_through_any_import():
+    bad = _loads(_load_graph(), TORCH_FREE_ROOTS, TORCH)
+    assert not bad, "these load torch when imported (make the import lazy, with a '# lazy:' " \
+        "reason, or move the code): " + "; ".join(" -> ".join(c) for c in bad.values())
+
+
+def test_the_transitive_check_sees_a_chain():
+    graph = {"service.a": ({"worker.b"}, set()), "worker.b": ({"core.c"}, {"sqlalchemy"}),
+             "core.c": (set(), {"torch"}), "service.d": ({"native.e"}, set()),
+             "native.e": (set(), {"numpy"}), "service.f": ({"worker.b2"}, set()),
+             "worker.b2": (set(), {"numpy"})}
+    assert _loads(graph, ("service",), TORCH) == {
+        "service.a": ["service.a", "worker.b", "core.c", "torch"],
+        "service.d": ["service.d", "native.e"]}
+    # The real graph: service.demo loads core.demo (torch) only inside a function.
+    real = _load_graph()
+    assert "core.demo" not in real["service.demo"][0]
+    assert "torch" in real["core.model"][1]
+
+
+def test_importing_every_api_module_loads_no_torch():
+    """The same, as Python does it (third-party packages included)."""
+    code = ("import importlib, pkgutil, sys, service\n"
+            "for m in pkgutil.walk_packages(service.__path__, 'service.'):\n"
+            "    importlib.import_module(m.name)\n"
+            "for m in ('core.config', 'core.data.capture', 'core.data.schema', "
+            "'core.data.validate'):\n"
+            "    importlib.import_module(m)\n"
+            "print(sorted({m.split('.')[0] for m in sys.modules} & {'torch', 'native'}))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]", out.stdout
 
 
 def test_imports_are_at_the_top_or_say_why_not():
@@ -209,3 +320,29 @@ def test_test_modules_have_unique_names():
     for path in (ROOT / "tests").rglob("test_*.py"):
         names.setdefault(path.name, []).append(_rel(path))
     assert not {n: p for n, p in names.items() if len(p) > 1}
+
+
+def test_every_name_a_package_exports_exists():
+    """`__all__` of each package names what it defines or imports (or serves lazily, `_LAZY`
+with a module `__getattr__`), or one of its modules."""
+    missing = []
+    for init in sorted(p for p in _sources() if p.name == "__init__.py"):
+        tree = ast.parse(init.read_text())
+        names: list[str] = []
+        bound: set[str] = set()
+        for node in tree.body:
+            if isinstance(node, ast.Assign | ast.AnnAssign):
+                targets = node.targets if isinstance(node, ast.Assign) else [node.target]
+                if any(isinstance(t, ast.Name) and t.id == "__all__" for t in targets):
+                    names = list(ast.literal_eval(node.value))
+                if any(isinstance(t, ast.Name) and t.id == "_LAZY" for t in targets):
+                    bound.update(ast.literal_eval(node.value))  # served by __getattr__
+                bound.update(t.id for t in targets if isinstance(t, ast.Name))
+            elif isinstance(node, ast.ImportFrom | ast.Import):
+                bound.update((a.asname or a.name).split(".")[0] for a in node.names)
+            elif isinstance(node, ast.FunctionDef | ast.ClassDef):
+                bound.add(node.name)
+        here = init.parent
+        missing += [f"{_rel(init)}: {n}" for n in names if n not in bound and not (
+            (here / f"{n}.py").is_file() or (here / n / "__init__.py").is_file())]
+    assert not missing, f"__all__ names nothing of that name: {missing}"

@@ -10,16 +10,13 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from core.pipeline.assemble import assemble
+from worker.execution import Host
 from worker.models import Job
 from worker.pipelines import ReconstructParams
 from worker.progress import JobLink
 from worker.reconstruct_job import PUBLISH_SHARE, ReconstructJob
-
-if TYPE_CHECKING:
-    from worker.runner import Runner
 
 __all__ = ["AssembleJob"]
 
@@ -29,7 +26,7 @@ class AssembleJob:
 
     retry_note = "retry assembles the parts again"
 
-    def __init__(self, runner: Runner, job: Job, params: ReconstructParams, link: JobLink):
+    def __init__(self, runner: Host, job: Job, params: ReconstructParams, link: JobLink):
         self.runner, self.job, self.link = runner, job, link
         self.blobs = runner.blobs
         # Evaluation and the final publish are a whole job's.
@@ -45,8 +42,8 @@ class AssembleJob:
         records = self._fetch(run)
         metrics = assemble(run, records)
         self.link.log(f"assembled {len(metrics['frames'])} frames from {len(records)} parts")
-        self.whole._evaluate(run, capture)
-        self.whole._publish_final(run)
+        self.whole.evaluate(run, capture)
+        self.whole.publish_final(run)
         self.blobs.delete_prefix(f"jobs/{self.job.id}/parts")
 
     def _fetch(self, run: Path) -> list[dict]:
@@ -54,11 +51,7 @@ class AssembleJob:
         config.json (every part wrote the same)."""
         self.runner.fetch(f"jobs/{self.job.id}/artifacts", run)
         # What was fetched is already published; the final publish sends only what is new.
-        for path in run.rglob("*"):
-            if path.is_file():
-                stat = path.stat()
-                self.runner._published[path.relative_to(run).as_posix()] = (
-                    stat.st_size, stat.st_mtime_ns)
+        self.runner.mark_published(run)
         parts_dir = run.parent / "parts"
         self.runner.fetch(f"jobs/{self.job.id}/parts", parts_dir)
         records = []

@@ -2,8 +2,9 @@
 of `jobs` with `parent_id` set, so that a part has everything a job has (its lease, heartbeat,
 attempts, broker message, checkpoints, cancel) without a second copy of that machinery. This
 module holds what is particular to parts: how a job is split, how the parts' states roll up
-into the parent's, and the parent's overall progress read from its parts. Torch-free (the API
-splits a job when it is posted)."""
+into the parent's, and the parent's overall progress read from its parts; `worker.jobrows`
+applies these to the rows for the job store. Torch-free (the API splits a job when it is
+posted)."""
 
 from __future__ import annotations
 
@@ -17,8 +18,8 @@ from sqlalchemy.orm import Session
 from core.config import RunConfig
 from worker.models import Job, JobEvent, utcnow
 
-__all__ = ["ASSEMBLY_SHARE", "PartOps", "delete_parts", "overall_progress", "part_out",
-           "parts_of", "roll_up", "split_frames"]
+__all__ = ["ASSEMBLY_SHARE", "delete_parts", "failed_error", "overall_progress", "part_event",
+           "part_out", "parts_of", "roll_up", "split_frames"]
 
 ASSEMBLY_SHARE = 0.01
 """Share of a parted job's progress left for the assembly (merge, evaluation, publishing)."""
@@ -137,118 +138,3 @@ def part_event(s: Session, part: Job, kind: str, data: dict[str, Any]) -> None:
     """An event of the parent that says what one of its parts did (SSE kind `part`)."""
     s.add(JobEvent(job_id=part.parent_id, kind="part",
                    data={"part": part.part_index, "event": kind, **data}))
-
-
-class PartOps:
-    """The job store's operations on parted jobs (`worker.store.JobStore` inherits them)."""
-
-    def create_parted(self, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
-                      capture_id: str | None, name: str = "",
-                      expires_at: dt.datetime | None = None) -> tuple[Job, list[Job]]:
-        """A sequence job and its parts (one per group of `groups`), all queued; the caller
-        dispatches the parts (the parent itself is dispatched when they have succeeded)."""
-        new_id = self._new_id  # type: ignore[attr-defined]
-        with self.session() as s:  # type: ignore[attr-defined]
-            parent = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id,
-                         pipeline="reconstruct", params=params, name=name, state="queued",
-                         stage="queued", expires_at=expires_at, parts=len(groups),
-                         frames=sum(map(len, groups)))
-            s.add(parent)
-            s.flush()
-            parts = [Job(id=new_id("job"), tenant=tenant, capture_id=capture_id,
-                         pipeline="reconstruct", params=params, name=name, state="queued",
-                         stage="queued", parent_id=parent.id, part_index=i, part_frames=frames,
-                         frames=len(frames))
-                     for i, frames in enumerate(groups)]
-            s.add_all(parts)
-            s.flush()
-            self._state_event(s, parent)  # type: ignore[attr-defined]
-            return parent, parts
-
-    @staticmethod
-    def _lock(s: Session, job_id: str) -> Job | None:
-        """The job's row locked; a part's parent is locked first, so that every transaction
-        that locks both (a part's claim or end, a cancel of its job) takes them in the same
-        order and none waits for another in a cycle (PostgreSQL)."""
-        parent_id = s.scalar(select(Job.parent_id).where(Job.id == job_id))
-        if parent_id is not None:
-            s.get(Job, parent_id, with_for_update=True)
-        return s.get(Job, job_id, with_for_update=True)
-
-    def _roll_up(self, s: Session, part: Job) -> None:
-        """After a part ended: end the parent when none of its parts is left to run, or make it
-        wait for its assembly when every part succeeded."""
-        parent = s.get(Job, part.parent_id, with_for_update=True)
-        if parent is None or parent.state not in ("queued", "running"):
-            return
-        s.flush()
-        parts = parts_of(s, parent.id)
-        outcome = roll_up(s, parent, parts)
-        if outcome == "assemble":
-            parent.state, parent.stage, parent.dispatched_at = "running", "assembling", None
-            parent.lease_owner = parent.lease_expires_at = None
-            parent.fraction = max(parent.fraction, 1 - ASSEMBLY_SHARE)
-            parent.started_at = parent.started_at or utcnow()
-            self._state_event(s, parent)  # type: ignore[attr-defined]
-        elif outcome == "failed":
-            self._finish(s, parent, "failed", failed_error(parts), "")  # type: ignore
-        elif outcome == "cancelled":
-            self._finish(s, parent, "cancelled", None,  # type: ignore[attr-defined]
-                         "cancelled; retry runs the cancelled parts again")
-
-    def _part_claimed(self, s: Session, part: Job) -> None:
-        """A part started: its parent is running from then on."""
-        parent = s.get(Job, part.parent_id, with_for_update=True)
-        if parent is not None and parent.state == "queued":
-            parent.state, parent.stage = "running", "parts"
-            parent.started_at = parent.started_at or utcnow()
-            self._state_event(s, parent)  # type: ignore[attr-defined]
-
-    def _cancel_parts(self, s: Session, parent: Job) -> None:
-        """Cancel every part: a queued one at once, a running one at its next step."""
-        for part in parts_of(s, parent.id, lock=True):
-            if part.state == "queued" and part.lease_owner is None:
-                part.state, part.stage, part.finished_at = "cancelled", "cancelled", utcnow()
-                part.eta_s = None
-                self._state_event(s, part)  # type: ignore[attr-defined]
-            elif part.state in ("queued", "running"):
-                part.cancel_requested = True
-                part_event(s, part, "state", {"state": part.state, "cancel_requested": True})
-        s.flush()
-        if parent.lease_owner is None and roll_up(s, parent, parts_of(s, parent.id)):
-            # Nothing runs any more (and no assembly holds the parent): cancelled at once.
-            self._finish(s, parent, "cancelled", None,  # type: ignore[attr-defined]
-                         "cancelled; retry runs the cancelled parts again")
-
-    def _retry_parts(self, s: Session, parent: Job) -> None:
-        """Put the failed and cancelled parts back in the queue (the succeeded ones stay
-        done); when none is left to run (the assembly failed), the assembly again."""
-        again = [p for p in parts_of(s, parent.id, lock=True)
-                 if p.state in ("failed", "cancelled")]
-        for part in again:
-            part.state, part.stage, part.error, part.message = "queued", "queued", None, ""
-            part.attempts, part.cancel_requested, part.finished_at = 0, False, None
-            part.lease_owner = part.lease_expires_at = part.eta_s = part.dispatched_at = None
-            self._state_event(s, part)  # type: ignore[attr-defined]
-        parent.state, parent.error, parent.message = "queued", None, ""
-        parent.attempts, parent.cancel_requested, parent.finished_at = 0, False, None
-        parent.lease_owner = parent.lease_expires_at = parent.eta_s = None
-        parent.stage = "queued" if again else "assembling"
-        if not again:
-            parent.state, parent.dispatched_at = "running", None
-
-    def to_dispatch(self, job_id: str) -> list[str]:
-        """After a retry: the ids to send to the broker (the queued parts, or the parent when
-        only its assembly is left)."""
-        with self.session(write=False) as s:  # type: ignore[attr-defined]
-            job = s.get(Job, job_id)
-            if job is None:
-                return []
-            if not job.parts or job.stage == "assembling":
-                return [job.id]
-            return [p.id for p in parts_of(s, job_id) if p.state == "queued"]
-
-    def parts(self, parent_id: str) -> list[Job]:
-        """The parent's parts in order (empty for a job that runs as one)."""
-        with self.session(write=False) as s:  # type: ignore[attr-defined]
-            return parts_of(s, parent_id)

@@ -15,11 +15,13 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    PrivateAttr,
     WithJsonSchema,
 )
 
 from core.config import RunConfig, load_config, schema
 from core.config.relight import BUILTIN_ENVMAPS, FRAMES, Light, RelightSettings
+from core.rundir import kinds_written_by
 from worker.settings import WorkerSettings
 
 __all__ = ["BUILTIN_ENVMAPS", "ExportJobParams", "Light", "MODEL_KIND", "PIPELINES",
@@ -33,7 +35,8 @@ MODEL_KIND = "normal_model"
 class ReconstructParams(BaseModel):
     """Parameters of `reconstruct` (the `dgs reconstruct` command line, docs/design.md 3.2)."""
 
-    model_config = ConfigDict(extra="forbid")
+    # frozen: the configuration `run_config` resolved stays the parameters' own
+    model_config = ConfigDict(extra="forbid", frozen=True)
 
     preset: Literal["paper", "fast", "test"] = Field(
         "fast", description="Training schedule: paper (30k steps per key frame), fast (7.5k), "
@@ -54,13 +57,20 @@ class ReconstructParams(BaseModel):
                     "(e.g. {\"train\": {\"seed\": 3}}); every key, type and bound is checked "
                     "before the job is made (422 naming the setting).")
 
+    _resolved: RunConfig | None = PrivateAttr(None)
+
     def run_config(self) -> RunConfig:
         """The configuration this job runs with: the preset, `config`, then `checkpoint_every`
-        and `gop` (core.config.ConfigError naming each bad setting under 'config')."""
-        overrides = dict(self.config)
-        if self.checkpoint_every is not None:
-            overrides["checkpoint_every"] = self.checkpoint_every
-        return load_config(self.preset, overrides=overrides, gop=self.gop, where="config")
+        and `gop` (core.config.ConfigError naming each bad setting under 'config'). The one
+        place a job's configuration is resolved: the API checks it (service.checks, the split
+        into parts) and the worker runs it (worker.reconstruct_job); resolved once per object."""
+        if self._resolved is None:
+            overrides = dict(self.config)
+            if self.checkpoint_every is not None:
+                overrides["checkpoint_every"] = self.checkpoint_every
+            self._resolved = load_config(self.preset, overrides=overrides, gop=self.gop,
+                                         where="config")
+        return self._resolved
 
 
 class RelightJobParams(RelightSettings):
@@ -136,7 +146,7 @@ PIPELINES: dict[str, Pipeline] = {
         description="Reconstruct every selected frame of a capture: disentangled Gaussians "
                     "(PLY), held-out renders (rgb, normal, AO, depth), metrics, plots.",
         params=ReconstructParams,
-        artifacts=("ply", "render", "depth", "plot", "metrics", "config", "eval", "image"),
+        artifacts=kinds_written_by("reconstruct"),
         soft_limit="reconstruct_soft_limit_seconds",
         check=ReconstructParams.run_config,
     ),
@@ -147,7 +157,7 @@ PIPELINES: dict[str, Pipeline] = {
                     "(linear); with an orbit relit/<frame>.mp4, over several frames "
                     "relit/videos/<camera>.mp4; relit/relight.json.",
         params=RelightJobParams,
-        artifacts=("relit", "video", "relight"),
+        artifacts=kinds_written_by("relight"),
         soft_limit="relight_soft_limit_seconds",
         source="job",
     ),
@@ -157,8 +167,8 @@ PIPELINES: dict[str, Pipeline] = {
                     "(the relightable sequence stream), export/spz/<frame>.spz, "
                     "export/ply/<frame>.ply, export/export.json (sizes, timings).",
         params=ExportJobParams,
-        artifacts=("stream", "spz", "ply", "export"),
-        soft_limit="relight_soft_limit_seconds",
+        artifacts=kinds_written_by("export"),
+        soft_limit="export_soft_limit_seconds",
         source="job",
     ),
 }

@@ -12,19 +12,15 @@ from __future__ import annotations
 import shutil
 from dataclasses import replace
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 
 from core.evaluation import evaluate_run
 from core.pipeline import Stopped, reconstruct
-from worker.execution import JobStopped
+from worker.execution import Host, JobStopped
 from worker.models import Asset, Job
 from worker.pipelines import MODEL_KIND, ReconstructParams
 from worker.progress import JobLink
-
-if TYPE_CHECKING:
-    from worker.runner import Runner
 
 __all__ = ["ReconstructJob"]
 
@@ -40,7 +36,7 @@ class ReconstructJob:
 
     retry_note = "retry resumes from the last checkpoint"
 
-    def __init__(self, runner: Runner, job: Job, params: ReconstructParams, link: JobLink):
+    def __init__(self, runner: Host, job: Job, params: ReconstructParams, link: JobLink):
         self.runner, self.job, self.params, self.link = runner, job, params, link
         self.blobs = runner.blobs
         self.part = job.parent_id is not None
@@ -60,8 +56,8 @@ class ReconstructJob:
         if self.part:
             self._finish_part(run)
             return
-        self._evaluate(run, capture)
-        self._publish_final(run)
+        self.evaluate(run, capture)
+        self.publish_final(run)
 
     def _run_dir(self) -> Path:
         """<scratch>/jobs/<id>/run, restored from jobs/<id>/state/ and the published frames
@@ -83,15 +79,12 @@ class ReconstructJob:
 
     def _reconstruct(self, capture: Path, run: Path) -> None:
         params, link = self.params, self.link
-        overrides = dict(params.config)
-        if params.checkpoint_every is not None:
-            overrides["checkpoint_every"] = params.checkpoint_every
         resume = (run / "config.json").is_file()
         if resume:
             link.log("resuming from the run directory's last checkpoint")
         run.parent.mkdir(parents=True, exist_ok=True)
-        reconstruct(capture, run, preset=params.preset, frames=params.frames, gop=params.gop,
-                    overrides=overrides or None, resume=resume, progress=False,
+        reconstruct(capture, run, preset=params.preset, config=params.run_config(),
+                    frames=params.frames, resume=resume, progress=False,
                     model_files=self._model_files(run.parent),
                     on_progress=self._on_progress(run), should_stop=link.should_stop,
                     gops=[self.job.part_index] if self.part else None)
@@ -100,7 +93,7 @@ class ReconstructJob:
         """Where the models the configuration names are on this worker: an operator's
         allow-listed file, or the tenant's model asset fetched into the job's folder. A name
         that is neither fails the job (the API refuses it first; a path is never opened)."""
-        name = self.params.config.get("normal_estimator")
+        name = self.params.run_config().normal_estimator
         if name is None:
             return {}
         allowed = self.runner.settings.normal_estimators
@@ -160,7 +153,7 @@ class ReconstructJob:
 
         return on_progress
 
-    def _evaluate(self, run: Path, capture: Path) -> None:
+    def evaluate(self, run: Path, capture: Path) -> None:
         self.link.update(fraction=1 - PUBLISH_SHARE, stage="evaluating", message="")
         try:
             result = evaluate_run(run, capture)
@@ -181,7 +174,7 @@ class ReconstructJob:
                 self.blobs.put_file(
                     f"jobs/{self.job.id}/state/{path.relative_to(run).as_posix()}", path)
 
-    def _publish_final(self, run: Path) -> None:
+    def publish_final(self, run: Path) -> None:
         """Publish what is new in the run directory, then drop the resume state: a finished
         job is never resumed."""
         self.link.update(fraction=1 - PUBLISH_SHARE / 2, stage="publishing", message="")

@@ -16,20 +16,16 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 from sqlalchemy import select
 
 from core.config import parse_frames
 from core.files import write_json
 from core.relight.run import RelightParams, RelightStopped, run_params
-from worker.execution import JobStopped
+from worker.execution import Host, JobStopped
 from worker.models import Asset, Job
 from worker.pipelines import RelightJobParams
 from worker.progress import JobLink
-
-if TYPE_CHECKING:
-    from worker.runner import Runner
 
 __all__ = ["RelightJob"]
 
@@ -43,7 +39,7 @@ class RelightJob:
 
     retry_note = "retry renders it again"
 
-    def __init__(self, runner: Runner, job: Job, params: RelightJobParams, link: JobLink):
+    def __init__(self, runner: Host, job: Job, params: RelightJobParams, link: JobLink):
         self.runner, self.job, self.params, self.link = runner, job, params, link
         self.blobs = runner.blobs
         # Per attempt: a worker that lost its lease may still be cleaning up its own folder.

@@ -237,6 +237,15 @@ class Runner:
         return out
 
     # -- outputs ------------------------------------------------------------------------------
+    def mark_published(self, root: Path) -> None:
+        """Count every file under `root` (fetched from the job's artifacts, laid out as they
+        are) as published, so that `publish` sends only what changes after."""
+        for path in root.rglob("*"):
+            if path.is_file():
+                stat = path.stat()
+                self._published[path.relative_to(root).as_posix()] = (
+                    stat.st_size, stat.st_mtime_ns)
+
     def publish(self, job: Job | str, root: Path, prefix: str = "", *,
                 frames: bool | None = None) -> int:
         """Copy new or changed files under `root` to jobs/<id>/artifacts/<prefix><path> (`job`:

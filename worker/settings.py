@@ -86,6 +86,9 @@ class WorkerSettings(BaseSettings):
     relight_soft_limit_seconds: float = Field(2 * 3600.0, gt=0)
     """Soft time limit of a relight (render) job: views of frames already reconstructed, so
     far shorter than a reconstruction; a long sequence's orbit may want more."""
+    export_soft_limit_seconds: float = Field(2 * 3600.0, gt=0)
+    """Soft time limit of an export job (PLY, SPZ, the sequence stream of a finished
+    reconstruction): the stream's graph fit and encoding grow with the frames and Gaussians."""
     hard_limit_margin_seconds: float = Field(600.0, gt=0)
     """The hard limit (process killed) is the soft limit plus this margin."""
     max_image_pixels: int = Field(DEFAULT_MAX_PIXELS, ge=1)
@@ -173,7 +176,8 @@ class WorkerSettings(BaseSettings):
     def visibility_timeout(self) -> float:
         """Redis visibility timeout: longer than the longest hard limit (docs/design.md section 4),
         so a long job's message is never handed to a second worker while the first runs."""
-        longest = max(self.reconstruct_soft_limit_seconds, self.relight_soft_limit_seconds)
+        longest = max(self.reconstruct_soft_limit_seconds, self.relight_soft_limit_seconds,
+                      self.export_soft_limit_seconds)
         return 2 * (longest + self.hard_limit_margin_seconds)
 
 

@@ -13,7 +13,6 @@ that the API serves as server-sent events.
 from __future__ import annotations
 
 import datetime as dt
-import secrets
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -22,10 +21,12 @@ from sqlalchemy import exists, func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, aliased
 
+from worker import jobrows
 from worker.db import session_scope
+from worker.jobrows import JobState, new_id, progress_of
 from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
 from worker.owner import Owner
-from worker.parts import PartOps, part_event
+from worker.parts import part_event, parts_of
 
 __all__ = [
     "ACTIVE",
@@ -39,12 +40,6 @@ __all__ = [
 
 ACTIVE = ("queued", "running")
 TERMINAL = ("succeeded", "failed", "cancelled")
-JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
-
-
-def new_id(prefix: str) -> str:
-    """An unguessable id like `job_3f9c0a1b2d4e5f60a7b8` (80 random bits)."""
-    return f"{prefix}_{secrets.token_hex(10)}"
 
 
 @dataclass(frozen=True)
@@ -60,24 +55,15 @@ class Claim:
     retry_in: float = 0.0
 
 
-def progress_of(job: Job) -> dict[str, Any]:
-    """The progress object of the API (docs/design.md 3.5)."""
-    return {"stage": job.stage, "frame": job.frame, "frames": job.frames,
-            "iteration": job.iteration, "iterations": job.iterations,
-            "fraction": round(job.fraction, 6), "eta_s": job.eta_s, "message": job.message}
-
-
 def _active_parts(job_id) -> Any:
     """SQL: the job has a queued or running part."""
     part = aliased(Job)
     return exists().where(part.parent_id == job_id, part.state.in_(ACTIVE))
 
 
-class JobStore(PartOps):
-    """Job lifecycle operations on the database at `url` (those particular to a job run as
-    parts in `worker.parts.PartOps`)."""
-
-    _new_id = staticmethod(new_id)
+class JobStore:
+    """Job lifecycle operations on the database at `url`, each in its own transaction (the
+    changes to the rows, those of jobs run as parts included, in `worker.jobrows`)."""
 
     def __init__(self, url: str):
         self.url = url
@@ -95,17 +81,6 @@ class JobStore(PartOps):
                 if asset_id in ((params or {}).get("envmap"),
                                 ((params or {}).get("config") or {}).get("normal_estimator"))]
 
-    @staticmethod
-    def _event(s: Session, job_id: str, kind: str, data: dict[str, Any]) -> None:
-        s.add(JobEvent(job_id=job_id, kind=kind, data=data))
-
-    def _state_event(self, s: Session, job: Job) -> None:
-        data = {"state": job.state, "error": job.error, "attempts": job.attempts,
-                **progress_of(job)}
-        self._event(s, job.id, "state", data)
-        if job.parent_id is not None:  # the parent's stream says what its parts do
-            part_event(s, job, "state", data)
-
     # -- created and changed by the API -------------------------------------------------------
     def create(self, tenant: str, pipeline: str, params: dict[str, Any], *,
                capture_id: str | None, name: str = "",
@@ -116,8 +91,17 @@ class JobStore(PartOps):
                       expires_at=expires_at)
             s.add(job)
             s.flush()
-            self._state_event(s, job)
+            jobrows.state_event(s, job)
             return job
+
+    def create_parted(self, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
+                      capture_id: str | None, name: str = "",
+                      expires_at: dt.datetime | None = None) -> tuple[Job, list[Job]]:
+        """A sequence job and its parts (one per group of `groups`), all queued; the caller
+        dispatches the parts (the parent itself is dispatched when they have succeeded)."""
+        with self.session() as s:
+            return jobrows.create_parted(s, tenant, params, groups, capture_id=capture_id,
+                                         name=name, expires_at=expires_at)
 
     def create_render(self, tenant: str, source_job_id: str, pipeline: str,
                       params: dict[str, Any], *, name: str = "",
@@ -135,7 +119,7 @@ class JobStore(PartOps):
                       state="queued", stage="queued", expires_at=expires_at)
             s.add(job)
             s.flush()
-            self._state_event(s, job)
+            jobrows.state_event(s, job)
             return job
 
     @staticmethod
@@ -172,15 +156,15 @@ class JobStore(PartOps):
                 return None
             if job.parts and job.state in ACTIVE:
                 job.cancel_requested = True
-                self._event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
-                self._cancel_parts(s, job)
+                jobrows.event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
+                jobrows.cancel_parts(s, job)
             elif job.state == "queued" and job.lease_owner is None:
                 job.state, job.stage, job.finished_at = "cancelled", "cancelled", utcnow()
                 job.eta_s = None
-                self._state_event(s, job)
+                jobrows.state_event(s, job)
             elif job.state in ACTIVE and not job.cancel_requested:
                 job.cancel_requested = True
-                self._event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
+                jobrows.event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
             return job
 
     def retry(self, job_id: str, tenant: str) -> Job | None:
@@ -191,27 +175,38 @@ class JobStore(PartOps):
             if job is None or job.tenant != tenant:
                 return None
             if job.parts and job.state in ("failed", "cancelled"):
-                self._retry_parts(s, job)
-                self._state_event(s, job)
+                jobrows.retry_parts(s, job)
+                jobrows.state_event(s, job)
             elif job.state in ("failed", "cancelled"):
                 job.state, job.stage, job.error, job.message = "queued", "queued", None, ""
                 job.attempts, job.cancel_requested, job.finished_at = 0, False, None
                 job.lease_owner = job.lease_expires_at = job.eta_s = None
-                self._state_event(s, job)
+                jobrows.state_event(s, job)
             return job
+
+    def to_dispatch(self, job_id: str) -> list[str]:
+        """After a retry: the ids to send to the broker (the queued parts of a job run as
+        parts, or the job itself)."""
+        with self.session(write=False) as s:
+            return jobrows.to_dispatch(s, job_id)
+
+    def parts(self, parent_id: str) -> list[Job]:
+        """The parent's parts in order (empty for a job that runs as one)."""
+        with self.session(write=False) as s:
+            return parts_of(s, parent_id)
 
     # -- used by workers ---------------------------------------------------------------------
     def claim(self, job_id: str, owner: Owner, lease_seconds: float, max_attempts: int) -> Claim:
         """Take the job's lease (and count an attempt) unless a live worker holds it."""
         now = utcnow()
         with self.session() as s:
-            job = self._lock(s, job_id)
+            job = jobrows.lock(s, job_id)
             if job is None:
                 return Claim("missing")
             if job.state in TERMINAL:
                 return Claim("terminal", job)
             if job.cancel_requested:
-                self._finish(s, job, "cancelled", None, "cancelled before it resumed")
+                jobrows.finish(s, job, "cancelled", None, "cancelled before it resumed")
                 return Claim("terminal", job)
             if job.parts and s.scalar(select(_active_parts(job.id))):
                 return Claim("waiting", job)
@@ -220,7 +215,7 @@ class JobStore(PartOps):
                 if holder is None or not holder.is_dead_here():
                     return Claim("leased", job, (job.lease_expires_at - now).total_seconds())
             if job.attempts >= max_attempts:
-                self._finish(s, job, "failed", {
+                jobrows.finish(s, job, "failed", {
                     "code": "worker_lost", "retryable": True,
                     "message": f"the worker running this job was lost {job.attempts} times "
                                f"(redelivery cap {max_attempts}); retry resumes from the last "
@@ -233,9 +228,9 @@ class JobStore(PartOps):
             job.started_at = job.started_at or now
             job.run_started_at, job.run_start_fraction = now, job.fraction
             job.stage, job.eta_s = "starting", None
-            self._state_event(s, job)
+            jobrows.state_event(s, job)
             if job.parent_id is not None:
-                self._part_claimed(s, job)
+                jobrows.part_claimed(s, job)
             return Claim("claimed", job)
 
     def heartbeat(self, job_id: str, owner: Owner, lease_seconds: float,
@@ -258,7 +253,7 @@ class JobStore(PartOps):
                         setattr(job, key, state[key])
                 job.fraction = min(1.0, max(job.fraction, fraction))
                 job.eta_s = state.get("eta_s", job.eta_s)
-                self._event(s, job.id, "progress", progress_of(job))
+                jobrows.event(s, job.id, "progress", progress_of(job))
                 if job.parent_id is not None:
                     part_event(s, job, "progress", progress_of(job))
             return True, job.cancel_requested
@@ -267,25 +262,11 @@ class JobStore(PartOps):
                error: dict[str, Any] | None = None, message: str = "") -> bool:
         """End the job (only its lease holder may); False when the lease was lost."""
         with self.session() as s:
-            job = self._lock(s, job_id)
+            job = jobrows.lock(s, job_id)
             if job is None or job.lease_owner != str(owner):
                 return False
-            self._finish(s, job, state, error, message)
+            jobrows.finish(s, job, state, error, message)
             return True
-
-    def _finish(self, s: Session, job: Job, state: JobState, error: dict[str, Any] | None,
-                message: str) -> None:
-        job.state, job.error, job.finished_at = state, error, utcnow()
-        job.lease_owner = job.lease_expires_at = None
-        job.eta_s = None
-        job.stage = state
-        if message:
-            job.message = message[:512]
-        if state == "succeeded":
-            job.fraction = 1.0
-        self._state_event(s, job)
-        if job.parent_id is not None:
-            self._roll_up(s, job)
 
     def release(self, job_id: str, owner: Owner, message: str) -> bool:
         """Give the job back to the queue without ending it (its worker is shutting down).
@@ -301,7 +282,7 @@ class JobStore(PartOps):
             job.state, job.stage, job.message = "queued", "queued", message[:512]
             job.lease_owner = job.lease_expires_at = job.eta_s = job.dispatched_at = None
             job.attempts = max(job.attempts - 1, 0)
-            self._state_event(s, job)
+            jobrows.state_event(s, job)
             return True
 
     def append_logs(self, job_id: str, lines: Sequence[str]) -> None:

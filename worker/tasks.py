@@ -1,4 +1,5 @@
-"""Thin Celery tasks: they receive a job id and hand it to `worker.runner` (STYLE.md 10)."""
+"""Thin Celery tasks: they receive a job id and hand it to `worker.runner`, which loads the job
+from the store (docs/design.md 2.3); tested with a real worker, not eager mode."""
 
 from __future__ import annotations
 

@@ -2,8 +2,9 @@
 sources importers convert into it (COLMAP ``points3D``, a nerfstudio ``ply_file_path``).
 
 ``points.ply`` holds world points (the capture's world, like ``world_to_camera``) with optional
-8-bit colours; it seeds every key frame (docs/capture-format.md). Readers raise ``ValueError``
-naming the file and what is wrong; this module must not import torch (the API validates with it).
+8-bit colours; it seeds every key frame (docs/capture-format.md). The PLY files themselves are
+read and written by `core.plyio`. Readers raise ``ValueError`` naming the file and what is
+wrong; this module must not import torch (the API validates with it).
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from core.plyio import read_point_ply, write_point_ply
+
 __all__ = [
     "POINTS_PLY",
     "PointCloud",
@@ -25,12 +28,6 @@ __all__ = [
 ]
 
 POINTS_PLY = "points.ply"
-
-_PLY_TYPES = {"float": "f4", "float32": "f4", "double": "f8", "float64": "f8", "uchar": "u1",
-              "uint8": "u1", "char": "i1", "int8": "i1", "short": "i2", "int16": "i2",
-              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4",
-              "uint32": "u4"}
-_FORMATS = {"ascii": None, "binary_little_endian": "<", "binary_big_endian": ">"}
 
 
 @dataclass(frozen=True)
@@ -57,103 +54,16 @@ class PointCloud:
         return PointCloud(self.points[keep], None if self.colors is None else self.colors[keep])
 
 
-def _header(path: Path, raw: bytes) -> tuple[str, list[tuple[str, int, list[tuple[str, str]]]],
-                                             int]:
-    """(format, [(element, count, [(property, type)])], data offset)."""
-    end = raw.find(b"end_header")
-    if not raw.startswith(b"ply") or end < 0:
-        raise ValueError(f"{path}: not a PLY file (no 'ply' / 'end_header' lines)")
-    offset = raw.index(b"\n", end) + 1 if b"\n" in raw[end:] else len(raw)
-    fmt, elements = None, []
-    for line in raw[:end].decode("ascii", errors="replace").splitlines()[1:]:
-        parts = line.split()
-        if not parts or parts[0] in ("comment", "obj_info"):
-            continue
-        if parts[0] == "format" and len(parts) >= 2:
-            fmt = parts[1]
-        elif parts[0] == "element" and len(parts) == 3 and parts[2].isdigit():
-            elements.append((parts[1], int(parts[2]), []))
-        elif parts[0] == "property" and elements:
-            kind = "list" if parts[1] == "list" else parts[1]
-            elements[-1][2].append((parts[-1], kind))
-        else:
-            raise ValueError(f"{path}: cannot read PLY header line {line!r}")
-    if fmt not in _FORMATS:
-        raise ValueError(f"{path}: PLY format {fmt!r} is not ascii or binary_*_endian")
-    return fmt, elements, offset
-
-
 def read_points_ply(path: str | os.PathLike[str]) -> PointCloud:
     """Vertices of a PLY file (ascii or binary): x, y, z and, when present, red, green, blue
     (8-bit, or floats in 0..1). Other properties and elements are ignored."""
-    path = Path(path)
-    try:
-        raw = path.read_bytes()
-    except OSError as exc:
-        raise ValueError(f"{path}: cannot read: {exc.strerror}") from None
-    fmt, elements, offset = _header(path, raw)
-    names = [e[0] for e in elements]
-    if "vertex" not in names:
-        raise ValueError(f"{path}: no 'vertex' element")
-    _, count, props = elements[names.index("vertex")]
-    if any(kind == "list" for _, kind in props):
-        raise ValueError(f"{path}: list properties on vertices are not supported")
-    unknown = [kind for _, kind in props if kind not in _PLY_TYPES]
-    if unknown:
-        raise ValueError(f"{path}: unsupported property type {unknown[0]!r}")
-    fields = [name for name, _ in props]
-    if not {"x", "y", "z"} <= set(fields):
-        raise ValueError(f"{path}: vertices need x, y and z properties, got {fields}")
-    if fmt == "ascii":
-        rows = raw[offset:].decode("ascii", errors="replace").splitlines()
-        skip = sum(c for e, c, _ in elements[:names.index("vertex")])
-        try:
-            table = np.array([r.split()[:len(fields)] for r in rows[skip:skip + count]], float)
-        except ValueError:
-            raise ValueError(f"{path}: a vertex line is not numeric") from None
-        if table.shape != (count, len(fields)):
-            raise ValueError(f"{path}: expected {count} vertex lines of {len(fields)} numbers")
-        column = {name: table[:, i] for i, name in enumerate(fields)}
-    else:
-        if names.index("vertex") != 0:
-            raise ValueError(f"{path}: in binary files the vertices must come first")
-        dtype = np.dtype([(n, _FORMATS[fmt] + _PLY_TYPES[k]) for n, k in props])
-        if len(raw) - offset < count * dtype.itemsize:
-            raise ValueError(f"{path}: truncated: {count} vertices need {count * dtype.itemsize} "
-                             f"bytes, found {len(raw) - offset}")
-        data = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)
-        column = {name: data[name] for name in fields}
-    points = np.stack([column[k].astype(np.float64) for k in "xyz"], axis=1)
-    if not np.isfinite(points).all():
-        raise ValueError(f"{path}: vertex coordinates contain NaN or Inf")
-    colors = None
-    if {"red", "green", "blue"} <= set(fields):
-        # Integer colours are 8-bit (0..255), float ones already 0..1.
-        scale = 1.0 if dict(props)["red"] in ("float", "float32", "double", "float64") else 255.0
-        colors = np.clip(np.stack([column[k] for k in ("red", "green", "blue")], axis=1)
-                         / scale, 0, 1).astype(np.float32)
-    return PointCloud(points, colors)
+    return PointCloud(*read_point_ply(path))
 
 
 def write_points_ply(path: str | os.PathLike[str], cloud: PointCloud) -> None:
     """Binary little-endian PLY: float x y z, uchar red green blue (grey without colours),
     written atomically."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    rec = np.empty(len(cloud), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
-                                      ("red", "u1"), ("green", "u1"), ("blue", "u1")])
-    for i, k in enumerate("xyz"):
-        rec[k] = cloud.points[:, i]
-    colors = cloud.colors if cloud.colors is not None else np.full((len(cloud), 3), 0.5)
-    rgb = np.clip(np.round(colors * 255), 0, 255).astype(np.uint8)
-    for i, k in enumerate(("red", "green", "blue")):
-        rec[k] = rgb[:, i]
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(cloud)}",
-              "property float x", "property float y", "property float z",
-              "property uchar red", "property uchar green", "property uchar blue", "end_header"]
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_bytes(("\n".join(header) + "\n").encode("ascii") + rec.tobytes())
-    os.replace(tmp, path)
+    write_point_ply(path, cloud.points, cloud.colors)
 
 
 def read_colmap_points(model: str | os.PathLike[str]) -> PointCloud | None:

@@ -15,8 +15,8 @@ import torch
 from PIL import Image
 
 from core.data import check_capture, load_capture
+from core.plyio import read_mesh_ply
 from core.synth.generate import SynthConfig, synthesize
-from core.synth.ply import read_ply
 from native import rasterize
 
 __all__ = ["run_raster_demo", "splats_from_mesh"]
@@ -68,7 +68,7 @@ def _capture(root: Path):
 
 def _splat(capture, frame: str, cam):
     """The ground-truth surface splatted from `cam` with both branches."""
-    vertices, faces = read_ply(capture.root / "gt" / "meshes" / f"{frame}.ply")
+    vertices, faces = read_mesh_ply(capture.root / "gt" / "meshes" / f"{frame}.ply")
     means, quats, scales, normals, colors = splats_from_mesh(vertices, faces)
     n = means.shape[0]
     print(f"[2/3] building the native rasterizer (first run only) and rendering {n} Gaussians "

@@ -11,6 +11,11 @@ from core.evaluation.run import evaluate_run
 __all__ = ["register"]
 
 
+def _db(psnr: float | None) -> str:
+    """A PSNR for people; None when no held-out view had a foreground pixel."""
+    return "n/a (no foreground)" if psnr is None else f"{psnr:.2f} dB"
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     e = sub.add_parser("eval", help=command_help("eval"))
     e.add_argument("run", help="run directory")
@@ -31,12 +36,12 @@ def _eval(args: argparse.Namespace) -> int:
     cos = result["normal_cos"]
     normal = "n/a" if cos is None else f"{cos:.3f} ({result['normal_deg']:.1f} deg, vs " \
                                        f"{result['normal_reference']})"
-    print(f"{args.run}: {result['views']} held-out view(s): PSNR {result['psnr']:.2f} dB, "
+    print(f"{args.run}: {result['views']} held-out view(s): PSNR {_db(result['psnr'])}, "
           f"SSIM {result['ssim']:.3f}, normal cosine {normal}")
     if result.get("relight"):
         r = result["relight"]
-        print(f"  relit under the capture's second light: PSNR {r['psnr']:.2f} dB, SSIM "
-              f"{r['ssim']:.3f} (without the AO term {r['psnr_no_ao']:.2f} dB)")
+        print(f"  relit under the capture's second light: PSNR {_db(r['psnr'])}, SSIM "
+              f"{r['ssim']:.3f} (without the AO term {_db(r['psnr_no_ao'])})")
     if result.get("mesh"):
         m = result["mesh"]
         print(f"  mesh: Chamfer {100 * m['chamfer_relative']:.2f}% of the diagonal, normal "

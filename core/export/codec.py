@@ -25,10 +25,10 @@ import numpy as np
 
 from core.export.container import StreamError
 from core.export.splats import Splats, dequantize, quantize
+from core.rotations import quat_to_rotmat
 
 __all__ = ["ATTRIBUTES", "GroupDecoder", "StreamConfig", "attribute", "blend_deform",
-           "blend_parts", "group_quant", "quat_to_rotmat", "rotmat_to_quat", "with_attributes",
-           "with_residuals"]
+           "blend_parts", "group_quant", "with_attributes", "with_residuals"]
 
 PREDICTED = ("means", "quats", "normals")
 DIRECT = ("scales", "opacity", "sh0", "shN", "visibility")
@@ -148,35 +148,6 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return (v / np.where(n > 0, n, 1)).astype(np.float32)
 
 
-def quat_to_rotmat(q: np.ndarray) -> np.ndarray:
-    """(..., 4) w x y z (any norm) -> (..., 3, 3)."""
-    w, x, y, z = np.moveaxis(_unit(q), -1, 0)
-    return np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-                    axis=-1).reshape(q.shape[:-1] + (3, 3)).astype(np.float32)
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """(M, 3, 3) rotations -> (M, 4) unit quaternions w x y z with w >= 0 (Shepperd's method)."""
-    m = R.astype(np.float64)
-    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    cands = np.stack([
-        np.stack([1 + tr, m[:, 2, 1] - m[:, 1, 2], m[:, 0, 2] - m[:, 2, 0], m[:, 1, 0] - m[:, 0, 1]], 1),
-        np.stack([m[:, 2, 1] - m[:, 1, 2], 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                  m[:, 0, 1] + m[:, 1, 0], m[:, 0, 2] + m[:, 2, 0]], 1),
-        np.stack([m[:, 0, 2] - m[:, 2, 0], m[:, 0, 1] + m[:, 1, 0],
-                  1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2], m[:, 1, 2] + m[:, 2, 1]], 1),
-        np.stack([m[:, 1, 0] - m[:, 0, 1], m[:, 0, 2] + m[:, 2, 0], m[:, 1, 2] + m[:, 2, 1],
-                  1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], 1)], 1)
-    best = np.stack([1 + tr, 1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2],
-                     1 - m[:, 0, 0] + m[:, 1, 1] - m[:, 2, 2],
-                     1 - m[:, 0, 0] - m[:, 1, 1] + m[:, 2, 2]], 1).argmax(1)
-    q = cands[np.arange(len(m)), best]
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return np.where(q[:, :1] < 0, -q, q).astype(np.float32)
-
-
 def qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     aw, ax, ay, az = np.moveaxis(a, -1, 0)
     bw, bx, by, bz = np.moveaxis(b, -1, 0)
@@ -196,7 +167,7 @@ def blend_parts(anchors: np.ndarray, weights: np.ndarray, nodes: np.ndarray,
                 node_q: np.ndarray, node_t: np.ndarray):
     """Per slot the blended deformation x -> A x + c and rotation q_b (unit) of the node
     transforms: sum_j w_j (R_j (x - g_j) + g_j + t_j) = (sum w R) x + sum w (g + t - R g)."""
-    R = quat_to_rotmat(node_q)[anchors]  # (S, 4, 3, 3)
+    R = quat_to_rotmat(node_q).astype(np.float32)[anchors]  # (S, 4, 3, 3)
     g = nodes[anchors]
     w = weights[..., None]
     A = (w[..., None] * R).sum(1)
@@ -222,7 +193,8 @@ def blend_deform(local: dict[str, np.ndarray], parts):
     A, c, qb = parts
     means = np.einsum("sij,sj->si", A, local["means"]) + c
     quats = qmul(qb, local["quats"])
-    normals = np.einsum("sij,sj->si", quat_to_rotmat(qb), local["normals"])
+    normals = np.einsum("sij,sj->si", quat_to_rotmat(qb).astype(np.float32),
+                        local["normals"])
     return means.astype(np.float32), quats, normals.astype(np.float32)
 
 

@@ -17,7 +17,6 @@ from core.export.codec import (
     codes_of,
     group_quant,
     qmul,
-    quat_to_rotmat,
     values_of,
     weights_of,
     with_residuals,
@@ -29,6 +28,7 @@ from core.export.graphfit import (
     nearest_nodes,
 )
 from core.export.splats import Splats
+from core.rotations import quat_to_rotmat
 
 __all__ = ["encode_group"]
 
@@ -132,7 +132,7 @@ class _Encoder:
         born = frame.take(rows)
         _, near = nearest_nodes(born.means, self.nodes + t, 1)
         n = near[:, 0]
-        Rt = np.transpose(quat_to_rotmat(q[n]), (0, 2, 1))
+        Rt = np.transpose(quat_to_rotmat(q[n]).astype(np.float32), (0, 2, 1))
         qc = q[n] * np.float32([1, -1, -1, -1])
         key_space = {
             "means": np.einsum("nij,nj->ni", Rt, born.means - self.nodes[n] - t[n]) + self.nodes[n],
@@ -179,7 +179,8 @@ class _Encoder:
             local = {"means": np.linalg.solve(A.astype(np.float64),
                                               (frame.means - c)[..., None].astype(np.float64))[..., 0],
                      "quats": qmul(qc, frame.quats),
-                     "normals": np.einsum("sji,sj->si", quat_to_rotmat(qb), frame.normals)}
+                     "normals": np.einsum("sji,sj->si", quat_to_rotmat(qb).astype(np.float32),
+                                          frame.normals)}
         q = local["quats"]  # q and -q: the key's side
         local["quats"] = np.where((q * kv["quats"]).sum(1, keepdims=True) < 0, -q, q)
         return {name: np.clip(np.rint((local[name] - kv[name]) / step[name]), -_I16, _I16)

@@ -16,7 +16,7 @@ import torch
 from scipy.sparse import csr_matrix
 from scipy.sparse.linalg import lsqr
 
-from core.export.codec import quat_to_rotmat, rotmat_to_quat
+from core.rotations import quat_to_rotmat, rotmat_to_quat
 from core.sequence.graph import farthest_point_sampling
 
 __all__ = ["anchor_weights", "fit_node_transforms", "graph_nodes", "nearest_nodes"]
@@ -93,9 +93,9 @@ def fit_node_transforms(x: np.ndarray, y: np.ndarray, anchors: np.ndarray, weigh
     to `y` (N, 3) through the blend (`anchors`, `weights` (N, 4)); `joint` re-solves the
     translations for the blended prediction (damped towards the per-node fits)."""
     R, t = _kabsch(x, y, weights, anchors, nodes)
-    q = rotmat_to_quat(R)
+    q = rotmat_to_quat(R).astype(np.float32)
     if joint and len(x):
-        Rq = quat_to_rotmat(q).astype(np.float64)[anchors]
+        Rq = quat_to_rotmat(q)[anchors]
         g = nodes.astype(np.float64)[anchors]
         base = (weights[..., None] * (np.einsum("nkij,nkj->nki", Rq, x[:, None] - g) + g)).sum(1)
         rows = np.repeat(np.arange(len(x)), anchors.shape[1])

@@ -22,8 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", default=None, metavar="A:B",
                    help="slice of the capture's frame list (Python slice, default all)")
     p.add_argument("--gop", type=int, default=None,
-                   help="frames per group of pictures: the first a key frame, the others "
-                        "tracked from it (default 20)")
+                   help="frames per group of pictures: the first of each is a key frame, the "
+                        "others are deformed from the frame before and refined (default: the "
+                        "config's gop, 20)")
     p.add_argument("--config", default=None, metavar="FILE",
                    help="JSON file overriding fields of the preset (shape of RUN/config.json)")
     p.add_argument("--downscale", type=float, default=None, metavar="F",

@@ -11,7 +11,7 @@ from typing import Literal
 import torch
 
 from core.metrics import psnr_of_mse
-from core.training import Callback, CheckpointCallback, FrameFitter, StepInfo
+from core.training import Callback, CheckpointCallback, Fitter, StepInfo
 
 LOSS_EVERY = 10
 """Steps between the loss a step event carries (reading it waits for the device)."""
@@ -80,7 +80,7 @@ class History(Callback):
     def records(self, value: list[dict]) -> None:
         self._pending, self._records = [], list(value)
 
-    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
+    def on_step_end(self, trainer: Fitter, info: StepInfo) -> None:
         self._pending.append(info)
         if len(self._pending) >= self.every:
             self._flush()
@@ -109,11 +109,11 @@ class Hooks(Callback):
         self.frame, self.index, self.frames = frame, index, frames
         self.on_progress, self.should_stop = on_progress, should_stop
         self.saver: CheckpointCallback | None = None
-        self.trainer: FrameFitter | None = None
+        self.trainer: Fitter | None = None
         self.stage = 0
         self.loss: float | None = None
 
-    def emit(self, kind: str, trainer: FrameFitter | None = None,
+    def emit(self, kind: str, trainer: Fitter | None = None,
              path: str | None = None) -> None:
         trainer = trainer or self.trainer
         if self.on_progress is None or trainer is None:
@@ -124,11 +124,11 @@ class Hooks(Callback):
             gaussians=len(trainer.model), loss=self.loss if kind == "step" else None, path=path,
             phase=trainer.phase, notes=tuple(trainer.notes) if kind == "frame_start" else ()))
 
-    def on_train_start(self, trainer: FrameFitter) -> None:
+    def on_train_start(self, trainer: Fitter) -> None:
         self.trainer = trainer
         self.emit("frame_start", trainer)
 
-    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
+    def on_step_end(self, trainer: Fitter, info: StepInfo) -> None:
         self.stage = info.plan.stage
         if self.loss is None or info.step % LOSS_EVERY == 0 \
                 or trainer.step >= trainer.iterations:

@@ -78,13 +78,15 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
                 progress: bool = True, on_progress: Callable[[Progress], None] | None = None,
                 should_stop: Callable[[], bool] | None = None, device: str | None = None,
                 model_files: dict[str, Path] | None = None,
-                gops: Collection[int] | None = None) -> dict:
+                gops: Collection[int] | None = None, config: RunConfig | None = None) -> dict:
     """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
     `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
     run: finished frames are skipped, an unfinished one restarts from its checkpoint. The
     configuration is the preset, then `config_file`, then `overrides` (same shape), then `gop`
-    (frames per group of pictures); `device` (auto, cpu, cuda, cuda:N) overrides train.device
-    and config.json records the device it resolved to.
+    (frames per group of pictures), unless `config` is the configuration already resolved (a
+    service's job, `worker.pipelines.ReconstructParams.run_config`; `preset` is still what
+    config.json records); `device` (auto, cpu, cuda, cuda:N) overrides train.device and
+    config.json records the device it resolved to.
 
     `progress` shows a bar on a terminal; `on_progress` receives `Progress` events (every step,
     checkpoint and frame); `should_stop` is asked after every step and, when it returns True,
@@ -95,8 +97,12 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     `sequence.refine_scope` "group" a group needs no other group's records);
     `core.pipeline.assemble` merges the parts' records."""
     capture_dir, run = Path(capture_dir), RunDir(run_dir)
-    cfg = _resolve_run_device(load_config(preset, config_file, overrides, gop=gop,
-                                          where="config"), device)
+    if config is not None and (config_file is not None or overrides or gop is not None):
+        raise ValueError("config: give a resolved configuration or config_file, overrides and "
+                         "gop, not both")
+    if config is None:
+        config = load_config(preset, config_file, overrides, gop=gop, where="config")
+    cfg = _resolve_run_device(config, device)
     named = cfg.normal_estimator
     estimator = load_estimator((model_files or {}).get(named, named), cfg.normal_estimator_space)
     capture = check_capture(capture_dir)

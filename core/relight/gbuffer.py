@@ -14,7 +14,6 @@ import json
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from torch import Tensor
 
@@ -123,7 +122,3 @@ def gbuffer(model, camera: RenderCamera, settings: RunRender, *, linear_capture:
     return GBuffer(base=base, residual=full - base, normal=normal, visibility=vis,
                    depth=r0.depth, alpha=alpha, alpha_g=r0.alpha_g,
                    points=pixel_points(camera, r0.depth))
-
-
-def to_numpy(t: Tensor) -> np.ndarray:
-    return t.detach().cpu().numpy()

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
+from core.plyio import read_mesh_ply
 from core.sequence.tracks import load_frame
 from core.synth.figure import vertex_normals
-from core.synth.ply import read_ply
 
 __all__ = ["track_errors"]
 
@@ -43,7 +43,7 @@ def _frames_of(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def _mesh(gt: Path, frame: str) -> tuple[np.ndarray, np.ndarray] | None:
     path = gt / "meshes" / f"{frame}.ply"
-    return read_ply(path) if path.is_file() else None
+    return read_mesh_ply(path) if path.is_file() else None
 
 
 def track_errors(run_dir, capture_dir) -> dict | None:

@@ -1,8 +1,8 @@
-"""Synthetic captures with ground truth: an articulated figure, a CPU rasterizer, SH lighting."""
+"""Synthetic captures with ground truth: an articulated figure, a CPU rasterizer, SH lighting
+(the ground-truth meshes are PLY files of `core.plyio`)."""
 
 from core.synth.figure import Figure, FigureMesh
 from core.synth.generate import SynthConfig, degrade_normals, dome_cameras, synthesize
-from core.synth.ply import read_ply, write_ply
 from core.synth.raster import Fragments, interpolate, rasterize, rasterize_perspective
 
 __all__ = [
@@ -15,7 +15,5 @@ __all__ = [
     "interpolate",
     "rasterize",
     "rasterize_perspective",
-    "read_ply",
     "synthesize",
-    "write_ply",
 ]

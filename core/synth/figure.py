@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["BONES", "Figure", "FigureMesh", "build_figure"]
+__all__ = ["BONES", "Figure", "FigureMesh"]
 
 BONES = (
     "root",
@@ -213,10 +213,6 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     for k in range(3):
         np.add.at(vn, faces[:, k], fn)
     return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-12)
-
-
-def build_figure(seed: int = 0, detail: int = 1) -> Figure:
-    return Figure(seed, detail)
 
 
 def _rot_x(a: float) -> np.ndarray:

@@ -37,9 +37,9 @@ import numpy as np
 from core.color import linear_to_srgb
 from core.data.capture import Camera, Capture, save_capture
 from core.data.images import write_exr, write_png
+from core.plyio import write_mesh_ply
 from core.synth.figure import Figure, FigureMesh
 from core.synth.gltf import GltfCharacter
-from core.synth.ply import write_ply
 from core.synth.raster import interpolate, rasterize_perspective
 from core.synth.shading import (
     LIGHTS,
@@ -240,7 +240,7 @@ def synthesize(out: str | os.PathLike[str], config: SynthConfig = SynthConfig())
     for i, frame in enumerate(frames):
         mesh = pose(i)
         vis = vertex_visibility(mesh.vertices, mesh.normals, mesh.faces, config.ao_directions)
-        write_ply(gt / "meshes" / f"{frame}.ply", mesh.vertices, mesh.faces, mesh.normals)
+        write_mesh_ply(gt / "meshes" / f"{frame}.ply", mesh.vertices, mesh.faces, mesh.normals)
         for cam in cameras:
             _write_view(
                 out,

@@ -25,7 +25,7 @@ import numpy as np
 from PIL import Image
 
 from core.color import srgb_to_linear
-from core.data.importers.colmap import qvec_to_rotation
+from core.rotations import quat_to_rotmat
 from core.synth.figure import FigureMesh
 
 __all__ = ["ALBEDO_SCALE", "GltfCharacter", "sample_texture"]
@@ -255,7 +255,7 @@ class GltfCharacter:
                 trs[ch.path] = ch.at(t)
         m = np.eye(4)
         x, y, z, w = trs["rotation"]  # glTF stores x, y, z, w
-        m[:3, :3] = qvec_to_rotation(np.array([w, x, y, z])) * trs["scale"][None, :]
+        m[:3, :3] = quat_to_rotmat(np.array([w, x, y, z])) * trs["scale"][None, :]
         m[:3, 3] = trs["translation"]
         return m
 

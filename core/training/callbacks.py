@@ -1,5 +1,7 @@
 """What runs around the step loop (in the manner of nerfstudio's engine/callbacks.py): the
-record of a step, the callback hooks, a progress printer and the checkpoint writer."""
+record of a step, the callback hooks, a progress printer and the checkpoint writer. A callback
+sees the loop as a `Fitter` (what `core.training.loop.FrameFitter` offers it), so this module
+and the loop do not need each other's types."""
 
 from __future__ import annotations
 
@@ -9,18 +11,35 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 from pathlib import Path
-from typing import TYPE_CHECKING, TextIO
+from typing import Protocol, TextIO
 
 import torch
 from torch import Tensor
 
 from core.metrics import psnr_of_mse
+from core.model import GaussianModel
 from core.stages import StagePlan
 
-if TYPE_CHECKING:
-    from core.training.loop import FrameFitter
+__all__ = ["Callback", "CheckpointCallback", "Fitter", "ProgressCallback", "StepInfo"]
 
-__all__ = ["Callback", "CheckpointCallback", "ProgressCallback", "StepInfo"]
+
+class Fitter(Protocol):
+    """The step loop as its callbacks see it (`core.training.loop.FrameFitter`)."""
+
+    step: int
+    """The next step to run (after a step's `on_step_end`: the steps done)."""
+    model: GaussianModel
+    phase: str
+    """'key', or a tracked frame's 'deform' / 'refine'."""
+    notes: list[str]
+    """What the frame's log says about it (e.g. where its initial points came from)."""
+
+    @property
+    def iterations(self) -> int:
+        """The frame's steps."""
+        ...
+
+    def save_checkpoint(self, path: str | os.PathLike[str], extra: object = None) -> None: ...
 
 
 @dataclass
@@ -54,11 +73,11 @@ class StepInfo:
 class Callback:
     """Hooks around a fitter's step loop; override what you need."""
 
-    def on_train_start(self, trainer: FrameFitter) -> None: ...
+    def on_train_start(self, trainer: Fitter) -> None: ...
 
-    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None: ...
+    def on_step_end(self, trainer: Fitter, info: StepInfo) -> None: ...
 
-    def on_train_end(self, trainer: FrameFitter) -> None: ...
+    def on_train_end(self, trainer: Fitter) -> None: ...
 
 
 class ProgressCallback(Callback):
@@ -70,7 +89,7 @@ class ProgressCallback(Callback):
             raise ValueError(f"every: expected >= 1, got {every}")
         self.every, self.stream, self.report = every, stream, report
 
-    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
+    def on_step_end(self, trainer: Fitter, info: StepInfo) -> None:
         last = info.step == trainer.iterations - 1
         if info.step % self.every and not last:
             return
@@ -96,7 +115,7 @@ class CheckpointCallback(Callback):
         self.folder, self.every, self.filename, self.extra = Path(folder), every, filename, extra
         self.on_saved = on_saved
 
-    def save(self, trainer: FrameFitter) -> Path:
+    def save(self, trainer: Fitter) -> Path:
         """Write the checkpoint now; returns its path."""
         path = self.folder / self.filename
         trainer.save_checkpoint(path, extra=None if self.extra is None else self.extra())
@@ -104,9 +123,9 @@ class CheckpointCallback(Callback):
             self.on_saved(path)
         return path
 
-    def on_step_end(self, trainer: FrameFitter, info: StepInfo) -> None:
+    def on_step_end(self, trainer: Fitter, info: StepInfo) -> None:
         if (info.step + 1) % self.every == 0:
             self.save(trainer)
 
-    def on_train_end(self, trainer: FrameFitter) -> None:
+    def on_train_end(self, trainer: Fitter) -> None:
         self.save(trainer)

@@ -13,10 +13,10 @@ import pytest
 import torch
 
 from core.model import GaussianModel
+from core.plyio import write_mesh_ply
 from core.sequence.correspondence import track_errors
 from core.sequence.tracks import save_frame
 from core.synth.figure import vertex_normals
-from core.synth.ply import write_ply
 
 
 def _box() -> tuple[np.ndarray, np.ndarray]:
@@ -39,7 +39,7 @@ def _write_run(root: Path, poses: list[np.ndarray], points: list[np.ndarray],
     rows = []
     for k, (pose, pts, track) in enumerate(zip(poses, points, ids)):
         frame = f"{k:06d}"
-        write_ply(capture / "gt" / "meshes" / f"{frame}.ply", pose, faces,
+        write_mesh_ply(capture / "gt" / "meshes" / f"{frame}.ply", pose, faces,
                   vertex_normals(pose, faces))
         model = GaussianModel.from_points(torch.tensor(pts, dtype=torch.float32))
         with torch.no_grad():
@@ -86,7 +86,7 @@ def test_no_correspondence_no_score(tmp_path: Path):
                               np.full(6, 0.5))
     assert track_errors(run, capture) is not None
     # A frame whose mesh has other vertices (remeshed, not posed) has nothing to compare with.
-    write_ply(capture / "gt" / "meshes" / "000001.ply", np.vstack([rest, rest[:1] * 2]), faces)
+    write_mesh_ply(capture / "gt" / "meshes" / "000001.ply", np.vstack([rest, rest[:1] * 2]), faces)
     assert track_errors(run, capture) is None
     assert track_errors(run, tmp_path / "elsewhere") is None  # no ground truth at all
     (run / "sequence.json").unlink()

@@ -4,6 +4,7 @@ spoiled) and on a short real reconstruction."""
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -13,7 +14,7 @@ import torch
 from PIL import Image
 
 from core.evaluation import evaluate_run
-from core.metrics import normal_agreement
+from core.metrics import normal_agreement, rgb_scores
 from core.pipeline import reconstruct
 from core.synth import SynthConfig, synthesize
 
@@ -111,6 +112,25 @@ def test_normal_agreement_counts_only_foreground():
     fg = np.array([[True, False], [False, False]])
     assert normal_agreement(pred, ref, fg) == pytest.approx((1.0, 0.0), abs=1e-3)
     assert normal_agreement(pred, ref, np.zeros((2, 2), bool)) is None
+
+
+def test_a_view_without_foreground_has_no_psnr_and_is_left_out_of_the_means():
+    from core.evaluation.run import _summary
+
+    rng = np.random.default_rng(0)
+    rgb, target = rng.uniform(size=(2, 8, 8, 3)).astype(np.float32)
+    empty = rgb_scores(rgb, target, np.zeros((8, 8), bool))
+    assert empty["psnr"] is None  # not 100 dB: there was nothing to score
+    assert math.isfinite(empty["psnr_full"]) and empty["psnr_full"] < 20
+    full = rgb_scores(rgb, target, np.ones((8, 8), bool))
+    assert full["psnr"] == pytest.approx(full["psnr_full"])
+    perfect = rgb_scores(target, target, np.ones((8, 8), bool))
+    assert perfect["psnr"] == 100.0  # a perfect match still scores the cap
+    mean = _summary([{**empty, "normal_cos": None, "normal_deg": None},
+                     {**full, "normal_cos": None, "normal_deg": None}])
+    assert mean["psnr"] == pytest.approx(full["psnr"])  # the empty view is skipped
+    assert mean["psnr_full"] == pytest.approx((empty["psnr_full"] + full["psnr_full"]) / 2)
+    assert _summary([{**empty, "normal_cos": None, "normal_deg": None}])["psnr"] is None
 
 
 def test_real_run(capture: Path, tmp_path: Path):

@@ -93,7 +93,8 @@ def moving_group(frames: int, n: int = 2000, seed: int = 1) -> list[Splats]:
     """A key frame of two clusters, a body (x < 0) and a limb (x > 0), and frames in which the
     limb swings rigidly about a hinge while the body stays, each frame refining some colours,
     losing some Gaussians and gaining new ones."""
-    from core.export.codec import qmul, rotmat_to_quat
+    from core.export.codec import qmul
+    from core.rotations import rotmat_to_quat
 
     rng = np.random.default_rng(seed)
     key = random_splats(n, seed)

@@ -171,7 +171,7 @@ def test_files_that_are_not_skinned_characters_are_refused(tmp_path):
 def test_dgs_synth_films_a_character(tmp_path):
     from core.cli import main
     from core.data import load_capture
-    from core.synth.ply import read_ply
+    from core.plyio import read_mesh_ply
 
     glb = make_glb(tmp_path / "bar.glb")
     out = tmp_path / "capture"
@@ -179,7 +179,7 @@ def test_dgs_synth_films_a_character(tmp_path):
                  "--subject", str(glb), "--fps", "2"]) == 0
     capture = load_capture(out)
     assert capture.frames == ("000000", "000001", "000002")
-    meshes = [read_ply(out / "gt" / "meshes" / f"{f}.ply") for f in capture.frames]
+    meshes = [read_mesh_ply(out / "gt" / "meshes" / f"{f}.ply") for f in capture.frames]
     assert all(len(m[0]) == 16 for m in meshes)  # one vertex per character vertex, every frame
     # Frame 1 is half a second in: the upper bone has turned 45 degrees.
     c = GltfCharacter(glb)

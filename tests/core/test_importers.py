@@ -123,17 +123,6 @@ def test_transforms_reprojection_follows_opengl_convention(tmp_path: Path) -> No
         np.testing.assert_allclose(z, -local[:, 2], atol=1e-9)
 
 
-def test_quaternion_round_trip() -> None:
-    from core.data.importers.colmap import qvec_to_rotation, rotation_to_qvec
-
-    rng = np.random.default_rng(4)
-    turns = [np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1]), np.eye(3)]
-    for R in turns + [_random_rotation(rng) for _ in range(50)]:
-        q = rotation_to_qvec(R)
-        assert abs(np.linalg.norm(q) - 1) < 1e-12 and q[0] >= 0
-        np.testing.assert_allclose(qvec_to_rotation(q), R, atol=1e-12)
-
-
 def test_distortion_matches_opencv() -> None:
     import cv2
 

@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from core.config import LearningRates
-from core.model import PARAM_NAMES, SH_C0, GaussianModel, means_lr
+from core.model import PARAM_NAMES, SH_C0, GaussianModel, _nn_sq_dist, means_lr
 from core.plyio import gaussian_ply_properties
 
 
@@ -35,6 +35,35 @@ def test_from_points_scales_colours_and_opacity():
     torch.testing.assert_close(m.quats, torch.tensor([[1.0, 0, 0, 0]]).repeat(64, 1))
     assert m.sh.shape == (64, 16, 3)
     assert torch.all(m.normals.norm(dim=1) > 0.999)
+
+
+def _chunked_cdist_nn(points: torch.Tensor, k: int = 3, chunk: int = 2048) -> torch.Tensor:
+    """The k-nearest mean squared distance as core.model computed it before its k-d tree."""
+    out = []
+    for start in range(0, points.shape[0], chunk):
+        d = torch.cdist(points[start:start + chunk], points).square()
+        rows = torch.arange(d.shape[0])
+        d[rows, rows + start] = float("inf")
+        out.append(d.topk(k, largest=False).values.mean(dim=1))
+    return torch.cat(out)
+
+
+def test_nearest_neighbour_distances_by_kd_tree():
+    g = torch.Generator().manual_seed(3)
+    pts = torch.randn(5000, 3, generator=g) * 0.3 + torch.tensor([0.2, -0.1, 1.0])
+    pts[10] = pts[11]  # coinciding points: each is the other's nearest, at 0
+    ours = _nn_sq_dist(pts)
+    assert ours.dtype == torch.float32 and ours.shape == (5000,)
+    exact = torch.cdist(pts.double()[:200], pts.double(),
+                        compute_mode="donot_use_mm_for_euclid_dist")
+    exact = exact.square().sort(dim=1).values[:, 1:4].mean(dim=1)  # without itself
+    torch.testing.assert_close(ours[:200].double(), exact, rtol=1e-6, atol=0)
+    # The old chunked cdist (float32 through a matrix product) within its own rounding.
+    torch.testing.assert_close(ours, _chunked_cdist_nn(pts), rtol=2e-3, atol=1e-7)
+    assert ours[10] == ours[11] and ours[10] < ours.median()
+    assert torch.equal(_nn_sq_dist(pts[:1]), torch.tensor([1e-4]))
+    two = (pts[0] - pts[1]).double().square().sum()
+    torch.testing.assert_close(_nn_sq_dist(pts[:2]), two.float().expand(2))
 
 
 def test_bad_inputs_name_the_argument():

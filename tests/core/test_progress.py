@@ -7,7 +7,7 @@ from types import SimpleNamespace
 
 import pytest
 
-from core.progress import LogLines, format_seconds
+from core.progress import LogLines
 
 
 class _Clock:
@@ -41,13 +41,13 @@ def test_lines_come_on_the_interval_with_the_recent_rate() -> None:
     got = out.getvalue().splitlines()
     assert got[0] == "frame 000000 (1/1): started, step 0/100"
     assert got[1] == ("frame 000000 (1/1): step 60/100 stage 2 loss 0.0167 gaussians 1000 "
-                      "(0.50 s/step, ETA 20s)")
+                      "(0.50 s/step, ETA 00:20)")
     assert got[2] == ("frame 000000 (1/1): step 75/100 stage 2 loss 0.0133 gaussians 1000 "
-                      "(2.00 s/step, ETA 50s)")
+                      "(2.00 s/step, ETA 00:50)")
     # The last step always prints, without an ETA.
     assert got[-2].startswith("frame 000000 (1/1): step 100/100 stage 2 loss 0.0100")
     assert "ETA" not in got[-2]
-    assert got[-1] == "frame 000000 (1/1): trained 100 step(s) in 1m50s"
+    assert got[-1] == "frame 000000 (1/1): trained 100 step(s) in 01:50"
     assert len(got) == 6  # start, lines at steps 60, 75, 90 and 100, end
 
 
@@ -60,15 +60,9 @@ def test_a_resumed_frame_says_where_it_resumed() -> None:
     trainer.step = 90
     lines.on_train_end(trainer)
     assert out.getvalue().splitlines() == ["frame 000003 (4/5): resumed at step 40/90",
-                                           "frame 000003 (4/5): trained 50 step(s) in 12s"]
+                                           "frame 000003 (4/5): trained 50 step(s) in 00:12"]
 
 
 def test_interval_must_be_positive() -> None:
     with pytest.raises(ValueError, match="every_s"):
         LogLines("x", every_s=0)
-
-
-@pytest.mark.parametrize("seconds, text", [(0, "0s"), (59.4, "59s"), (61, "1m01s"),
-                                           (3599, "59m59s"), (3725, "1h02m")])
-def test_format_seconds(seconds: float, text: str) -> None:
-    assert format_seconds(seconds) == text

@@ -10,7 +10,8 @@ import pytest
 
 from core.cli import main
 from core.data import load_capture, validate_capture
-from core.synth import SynthConfig, rasterize, read_ply, synthesize
+from core.plyio import read_mesh_ply
+from core.synth import SynthConfig, rasterize, synthesize
 
 
 def _point_triangle_distance(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
@@ -62,7 +63,7 @@ def test_output_validates_and_has_ground_truth(synth_capture: Path) -> None:
 def test_depth_back_projects_onto_mesh(synth_capture: Path) -> None:
     cap = load_capture(synth_capture)
     for frame in cap.frames:
-        V, F = read_ply(synth_capture / "gt" / "meshes" / f"{frame}.ply")
+        V, F = read_mesh_ply(synth_capture / "gt" / "meshes" / f"{frame}.ply")
         diag = np.linalg.norm(V.max(0) - V.min(0))
         dists = []
         for cam in cap.cameras:
@@ -102,8 +103,8 @@ def test_normals_face_the_camera_and_are_unit(synth_capture: Path) -> None:
 
 
 def test_motion_is_non_rigid(synth_capture: Path) -> None:
-    V0, _ = read_ply(synth_capture / "gt/meshes/000000.ply")
-    V1, _ = read_ply(synth_capture / "gt/meshes/000001.ply")
+    V0, _ = read_mesh_ply(synth_capture / "gt/meshes/000000.ply")
+    V1, _ = read_mesh_ply(synth_capture / "gt/meshes/000001.ply")
     # Best rigid fit (Kabsch) between frames leaves a large residual when limbs move on their own.
     a, b = V0 - V0.mean(0), V1 - V1.mean(0)
     U, _, Wt = np.linalg.svd(a.T @ b)

@@ -31,7 +31,7 @@ def _cuda_ready() -> tuple[bool, str]:
 
 
 _READY, _WHY = _cuda_ready()
-pytestmark = pytest.mark.skipif(not _READY, reason=_WHY)
+pytestmark = [pytest.mark.gpu, pytest.mark.skipif(not _READY, reason=_WHY)]
 
 FWD_TOL = 1e-4
 GRAD_TOL = 2e-3

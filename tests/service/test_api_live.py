@@ -23,6 +23,7 @@ from tusclient import client as tus_client
 from tusclient.storage.filestorage import FileStorage
 
 from service.app import create_app
+from service.routers import uploads as uploads_router
 
 BIG = "images/000000/cam00.png"
 MiB = 1 << 20
@@ -132,14 +133,40 @@ def _patch_head(path: str, offset: int, length: int) -> bytes:
             f"Content-Length: {length}\r\n\r\n").encode()
 
 
-def _status(conn: socket.socket) -> int:
-    return int(conn.recv(4096).split(b" ", 2)[1])
+def _response(conn: socket.socket) -> tuple[int, bytes]:
+    """(status, body) of one HTTP/1.1 response with a Content-Length."""
+    data = b""
+    while b"\r\n\r\n" not in data:
+        data += conn.recv(4096)
+    head, body = data.split(b"\r\n\r\n", 1)
+    length = next((int(line.split(b":", 1)[1]) for line in head.split(b"\r\n")
+                   if line.lower().startswith(b"content-length:")), 0)
+    while len(body) < length:
+        body += conn.recv(4096)
+    return int(head.split(b" ", 2)[1]), body
 
 
-def test_concurrent_patches_do_not_interleave(server):
+def test_concurrent_patches_do_not_interleave(server, monkeypatch):
     """A client retries while its first request still streams: the second request waits for
-    the first, then is told the upload moved on (409); the file is intact."""
+    the first, then is told the upload moved on (409: it is complete); the file is intact.
+    The order is made by events, not sleeps: the server's upload lock says when the first
+    request holds it and when the retry is waiting for it."""
     base, services = server
+    held, waiting = threading.Event(), threading.Event()
+
+    class WatchedLock(uploads_router.PartLock):
+        # A slow machine must not turn the wait into the lock's own 409 ("another request is
+        # writing to this upload") after its 10 s.
+        def __init__(self, path, timeout: float = 10.0):
+            super().__init__(path, timeout=600.0)
+
+        def acquire(self) -> None:
+            if held.is_set():
+                waiting.set()  # the first request holds the lock: this one waits for it
+            super().acquire()
+            held.set()
+
+    monkeypatch.setattr(uploads_router, "PartLock", WatchedLock)
     data = bytes(i % 241 for i in range(2 * MiB))
     files = {"capture.json": b"{}", "images/000000/a.png": data}
     capture = httpx.post(f"{base}/v1/captures", json={
@@ -149,24 +176,27 @@ def test_concurrent_patches_do_not_interleave(server):
         "Upload-Metadata": metadata(capture=capture["id"], path="images/000000/a.png")},
     ).headers["Location"]
     path, port = "/" + url.split("/", 3)[3], int(base.rsplit(":", 1)[1])
-    second: list[int] = []
+    second: list[tuple[int, bytes]] = []
 
     def retry():
         with socket.create_connection(("127.0.0.1", port)) as conn:
             conn.sendall(_patch_head(path, 0, len(data)) + data)
-            second.append(_status(conn))
+            second.append(_response(conn))
 
     with socket.create_connection(("127.0.0.1", port)) as first:
         first.sendall(_patch_head(path, 0, len(data)) + data[:MiB])
-        time.sleep(0.3)
+        assert held.wait(60), "the first PATCH never took the upload's lock"
         thread = threading.Thread(target=retry)
         thread.start()
-        time.sleep(0.5)  # the retry is in, waiting for the first request's lock
-        assert not second
+        assert waiting.wait(60), "the retry never reached the upload's lock"
+        assert not second  # it waits while the first request still streams
         first.sendall(data[MiB:])
-        assert _status(first) == 204
-    thread.join(30)
-    assert second == [409]
+        assert _response(first)[0] == 204
+    thread.join(60)
+    (status, body), = second
+    assert status == 409, body
+    # Refused for what the first request did (it completed the upload), not by a lock timeout.
+    assert b"is complete (2097152 bytes)" in body and b"another request" not in body
     assert services.staging.file(capture["id"], "images/000000/a.png").read_bytes() == data
 
 

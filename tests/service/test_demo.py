@@ -14,7 +14,7 @@ import pytest
 
 from core.cli import build_parser
 from service import demo as demo_module
-from service.demo import ProgressBar, run_service_demo
+from service.demo import run_service_demo
 
 pytestmark = pytest.mark.timeout(600)
 TINY_SYNTH = {"frames": 1, "views": 8, "width": 32, "height": 32, "seed": 3, "priors": False,
@@ -73,28 +73,3 @@ def test_the_demo_through_the_service(tmp_path, monkeypatch, capsys):
     (server,) = servers
     assert server.proc.returncode == 0
     assert not _alive(server.proc.pid)
-
-
-def test_progress_bar_lines():
-    class Pipe:
-        lines = ""
-
-        def write(self, text):
-            self.lines += text
-
-        def flush(self):
-            pass
-
-        def isatty(self):
-            return False
-
-    pipe = Pipe()
-    bar = ProgressBar(pipe, width=10)
-    for f in (0.0, 0.01, 0.5, 0.52):
-        bar.update({"fraction": f, "stage": "appearance", "frame": 1, "frames": 1,
-                    "iteration": int(f * 100), "iterations": 100, "eta_s": 75.0})
-    bar.close()
-    lines = pipe.lines.splitlines()
-    assert len(lines) == 2  # a line per tenth of the job when not on a terminal
-    assert lines[1].startswith("      [#####.....]  50.0%  appearance")
-    assert "frame 1/1 step 50/100  ETA 1m15s" in lines[1]

@@ -30,11 +30,14 @@ def test_redis_visibility_timeout_outlasts_the_longest_job(tmp_path: Path):
 
 def test_each_pipeline_has_its_own_time_limits(tmp_path: Path):
     settings = WorkerSettings(data_dir=tmp_path, relight_soft_limit_seconds=600,
-                              reconstruct_soft_limit_seconds=7200, hard_limit_margin_seconds=60)
+                              reconstruct_soft_limit_seconds=7200, export_soft_limit_seconds=900,
+                              hard_limit_margin_seconds=60)
     assert get_pipeline("relight").limits(settings) == (600, 660)
     assert get_pipeline("reconstruct").limits(settings) == (7200, 7260)
-    longer = settings.model_copy(update={"relight_soft_limit_seconds": 30_000})
-    assert longer.visibility_timeout > 30_000 + 60
+    assert get_pipeline("export").limits(settings) == (900, 960)  # not the relight's
+    for name in ("relight", "export"):
+        longer = settings.model_copy(update={f"{name}_soft_limit_seconds": 30_000})
+        assert longer.visibility_timeout > 30_000 + 60
 
 
 def test_defaults_live_in_the_data_folder(tmp_path: Path, monkeypatch):

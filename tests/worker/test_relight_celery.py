@@ -7,10 +7,10 @@ next view, and its reconstruction cannot be deleted while it runs."""
 from __future__ import annotations
 
 import os
+import re
 import secrets
 import socket
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -41,8 +41,10 @@ def stack(tmp_path: Path, pg_url, redis_broker, s3_server, monkeypatch):  # noqa
               "queue": f"q-{secrets.token_hex(4)}", "storage_url": f"s3://{bucket}/dgs",
               "s3_endpoint_url": s3_server, "s3_region": "us-east-1"}
     env = {f"DGS_{k.upper()}": v for k, v in shared.items()}
+    # The cancel grace (before a wedged job's process is ended) is far longer than a view, so
+    # only the view boundary can stop a render (the wedged case: tests/worker/test_runner.py).
     env.update({"DGS_DATA_DIR": str(tmp_path / "worker"), "DGS_LEASE_SECONDS": "10",
-                "DGS_HEARTBEAT_SECONDS": "0.3", "DGS_CANCEL_GRACE_SECONDS": "5",
+                "DGS_HEARTBEAT_SECONDS": "0.3", "DGS_CANCEL_GRACE_SECONDS": "3600",
                 "OMP_NUM_THREADS": "1", "AWS_ACCESS_KEY_ID": "test",
                 "AWS_SECRET_ACCESS_KEY": "test"})
     env = {**{k: v for k, v in os.environ.items() if not k.startswith("DGS_")}, **env}
@@ -111,12 +113,13 @@ def test_a_render_runs_on_a_worker_to_an_mp4_and_a_cancel_stops_it(
              "the long render to draw views")
     refused = c.http.delete(f"/v1/jobs/{source}")  # its reconstruction is in use
     assert refused.status_code == 409 and long["id"] in refused.json()["error"]["message"]
-    asked = time.monotonic()
     c.cancel(long["id"])
-    stopped = c.wait(long["id"], timeout=30)
-    assert stopped["state"] == "cancelled" and time.monotonic() - asked < 10
+    stopped = c.wait(long["id"], timeout=300)
+    assert stopped["state"] == "cancelled"
     assert stopped["progress"]["stage"] == "cancelled"
     assert 2 <= stopped["progress"]["iteration"] < 720
     logs = "\n".join(c.logs(long["id"]))
-    assert "cancelled: relight stopped after" in logs, logs  # at a view, not killed
+    # Stopped at a view boundary, not killed.
+    assert re.search(r"cancelled: relight stopped after \d+ of 720 views", logs), logs
+    assert "did not stop within" not in logs
     assert c.artifacts(long["id"]) == []

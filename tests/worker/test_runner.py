@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import signal
 import subprocess
 import sys
 import textwrap
@@ -78,7 +79,8 @@ def test_a_worker_that_lost_its_lease_stops_without_writing(setup, tiny_capture:
     thief = Owner.current()
 
     def steal() -> None:  # another worker took over (this one was presumed dead)
-        wait_for(lambda: store.get(job.id).iteration > 3, 60, "the job to start")
+        # A bound for a broken run only (a loaded machine may take minutes to start it).
+        wait_for(lambda: store.get(job.id).iteration > 3, 600, "the job to start")
         with store.session() as s:
             s.execute(update(Job).where(Job.id == job.id).values(lease_owner=str(thief)))
 
@@ -116,13 +118,18 @@ def test_cancel_ends_a_wedged_process(setup, tmp_path: Path):
     proc = subprocess.Popen([sys.executable, "-c", WEDGED, settings.database, job.id],
                             stdout=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "running"
-    asked = time.monotonic()
     store.request_cancel(job.id, "t1")
-    proc.wait(timeout=10)
-    assert proc.returncode == -9 and time.monotonic() - asked < 10
+    # The process never reaches a step boundary: its heartbeat sees the cancel, waits out the
+    # grace and ends the process itself (SIGKILL, -9), recording the job as cancelled first.
+    # The bound below only keeps a broken heartbeat from hanging the test; no duration is
+    # asserted (the process would otherwise sleep 120 s and exit 0).
+    proc.wait(timeout=110)
+    assert proc.returncode == -signal.SIGKILL
     after = store.get(job.id)
     assert after.state == "cancelled" and "process ended" in after.message
-    assert any("did not stop within" in r.line for r in store.logs(job.id, 0, 100))
+    lines = [r.line for r in store.logs(job.id, 0, 100)]
+    assert any("cancel requested: stopping after the current step" in line for line in lines)
+    assert any("did not stop within 1 s of the cancel" in line for line in lines)
 
 
 def test_joblink_progress_is_monotonic_with_an_eta(setup):

@@ -27,8 +27,9 @@ from core.data.capture import (
 from core.data.importers.common import ImportedCapture, SourceView, safe_name, source_transform
 from core.data.points import PointCloud, read_colmap_points, read_points_ply, write_colmap_points
 from core.data.schema import extrinsics_problems, intrinsics_problems
+from core.rotations import quat_to_rotmat, rotmat_to_quat
 
-__all__ = ["export_colmap", "find_model", "qvec_to_rotation", "read_colmap", "rotation_to_qvec"]
+__all__ = ["export_colmap", "find_model", "read_colmap"]
 
 # model id: (name, number of params)
 _MODELS: dict[int, tuple[str, int]] = {
@@ -54,42 +55,6 @@ def find_model(src: Path) -> Path | None:
             if (cand / f"cameras{ext}").is_file() and (cand / f"images{ext}").is_file():
                 return cand
     return None
-
-
-def qvec_to_rotation(q: np.ndarray) -> np.ndarray:
-    w, x, y, z = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def rotation_to_qvec(R: np.ndarray) -> np.ndarray:
-    # Largest-eigenvector method: stable for every rotation, including 180-degree turns.
-    m = np.asarray(R, dtype=np.float64)
-    K = (
-        np.array(
-            [
-                [m[0, 0] - m[1, 1] - m[2, 2], 0, 0, 0],
-                [m[1, 0] + m[0, 1], m[1, 1] - m[0, 0] - m[2, 2], 0, 0],
-                [m[2, 0] + m[0, 2], m[2, 1] + m[1, 2], m[2, 2] - m[0, 0] - m[1, 1], 0],
-                [
-                    m[2, 1] - m[1, 2],
-                    m[0, 2] - m[2, 0],
-                    m[1, 0] - m[0, 1],
-                    m[0, 0] + m[1, 1] + m[2, 2],
-                ],
-            ]
-        )
-        / 3.0
-    )
-    vals, vecs = np.linalg.eigh(K)
-    x, y, z, w = vecs[:, np.argmax(vals)]
-    q = np.array([w, x, y, z])
-    return -q if q[0] < 0 else q
 
 
 def _intrinsics(model: str, p: list[float]) -> tuple[np.ndarray, tuple | None]:
@@ -260,7 +225,7 @@ def _pose_images(model: Path, ext: str, cams: dict, images: list, problems: list
             problems.append(Problem(str(model / f"cameras{ext}"), f"camera {cam_id}: {exc}"))
             continue
         w2c = np.eye(4)
-        w2c[:3, :3] = qvec_to_rotation(q) if np.linalg.norm(q) > 0 else np.zeros((3, 3))
+        w2c[:3, :3] = quat_to_rotmat(q) if np.linalg.norm(q) > 0 else np.zeros((3, 3))
         w2c[:3, 3] = t
         bad = intrinsics_problems(K) + extrinsics_problems(w2c)
         problems.extend(Problem(where, f"{label}: {m}") for m in bad)
@@ -330,7 +295,7 @@ def export_colmap(capture: Capture, dst: str | Path, *, binary: bool = False,
             name = f"{frame}/{cam.id}{src.suffix}" if multi else f"{cam.id}{src.suffix}"
             (dst / "images" / name).parent.mkdir(parents=True, exist_ok=True)
             shutil.copyfile(src, dst / "images" / name)
-            images.append((len(images) + 1, rotation_to_qvec(cam.R), cam.t, ci + 1, name))
+            images.append((len(images) + 1, rotmat_to_quat(cam.R), cam.t, ci + 1, name))
     cams = {i + 1: (*_model_of(c), c.width, c.height) for i, c in enumerate(capture.cameras)}
     (_write_bin if binary else _write_txt)(model, cams, images)
     if points is None and capture.points_path() is not None:
