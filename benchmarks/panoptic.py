@@ -195,6 +195,32 @@ def relit_video(run: Path, out: Path, hdri: Path, camera: str) -> str:
     return str(out / record["videos"][0]) if record["videos"] else ""
 
 
+def sheet(capture: Path, run: Path, relit: Path, camera: str, out: Path) -> Path:
+    """OUT/sheet.png: the test camera at the first, middle and last frame: capture, render,
+    normals, AO, relit under the HDRI (the relit video's frames)."""
+    import numpy as np
+    from PIL import Image, ImageDraw
+
+    frames = sorted(p.name for p in (run / "renders").iterdir() if p.is_dir())
+    rows = []
+    for frame in dict.fromkeys([frames[0], frames[len(frames) // 2], frames[-1]]):
+        base = run / "renders" / frame / camera
+        paths = [next((capture / "images" / frame).glob(f"{camera}.*")),
+                 Path(f"{base}_rgb.png"), Path(f"{base}_normal.png"), Path(f"{base}_ao.png"),
+                 relit / frame / f"{camera}.png"]
+        size = Image.open(paths[1]).size
+        tiles = [np.asarray(Image.open(q).convert("RGB").resize(size)) if q.is_file()
+                 else np.zeros((size[1], size[0], 3), np.uint8) for q in paths]
+        rows.append(np.concatenate(tiles, axis=1))
+    image = Image.fromarray(np.concatenate(rows, axis=0))
+    draw = ImageDraw.Draw(image)
+    for i, label in enumerate(("capture", "render", "normals", "AO", "relit (HDRI)")):
+        draw.text((i * image.width // 5 + 4, 2), label, fill=(255, 255, 0))
+    path = out / "sheet.png"
+    image.save(path)
+    return path
+
+
 def _fmt(v, spec: str) -> str:
     return "-" if v is None else (v if isinstance(v, str) else format(v, spec))
 
@@ -282,6 +308,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.hdri.is_file():
         test = ev["split"]["heldout"][0]
         result["relit_video"] = relit_video(run, args.out / "relit", args.hdri, test)
+        result["sheet"] = str(sheet(capture, run, args.out / "relit", test, args.out))
         save()
     if args.serve:
         result["service"] = reconstruct_served(capture, args.out, args)
