@@ -6,19 +6,21 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any, Literal
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, WithJsonSchema
+from pydantic import AfterValidator, AwareDatetime, BaseModel, Field, WithJsonSchema
+from pydantic_core import PydanticCustomError
 
 from core.config import schema
+from core.config.base import StrictModel
 from service.errors import ErrorInfo
 from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJobParams
 
 __all__ = [
     "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
     "CaptureItem", "CaptureOut", "CapturePage", "CaptureSummary", "ExportIn", "FileOut", "FilePage",
-    "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut",
-    "PartOut", "JobPage", "JobState",
-    "LightIn", "LimitsOut", "LogsOut", "ManifestFileIn", "ManifestIn", "ManifestPatchIn", "PipelineOut",
-    "ProgressOut", "ReadyOut", "RenderIn", "TusOut", "manifest_entries",
+    "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut", "JobPage", "JobState",
+    "LightIn", "LimitsOut", "LogsOut", "ManifestFileIn", "ManifestIn", "ManifestPatchIn", "Name",
+    "PATCH_FILES", "PartOut", "PipelineOut", "ProgressOut", "ReadyOut", "RenderIn",
+    "TusOut", "manifest_entries",
 ]
 
 Format = Literal["canonical", "transforms", "colmap", "actorshq", "idr", "auto"]
@@ -26,10 +28,31 @@ JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 CaptureState = Literal["uploading", "committing", "ready", "failed"]
 FileState = Literal["received", "missing", "corrupt"]
 SHA256 = r"^[0-9a-fA-F]{64}$"
+PATCH_FILES = 10_000
+"""Most entries one manifest patch adds (and removes)."""
 
 
-class _In(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+MAX_NAME = 256
+
+
+def _printable(value: str) -> str:
+    bad = next((i for i, c in enumerate(value) if not c.isprintable()), None)
+    if bad is not None:
+        raise PydanticCustomError(
+            "name_printable", "a name takes printable characters only (no control, format or "
+            "line-separator characters); character {at} is {char}",
+            {"at": bad, "char": f"U+{ord(value[bad]):04X}"})
+    return value
+
+
+Name = Annotated[str, AfterValidator(_printable), Field(max_length=MAX_NAME, json_schema_extra={
+    "pattern": r"^[^\u0000-\u001f\u007f-\u009f\u2028\u2029]*$"})]
+"""A name a client gives an object: printable characters (str.isprintable: no control, format
+or separator characters but the space), at most 256 of them; stored and shown as given."""
+
+
+class _In(StrictModel):
+    """A request body: validated as strictly as the run configuration (core.config.base)."""
 
 
 # -- captures ------------------------------------------------------------------------------------
@@ -41,7 +64,7 @@ class ManifestFileIn(_In):
 
 
 class ManifestIn(_In):
-    files: list[ManifestFileIn] = Field(min_length=1)
+    files: list[ManifestFileIn] = Field(min_length=1, fail_fast=True)
 
 
 def manifest_entries(files: list[ManifestFileIn]) -> list[dict[str, Any]]:
@@ -50,14 +73,16 @@ def manifest_entries(files: list[ManifestFileIn]) -> list[dict[str, Any]]:
 
 
 class ManifestPatchIn(_In):
-    files: list[ManifestFileIn] = Field(default_factory=list, max_length=10_000, description=(
-        "Entries to add, or to replace (same path): a replaced file must be uploaded again."))
-    remove: list[str] = Field(default_factory=list, max_length=10_000,
+    files: list[ManifestFileIn] = Field(
+        default_factory=list, max_length=PATCH_FILES, fail_fast=True, description=(
+            "Entries to add, or to replace (same path): a replaced file must be uploaded "
+            "again."))
+    remove: list[str] = Field(default_factory=list, max_length=PATCH_FILES, fail_fast=True,
                               description="Paths to drop.")
 
 
 class CaptureIn(_In):
-    name: str = Field("", max_length=256)
+    name: Name = ""
     format: Format = Field(description=(
         "canonical (docs/design.md 3.1), an importer's format, or auto (detected at commit)."))
     manifest: ManifestIn
@@ -140,7 +165,7 @@ class JobIn(_In):
             "The pipeline's parameters, checked before the job is made (422 naming each bad "
             "one); the reconstruct pipeline's are described here, every pipeline's in GET "
             "/v1/pipelines."))
-    name: str = Field("", max_length=256)
+    name: Name = ""
     expires_at: AwareDatetime | None = None
 
 
@@ -262,7 +287,7 @@ class RenderIn(RelightJobParams):
         "A succeeded reconstruct job of yours; it cannot be deleted while this render is "
         "queued or running."))
     lights: tuple[LightIn, ...] = Field((), max_length=64, description="Lights added to the map.")
-    name: str = Field("", max_length=256)
+    name: Name = ""
     expires_at: AwareDatetime | None = None
 
     def params(self) -> dict[str, Any]:
@@ -277,7 +302,7 @@ class ExportIn(ExportJobParams):
     job_id: str = Field(min_length=1, max_length=64, description=(
         "A succeeded reconstruct job of yours; it cannot be deleted while this export is "
         "queued or running."))
-    name: str = Field("", max_length=256)
+    name: Name = ""
     expires_at: AwareDatetime | None = None
 
     def params(self) -> dict[str, Any]:
@@ -295,7 +320,10 @@ class LimitsOut(BaseModel):
     max_archive_bytes: int
     max_archive_members: int
     max_asset_bytes: int
-    max_json_bytes: int
+    max_json_bytes: int = Field(description="Largest JSON request body but a manifest's.")
+    max_manifest_bytes: int = Field(description="Largest body of a capture manifest "
+                                                "(POST /v1/captures, PATCH its manifest).")
+    max_json_file_bytes: int = Field(description="Largest .json file in a capture.")
     max_image_pixels: int = Field(description="Largest image (width x height) accepted in a "
                                               "capture or as an environment map.")
 

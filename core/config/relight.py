@@ -9,7 +9,6 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from pydantic import (
-    BaseModel,
     ConfigDict,
     Field,
     field_validator,
@@ -18,10 +17,9 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-__all__ = ["BUILTIN_ENVMAPS", "FRAMES", "Light", "RelightSettings"]
+from core.config.base import FRAMES, FrameSlice, StrictModel
 
-FRAMES = r"^-?\d*(:-?\d*){0,2}$"
-"""A Python slice over a frame list ('0:10', '2', '::2')."""
+__all__ = ["BUILTIN_ENVMAPS", "FRAMES", "FrameSlice", "Light", "RelightSettings"]
 # The built-in maps of core.relight.presets (a test keeps the two equal).
 BUILTIN_ENVMAPS = ("studio", "sunset", "neon")
 
@@ -30,11 +28,11 @@ Channel = Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)]
 Vec3 = tuple[Coordinate, Coordinate, Coordinate]
 
 
-class Light(BaseModel):
+class Light(StrictModel):
     """A light added to the environment: it adds `intensity * color * max(0, n . l)` of
     irradiance, a point light's falling off as 1/d^2 (docs/design.md 5.8)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
     kind: Literal["directional", "point"] = Field(
         "directional", description="directional (infinitely far) or point.")
@@ -94,10 +92,8 @@ class Light(BaseModel):
         return self.direction if self.kind == "directional" else self.position
 
 
-class RelightSettings(BaseModel):
+class RelightSettings(StrictModel):
     """What to relight and how: an environment map turned and exposed, lights, the views."""
-
-    model_config = ConfigDict(extra="forbid")
 
     envmap: str | None = Field(
         None, min_length=1, max_length=4096,
@@ -115,10 +111,9 @@ class RelightSettings(BaseModel):
         "heldout", min_length=1, max_length=4096,
         description="heldout (every 8th capture camera), all, or camera ids ID,ID,... "
                     "(ignored with an orbit or a camera path).")
-    frames: str | None = Field(
-        None, pattern=FRAMES, max_length=32,
-        description="Python slice over the reconstruction's finished frames, e.g. '0:10' or "
-                    "'2'; all by default.")
+    frames: FrameSlice | None = Field(
+        None, description="Python slice over the reconstruction's finished frames, e.g. '0:10' "
+                          "or '2'; all by default.")
     orbit: int | None = Field(
         None, ge=1, le=720,
         description="Render this many views on an orbit around the subject instead of the "

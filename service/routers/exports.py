@@ -12,6 +12,8 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from service.auth import TenantDep
+from service.body import JsonRoute
+from service.checks import check_export
 from service.deps import ServicesDep
 from service.errors import COMMON, error_responses
 from service.records import get_job
@@ -20,15 +22,18 @@ from service.schemas import ExportIn, JobOut
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/exports", tags=["exports"], responses=error_responses(*COMMON))
+router = APIRouter(prefix="/v1/exports", tags=["exports"], route_class=JsonRoute,
+                   responses=error_responses(*COMMON))
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409),
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413),
              response_description="The export job, queued (Location names it)")
 def request_export(body: ExportIn, request: Request, services: ServicesDep,
                    tenant: TenantDep) -> JSONResponse:
     """Queue an export of a succeeded reconstruction (404 for a job that is not yours; 409 when
     it is not a succeeded reconstruction)."""
     source = get_job(services.store, body.job_id, tenant)
+    if source.pipeline == "reconstruct" and source.state == "succeeded":
+        check_export(services, source, body)
     return queue_on_source(request, services, tenant, source, "export", body.params(),
                            "exports", body)

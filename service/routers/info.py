@@ -11,6 +11,7 @@ from fastapi.responses import JSONResponse
 from sqlalchemy import func, select, text
 
 from service.auth import TenantDep, has_active_key
+from service.body import JsonRoute
 from service.deps import Services, ServicesDep
 from service.errors import error_responses
 from service.schemas import HealthOut, InfoOut, LimitsOut, PipelineOut, ReadyOut, TusOut
@@ -20,7 +21,7 @@ from worker.pipelines import PIPELINES
 
 __all__ = ["router"]
 
-router = APIRouter(tags=["info"])
+router = APIRouter(tags=["info"], route_class=JsonRoute)
 CHECK_SECONDS = 3.0
 _checks = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="readyz")
 

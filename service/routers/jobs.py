@@ -9,13 +9,15 @@ from typing import Annotated
 
 from fastapi import APIRouter, Header, Query, Request, Response
 from fastapi.responses import JSONResponse, StreamingResponse
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 
+from core.config import ConfigError
 from service.auth import TenantDep
+from service.body import JsonRoute
 from service.checks import check_params, check_reconstruct
-from service.deps import Services, ServicesDep, absolute_url, default_expiry
+from service.deps import Services, ServicesDep, default_expiry, location
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.events import job_events
 from service.pagination import newest_page
@@ -31,7 +33,8 @@ from worker.store import ACTIVE, TERMINAL, JobStore, progress_of
 __all__ = ["accepted", "job_out", "queue_on_source", "router", "send"]
 
 log = logging.getLogger("dgs.service")
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=error_responses(*COMMON))
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=JsonRoute,
+                   responses=error_responses(*COMMON))
 
 
 def job_out(job: Job, services: Services | None = None) -> JobOut:
@@ -55,7 +58,7 @@ def job_out(job: Job, services: Services | None = None) -> JobOut:
 def accepted(request: Request, services: Services, job: Job) -> JSONResponse:
     out = job_out(job, services)
     return JSONResponse(out.model_dump(mode="json"), status_code=202, headers={
-        "Location": absolute_url(request, services, out.links["self"])})
+        "Location": location(services, out.links["self"])})
 
 
 def send(services: Services, job: Job) -> None:
@@ -101,17 +104,14 @@ def _params(pipeline_name: str, params: dict) -> BaseModel:
     except ValueError as exc:
         raise ApiError(422, str(exc), details=[{"path": "pipeline", "message": str(exc)}]) from None
     try:
-        model = pipeline.params.model_validate(params)
-    except ValidationError as exc:
-        details = [{"path": ".".join(["params", *map(str, e["loc"])]), "message": e["msg"]}
-                   for e in exc.errors()]
-        raise ApiError(422, f"{details[0]['path']}: {details[0]['message']}",
-                       details=details) from None
+        model = pipeline.parse(params, "params")
+    except ConfigError as exc:
+        raise ApiError(422, str(exc), details=exc.details) from None
     check_params(pipeline, model)
     return model
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409))
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413))
 def create_job(body: JobIn, request: Request, services: ServicesDep,
                tenant: TenantDep) -> JSONResponse:
     """Queue a pipeline run on a ready capture (202; Location is the job). Every parameter is
@@ -172,9 +172,10 @@ def job_event_stream(job_id: str, services: ServicesDep, tenant: TenantDep,
     get_job(services.store, job_id, tenant)
     after = None
     if last_event_id is not None and last_event_id.strip():
-        if not last_event_id.strip().isdigit() or len(last_event_id.strip()) > 18:
-            raise ApiError(400, f"Last-Event-ID: expected an event id, got {last_event_id!r}")
-        after = int(last_event_id)
+        value = last_event_id.strip()
+        if not (value.isascii() and value.isdigit()) or len(value) > 18:
+            raise ApiError(400, f"Last-Event-ID: expected an event id, got {value[:40]!r}")
+        after = int(value)
     s = services.settings
     stream = job_events(services.store, job_id, after, poll=s.sse_poll_seconds,
                         keepalive=s.sse_keepalive_seconds)

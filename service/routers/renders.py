@@ -12,6 +12,7 @@ from fastapi import APIRouter, Request
 from fastapi.responses import JSONResponse
 
 from service.auth import TenantDep
+from service.body import JsonRoute
 from service.checks import check_render
 from service.deps import ServicesDep
 from service.errors import COMMON, ApiError, error_responses
@@ -21,11 +22,11 @@ from service.schemas import JobOut, RenderIn
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/renders", tags=["renders"],
+router = APIRouter(prefix="/v1/renders", tags=["renders"], route_class=JsonRoute,
                    responses=error_responses(*COMMON))
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409),
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413),
              response_description="The render job, queued (Location names it)")
 def request_render(body: RenderIn, request: Request, services: ServicesDep,
                    tenant: TenantDep) -> JSONResponse:
