@@ -19,7 +19,7 @@ __all__ = [
     "CaptureItem", "CaptureOut", "CapturePage", "CaptureSummary", "ExportIn", "FileOut", "FilePage",
     "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut", "JobPage", "JobState",
     "LightIn", "LimitsOut", "LogsOut", "ManifestFileIn", "ManifestIn", "ManifestPatchIn", "Name",
-    "PATCH_FILES", "PartOut", "PipelineOut", "ProgressOut", "ReadyOut", "RenderIn",
+    "PATCH_FILES", "PartOut", "PipelineOut", "ProgressOut", "ReadyOut", "RenderIn", "RunOut",
     "TusOut", "manifest_entries",
 ]
 
@@ -180,13 +180,31 @@ class ProgressOut(BaseModel):
     message: str
 
 
+class RunOut(BaseModel):
+    """One run of a job or part: a worker's claim of it, and how it ended."""
+
+    attempt: int = Field(description="The attempt it was (1, 2, ...; counted again after a "
+                                     "retry).")
+    worker: str = Field(description="host/pid of the worker process.")
+    started_at: dt.datetime
+    ended_at: dt.datetime | None = Field(None, description="null while it runs.")
+    outcome: Literal["succeeded", "failed", "cancelled", "released", "lost"] | None = Field(
+        None, description="released: its worker shut down and gave it back; lost: its worker "
+                          "stopped renewing its lease (killed, or its machine gone).")
+
+
+WORKER = "host/pid of the worker that runs it, or ran it last (kept after it ends)."
+RUNS = "Each worker that took it, oldest first (at most the last 20)."
+
+
 class PartOut(BaseModel):
     """One part of a sequence job run as parts (one group of pictures, docs/design.md 4.4)."""
 
     index: int = Field(description="The group of pictures (0-based).")
     frames: list[str] = Field(description="Its frames in order; the first is its key frame.")
     state: JobState
-    worker: str | None = Field(description="host/pid of the worker running it (while running).")
+    worker: str | None = Field(description=WORKER)
+    runs: list[RunOut] = Field(description=RUNS)
     attempts: int
     stage: str
     frame: int = Field(description="Its frame being made (1-based, within the part).")
@@ -211,6 +229,9 @@ class JobOut(BaseModel):
     progress: ProgressOut
     error: ErrorInfo | None
     attempts: int
+    worker: str | None = Field(None, description=WORKER + " A job run as parts: null (see "
+                                                          "its parts').")
+    runs: list[RunOut] = Field(default_factory=list, description=RUNS)
     cancel_requested: bool
     created_at: dt.datetime
     updated_at: dt.datetime

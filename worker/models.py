@@ -171,6 +171,11 @@ class Job(Base):
     """Times a worker claimed the job since it was queued (the redelivery cap counts these)."""
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     lease_owner: Mapped[str | None] = mapped_column(String(256), default=None)
+    worker: Mapped[str | None] = mapped_column(String(256), default=None)
+    """host/pid of the worker that runs it or ran it last (kept when the lease ends)."""
+    runs: Mapped[list[Any] | None] = mapped_column(default=None)
+    """Each claim, newest last (at most worker.owner.MAX_RUNS): {"attempt", "worker",
+    "started_at", "ended_at", "outcome"}; a run its worker never ended is "lost"."""
     lease_expires_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     dispatched_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     dispatches: Mapped[int] = mapped_column(Integer, default=0)
@@ -244,3 +249,4 @@ class Asset(Base):
     meta: Mapped[dict[str, Any]] = mapped_column(default=dict)
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     expires_at: Mapped[dt.datetime | None] = mapped_column(default=None, index=True)
+

@@ -14,18 +14,19 @@ from __future__ import annotations
 
 import datetime as dt
 import secrets
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from sqlalchemy import exists, func, select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session, aliased
+from sqlalchemy.orm import Session
 
 from worker.db import session_scope
+from worker.housekeeping import Housekeeping
 from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
-from worker.owner import Owner
-from worker.parts import PartOps, part_event
+from worker.owner import Owner, run_ended, run_started
+from worker.parts import PartOps, active_parts, part_event
 
 __all__ = [
     "ACTIVE",
@@ -67,15 +68,9 @@ def progress_of(job: Job) -> dict[str, Any]:
             "fraction": round(job.fraction, 6), "eta_s": job.eta_s, "message": job.message}
 
 
-def _active_parts(job_id) -> Any:
-    """SQL: the job has a queued or running part."""
-    part = aliased(Job)
-    return exists().where(part.parent_id == job_id, part.state.in_(ACTIVE))
-
-
-class JobStore(PartOps):
+class JobStore(PartOps, Housekeeping):
     """Job lifecycle operations on the database at `url` (those particular to a job run as
-    parts in `worker.parts.PartOps`)."""
+    parts in `worker.parts.PartOps`, the sweepers' in `worker.housekeeping.Housekeeping`)."""
 
     _new_id = staticmethod(new_id)
 
@@ -101,7 +96,7 @@ class JobStore(PartOps):
 
     def _state_event(self, s: Session, job: Job) -> None:
         data = {"state": job.state, "error": job.error, "attempts": job.attempts,
-                **progress_of(job)}
+                "worker": job.worker, "runs": job.runs or [], **progress_of(job)}
         self._event(s, job.id, "state", data)
         if job.parent_id is not None:  # the parent's stream says what its parts do
             part_event(s, job, "state", data)
@@ -213,7 +208,7 @@ class JobStore(PartOps):
             if job.cancel_requested:
                 self._finish(s, job, "cancelled", None, "cancelled before it resumed")
                 return Claim("terminal", job)
-            if job.parts and s.scalar(select(_active_parts(job.id))):
+            if job.parts and s.scalar(select(active_parts(job.id))):
                 return Claim("waiting", job)
             if job.lease_owner is not None and job.lease_expires_at and job.lease_expires_at > now:
                 holder = Owner.parse(job.lease_owner)
@@ -227,6 +222,7 @@ class JobStore(PartOps):
                                "checkpoint"}, "")
                 return Claim("exhausted", job)
             job.attempts += 1
+            run_started(job, owner, now)
             job.lease_owner, job.lease_expires_at = str(owner), now + dt.timedelta(
                 seconds=lease_seconds)
             job.state = "running"
@@ -276,6 +272,7 @@ class JobStore(PartOps):
     def _finish(self, s: Session, job: Job, state: JobState, error: dict[str, Any] | None,
                 message: str) -> None:
         job.state, job.error, job.finished_at = state, error, utcnow()
+        run_ended(job, state, job.finished_at)
         job.lease_owner = job.lease_expires_at = None
         job.eta_s = None
         job.stage = state
@@ -299,6 +296,7 @@ class JobStore(PartOps):
             if job is None or job.lease_owner != str(owner) or job.state != "running":
                 return False
             job.state, job.stage, job.message = "queued", "queued", message[:512]
+            run_ended(job, "released", utcnow())
             job.lease_owner = job.lease_expires_at = job.eta_s = job.dispatched_at = None
             job.attempts = max(job.attempts - 1, 0)
             self._state_event(s, job)
@@ -345,47 +343,3 @@ class JobStore(PartOps):
             return list(s.scalars(select(JobLog).where(JobLog.job_id == job_id,
                                                        JobLog.seq >= offset)
                                   .order_by(JobLog.seq).limit(limit)))
-
-    # -- housekeeping ------------------------------------------------------------------------
-    def stranded(self, *, held: set[str] | None = None, grace: float = 0.0,
-                 requeue_after: float | None = None) -> dict[str, str]:
-        """Jobs that no worker has and no message will bring to one, with why: running with
-        an expired lease; queued and never sent (released by a worker that shut down, or the
-        broker was away when it was made); with `held` (the jobs the broker holds a message
-        for, worker.broker), queued, sent more than `grace` seconds ago and not held; with
-        `requeue_after` (for a broker that cannot be inspected), queued and last sent longer
-        ago than that."""
-        now = utcnow()
-        out: dict[str, str] = {}
-        with self.session(write=False) as s:
-            # A parted job's own turn (its assembly) comes when no part is left to run.
-            for job_id, owner in s.execute(select(Job.id, Job.lease_owner).where(
-                    Job.state == "running", ~_active_parts(Job.id),
-                    (Job.lease_owner.is_(None)) | (Job.lease_expires_at < now))):
-                out[job_id] = f"its worker ({owner}) stopped renewing its lease"
-            for job_id, sent in s.execute(select(Job.id, Job.dispatched_at).where(
-                    Job.state == "queued", Job.lease_owner.is_(None), ~_active_parts(Job.id))):
-                if sent is None:
-                    out[job_id] = ("it was never sent to the broker (released by a worker that "
-                                   "shut down, or the broker was away)")
-                elif held is not None and job_id not in held and \
-                        sent < now - dt.timedelta(seconds=grace):
-                    out[job_id] = "it is queued, but its message is no longer in the broker"
-                elif requeue_after is not None and \
-                        sent < now - dt.timedelta(seconds=requeue_after):
-                    out[job_id] = (f"it has been queued for more than {requeue_after:.0f} s "
-                                   "(this broker cannot be inspected)")
-        return out
-
-    def redispatch_stranded(self, send: Callable[[str], None], *, min_gap: float,
-                            **stranded: Any) -> dict[str, str]:
-        """Send every stranded job (`stranded(**stranded)`) to the broker again, at most once
-        per `min_gap` seconds per job whoever else sweeps; returns {job id: why} of those
-        sent."""
-        sent = {}
-        before = utcnow() - dt.timedelta(seconds=min_gap)
-        for job_id, why in self.stranded(**stranded).items():
-            if self.mark_dispatched(job_id, before=before):
-                send(job_id)
-                sent[job_id] = why
-        return sent

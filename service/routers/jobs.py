@@ -26,7 +26,7 @@ from service.records import get_capture, get_job
 from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressOut
 from worker.celery_app import dispatch
 from worker.models import Job
-from worker.parts import delete_parts
+from worker.parts import delete_parts, worker_of
 from worker.pipelines import get_pipeline
 from worker.store import ACTIVE, TERMINAL, JobStore, progress_of
 
@@ -47,6 +47,7 @@ def job_out(job: Job, services: Services | None = None) -> JobOut:
         pipeline=job.pipeline, parts=parts,
         params=job.params, state=job.state, progress=ProgressOut(**progress),
         error=ErrorInfo(**job.error) if job.error else None, attempts=job.attempts,
+        worker=worker_of(job), runs=job.runs or [],
         cancel_requested=job.cancel_requested, created_at=job.created_at,
         updated_at=job.updated_at, started_at=job.started_at, finished_at=job.finished_at,
         expires_at=job.expires_at,
