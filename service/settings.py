@@ -63,6 +63,9 @@ class ServiceSettings(WorkerSettings):
     """How often an event stream polls the job store for new events."""
     sse_keepalive_seconds: float = Field(15.0, gt=0)
     """Interval of the keep-alive comment on an idle event stream (proxies drop silent ones)."""
+    idempotency_key_hours: float = Field(24.0, gt=0, le=24 * 30)
+    """How long a submit's Idempotency-Key answers the job it made (POST /v1/jobs, /v1/renders,
+    /v1/exports); after that the key may make a new job."""
     upload_sync_bytes: int = Field(64 * MiB, ge=MiB)
     """A long tus PATCH makes its progress durable (fsync, then the offset in the job store)
     every this many bytes, so a crash of the API process loses at most this much."""

@@ -32,6 +32,7 @@ __all__ = [
     "Asset",
     "Base",
     "Capture",
+    "IdempotencyKey",
     "Job",
     "JobEvent",
     "JobLog",
@@ -250,3 +251,23 @@ class Asset(Base):
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     expires_at: Mapped[dt.datetime | None] = mapped_column(default=None, index=True)
 
+
+class IdempotencyKey(Base):
+    """A client's Idempotency-Key of a submit (POST /v1/jobs, /v1/renders, /v1/exports) and the
+    job it made. Unique per tenant: two submits racing with one key make one job, because the
+    second insert fails on this constraint in the transaction that would add its job (never a
+    check, then an insert). Deleted with its job (cascade) or once expired (the sweeper)."""
+
+    __tablename__ = "idempotency_keys"
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"),
+                                    primary_key=True, autoincrement=True)
+    tenant: Mapped[str] = mapped_column(String(64))
+    key: Mapped[str] = mapped_column(String(255))
+    request_sha256: Mapped[str] = mapped_column(String(64))
+    """What was asked (the operation and its validated body): a key reused for another
+    request is refused."""
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[dt.datetime] = mapped_column(index=True)
+
+    __table_args__ = (UniqueConstraint("tenant", "key", name="uq_idempotency_keys_tenant_key"),)

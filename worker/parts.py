@@ -15,6 +15,7 @@ from sqlalchemy import delete, exists, select
 from sqlalchemy.orm import Session, aliased
 
 from core.config import RunConfig
+from worker.idempotency import Idempotency, remember
 from worker.models import Job, JobEvent, utcnow
 
 __all__ = ["ASSEMBLY_SHARE", "PartOps", "active_parts", "delete_parts", "overall_progress", "part_out",
@@ -155,9 +156,11 @@ class PartOps:
 
     def create_parted(self, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
                       capture_id: str | None, name: str = "",
-                      expires_at: dt.datetime | None = None) -> tuple[Job, list[Job]]:
+                      expires_at: dt.datetime | None = None,
+                      idempotency: Idempotency | None = None) -> tuple[Job, list[Job]]:
         """A sequence job and its parts (one per group of `groups`), all queued; the caller
-        dispatches the parts (the parent itself is dispatched when they have succeeded)."""
+        dispatches the parts (the parent itself is dispatched when they have succeeded).
+        `idempotency`: as `JobStore.create` (the key names the parent)."""
         new_id = self._new_id  # type: ignore[attr-defined]
         with self.session() as s:  # type: ignore[attr-defined]
             parent = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id,
@@ -166,6 +169,7 @@ class PartOps:
                          frames=sum(map(len, groups)))
             s.add(parent)
             s.flush()
+            remember(s, idempotency, parent.id)
             parts = [Job(id=new_id("job"), tenant=tenant, capture_id=capture_id,
                          pipeline="reconstruct", params=params, name=name, state="queued",
                          stage="queued", parent_id=parent.id, part_index=i, part_frames=frames,

@@ -24,6 +24,7 @@ from sqlalchemy.orm import Session
 
 from worker.db import session_scope
 from worker.housekeeping import Housekeeping
+from worker.idempotency import Idempotency, remember
 from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
 from worker.owner import Owner, run_ended, run_started
 from worker.parts import PartOps, active_parts, part_event
@@ -103,24 +104,29 @@ class JobStore(PartOps, Housekeeping):
 
     # -- created and changed by the API -------------------------------------------------------
     def create(self, tenant: str, pipeline: str, params: dict[str, Any], *,
-               capture_id: str | None, name: str = "",
-               expires_at: dt.datetime | None = None) -> Job:
+               capture_id: str | None, name: str = "", expires_at: dt.datetime | None = None,
+               idempotency: Idempotency | None = None) -> Job:
+        """A queued job; with `idempotency`, its key is kept with it in the same transaction
+        (IntegrityError, and no job, when a live row has the key: `worker.idempotency`)."""
         with self.session() as s:
             job = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
                       params=params, name=name, state="queued", stage="queued",
                       expires_at=expires_at)
             s.add(job)
             s.flush()
+            remember(s, idempotency, job.id)
             self._state_event(s, job)
             return job
 
     def create_render(self, tenant: str, source_job_id: str, pipeline: str,
                       params: dict[str, Any], *, name: str = "",
-                      expires_at: dt.datetime | None = None) -> Job | None:
+                      expires_at: dt.datetime | None = None,
+                      idempotency: Idempotency | None = None) -> Job | None:
         """A job on the results of `source_job_id`, a succeeded job of `tenant` (on its
         capture); None when the source is not that (any more). The source row is locked
         while the job is added, so a concurrent delete of the source either happens first
-        (None here) or waits and then sees this job (and refuses)."""
+        (None here) or waits and then sees this job (and refuses). `idempotency`: as
+        `create`."""
         with self.session() as s:
             source = s.get(Job, source_job_id, with_for_update=True)
             if source is None or source.tenant != tenant or source.state != "succeeded":
@@ -130,6 +136,7 @@ class JobStore(PartOps, Housekeeping):
                       state="queued", stage="queued", expires_at=expires_at)
             s.add(job)
             s.flush()
+            remember(s, idempotency, job.id)
             self._state_event(s, job)
             return job
 
