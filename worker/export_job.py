@@ -44,7 +44,8 @@ class ExportJob(RelightJob):
             self.link.log(f"exporting {len(self.frames)} frame(s) of job {source.id} as "
                           f"{', '.join(p.formats)}")
             record = export_run(run, out, formats=p.formats, fps=p.fps, config=config,
-                                capture_dir=capture, on_progress=self._on_export)
+                                capture_dir=capture, on_progress=self._on_export,
+                                run_name=f"jobs/{source.id}")
             for fmt in ("spz", "stream"):
                 if fmt in record:
                     r = record[fmt]

@@ -100,10 +100,12 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
                formats: Sequence[str] = ("stream",), frames: str | None = None,
                fps: float | None = None, config: StreamConfig = StreamConfig(),
                capture_dir: str | os.PathLike[str] | None = None,
-               on_progress: Callable[[str, int, int], None] | None = None) -> dict:
+               on_progress: Callable[[str, int, int], None] | None = None,
+               run_name: str | None = None) -> dict:
     """Export `run_dir` into `out_dir` in each of `formats`; returns (and writes as
     OUT/export.json) the record. `frames` (a slice) keeps whole groups for the stream: a group
-    is cut where the slice cuts it, its first kept frame becoming the key frame."""
+    is cut where the slice cuts it, its first kept frame becoming the key frame. `run_name` is
+    how the record names the run (default: its folder; a service gives the job's id)."""
     run, out = Path(run_dir), Path(out_dir)
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
@@ -119,7 +121,7 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     order = [f for g in groups for f in g]
     out.mkdir(parents=True, exist_ok=True)
     ply_bytes = {f: (run / "frames" / f / "gaussians.ply").stat().st_size for f in order}
-    record = {"run": str(run), "frames": order, "formats": list(formats),
+    record = {"run": run_name or str(run), "frames": order, "formats": list(formats),
               "ply_bytes_per_frame": float(np.mean(list(ply_bytes.values())))}
     total = len(order) * len(formats)
     done = 0
