@@ -2,7 +2,7 @@
 to be refused, and how long `GET /healthz` takes meanwhile (one prober, every 20 ms), on each
 JSON operation that could take it; then a real manifest of `--files` files.
 
-    python benchmarks/body.py [--root REPO] [--files 100000]
+    python benchmarks/body.py [--root REPO] [--files 100000] [--only WORDS]
 
 Starts `dgs serve --no-worker` from `--root` (default: this repository; give another checkout
 to measure it the same way) on a temporary data folder and a free loopback port. Prints one
@@ -101,12 +101,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--root", type=Path, default=ROOT, help="checkout whose dgs to run")
     parser.add_argument("--files", type=int, default=100_000, help="files of the real manifest")
+    parser.add_argument("--only", default="", help="run the bodies whose label has this text "
+                        "(a body that held the process for minutes before issue 32 may be "
+                        "left out so)")
     args = parser.parse_args()
     with tempfile.TemporaryDirectory(prefix="dgs-body-") as tmp:
         proc, url = start(args.root.resolve(), Path(tmp) / "data")
         try:
             for label, (path, body) in bodies(args.files).items():
-                print(f"{label}: {measure(url, path, body)}", flush=True)
+                if args.only in label:
+                    print(f"{label}: {measure(url, path, body)}", flush=True)
         finally:
             proc.terminate()
             try:
