@@ -18,8 +18,8 @@ from core.config import RunConfig
 from worker.idempotency import Idempotency, remember
 from worker.models import Job, JobEvent, utcnow
 
-__all__ = ["ASSEMBLY_SHARE", "PartOps", "active_parts", "delete_parts", "overall_progress", "part_out",
-           "parts_of", "roll_up", "split_frames", "worker_of"]
+__all__ = ["ASSEMBLY_SHARE", "PartOps", "active_parts", "delete_parts", "overall_progress",
+           "part_out", "parts_of", "roll_up", "split_frames", "worker_of"]
 
 ASSEMBLY_SHARE = 0.01
 """Share of a parted job's progress left for the assembly (merge, evaluation, publishing)."""

@@ -133,8 +133,9 @@ def evaluate_run(run_dir: str | os.PathLike[str],
         rows += views
         per_frame.append({"frame": frame, **_summary(views), "views": views})
     result = {**_summary(rows), "lpips": None, "chamfer": None,
-              "normal_reference": rows[0]["normal_reference"], "capture": capture_name or str(capture_dir),
-              "views": len(rows), "per_frame": per_frame}
+              "normal_reference": rows[0]["normal_reference"],
+              "capture": capture_name or str(capture_dir), "views": len(rows),
+              "per_frame": per_frame}
     result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame,
                                       torch_device))
 
