@@ -10,7 +10,7 @@ from pydantic import AfterValidator, AwareDatetime, BaseModel, Field, WithJsonSc
 from pydantic_core import PydanticCustomError
 
 from core.config import schema
-from core.config.base import StrictModel
+from core.config.base import AsTuple, StrictModel
 from service.errors import ErrorInfo
 from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJobParams
 
@@ -307,7 +307,8 @@ class RenderIn(RelightJobParams):
     job_id: str = Field(min_length=1, max_length=64, description=(
         "A succeeded reconstruct job of yours; it cannot be deleted while this render is "
         "queued or running."))
-    lights: tuple[LightIn, ...] = Field((), max_length=64, description="Lights added to the map.")
+    lights: Annotated[tuple[LightIn, ...], AsTuple] = Field(
+        (), max_length=64, description="Lights added to the map.")
     name: Name = ""
     expires_at: AwareDatetime | None = None
 

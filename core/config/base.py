@@ -15,12 +15,20 @@ import typing
 from collections.abc import Callable
 from typing import Annotated, Any, TypeVar
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    TypeAdapter,
+    ValidationError,
+)
 from pydantic.dataclasses import dataclass as pydantic_dataclass
 from pydantic_core import PydanticCustomError
 
-__all__ = ["ConfigError", "Device", "FRAMES", "FrameSlice", "Fraction", "Positive", "Steps",
-           "StrictModel", "Weight", "section", "validate"]
+__all__ = ["AsTuple", "ConfigError", "Device", "FRAMES", "FrameSlice", "Fraction", "Positive",
+           "Steps", "StrictModel", "Weight", "section", "validate"]
 
 T = TypeVar("T")
 
@@ -80,11 +88,22 @@ FrameSlice = Annotated[str, AfterValidator(_frame_slice), Field(
 question for the capture: `core.config.parse_frames`)."""
 
 
+def _as_tuple(value: Any) -> Any:
+    return tuple(value) if isinstance(value, list) else value
+
+
+AsTuple = BeforeValidator(_as_tuple)
+"""On a tuple field of a StrictModel (`Annotated[tuple[...], AsTuple]`): a list is taken for
+it from Python too, as JSON gives one (strict mode wants a tuple there); its items are checked
+as strictly as ever. A field validator, not a model one: a model's `before` validator hands
+the whole input back as Python, where strict mode refuses a time written as text."""
+
+
 class StrictModel(BaseModel):
     """A pydantic model validated as strictly as the configuration sections (`STRICT`): no
-    strings or booleans for numbers, no NaN or infinity, no unknown keys. JSON input keeps
-    JSON's own forms (a list for a tuple, an ISO string for a time): validate JSON data with
-    `validate`, which goes through JSON, or with `model_validate_json`."""
+    strings or booleans for numbers, no NaN or infinity, no unknown keys. Validate JSON data
+    with `validate`, which goes through JSON (an ISO string for a time), or with
+    `model_validate_json`; tuple fields are `AsTuple`."""
 
     model_config = STRICT
 

@@ -17,7 +17,7 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-from core.config.base import FRAMES, FrameSlice, StrictModel
+from core.config.base import FRAMES, AsTuple, FrameSlice, StrictModel
 
 __all__ = ["BUILTIN_ENVMAPS", "FRAMES", "FrameSlice", "Light", "RelightSettings"]
 # The built-in maps of core.relight.presets (a test keeps the two equal).
@@ -25,7 +25,7 @@ BUILTIN_ENVMAPS = ("studio", "sunset", "neon")
 
 Coordinate = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
 Channel = Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)]
-Vec3 = tuple[Coordinate, Coordinate, Coordinate]
+Vec3 = Annotated[tuple[Coordinate, Coordinate, Coordinate], AsTuple]
 
 
 class Light(StrictModel):
@@ -41,7 +41,7 @@ class Light(StrictModel):
                           "coordinates (need not be unit length; not zero).")
     position: Vec3 | None = Field(
         None, description="Point lights: the light's position, capture world coordinates.")
-    color: tuple[Channel, Channel, Channel] = Field(
+    color: Annotated[tuple[Channel, Channel, Channel], AsTuple] = Field(
         (1.0, 1.0, 1.0), description="Linear RGB tint (not all zero).")
     intensity: float = Field(
         1.0, le=1e6, allow_inf_nan=False, json_schema_extra={"exclusiveMinimum": 0},
@@ -106,7 +106,8 @@ class RelightSettings(StrictModel):
         description="Turn of the map about the capture's up axis, degrees (right-hand rule).")
     exposure: float = Field(0.0, ge=-20, le=20, allow_inf_nan=False,
                             description="Map exposure in stops (radiance x 2**exposure).")
-    lights: tuple[Light, ...] = Field((), max_length=64, description="Lights added to the map.")
+    lights: Annotated[tuple[Light, ...], AsTuple] = Field(
+        (), max_length=64, description="Lights added to the map.")
     cameras: str = Field(
         "heldout", min_length=1, max_length=4096,
         description="heldout (every 8th capture camera), all, or camera ids ID,ID,... "

@@ -208,3 +208,17 @@ def test_location_is_relative_or_under_the_public_url(tmp_path, client, services
     with TestClient(create_app(settings)) as other:
         r = other.post("/v1/assets?filename=sky.exr", content=exr_bytes(tmp_path), headers=evil)
         assert r.headers["Location"] == f"https://dgs.example.com/v1/assets/{r.json()['id']}"
+
+
+def test_json_forms_are_taken_strictly(client, services, ready_capture):
+    """Strict, yet JSON's own forms: a list for a tuple, an ISO string for a time (together: a
+    validator that handed the body back as Python would refuse the time)."""
+    source = finished(services, capture_id=ready_capture())
+    r = client.post("/v1/renders", json={
+        "job_id": source, "expires_at": "2099-01-01T00:00:00Z", "lights": [
+            {"kind": "point", "position": [0, 0, 1], "color": [1, 0.5, 0], "intensity": 2}]})
+    assert r.status_code == 202, r.text
+    assert r.json()["params"]["lights"][0]["position"] == [0, 0, 1]
+    r = client.post("/v1/exports", json={"job_id": source, "expires_at": "2099-01-01T00:00:00Z",
+                                         "formats": ["spz"]})
+    assert r.status_code == 202, r.text
