@@ -8,7 +8,7 @@ from fastapi.middleware.cors import CORSMiddleware
 
 from service.deps import Services
 from service.errors import install_error_handlers
-from service.middleware import EXPOSED, BodyLimit, strict_query
+from service.middleware import EXPOSED, strict_query
 from service.routers import artifacts, assets, captures, exports, info, jobs, renders, uploads
 from service.routers.info import package_version
 from service.settings import ServiceSettings, get_service_settings
@@ -58,7 +58,6 @@ def create_app(settings: ServiceSettings | None = None) -> FastAPI:
     for module in (info, captures, uploads, jobs, artifacts, assets, renders, exports):
         app.include_router(module.router)
     mount_web(app)  # the web page at / (after the API, which it never shadows)
-    app.add_middleware(BodyLimit, limit=settings.max_json_bytes)
     if settings.cors_origins:
         app.add_middleware(CORSMiddleware, allow_origins=settings.cors_origins,
                            allow_methods=["*"], allow_headers=["*"], expose_headers=EXPOSED,

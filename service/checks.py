@@ -14,9 +14,15 @@ from core.config import parse_frames
 from service.deps import Services
 from service.errors import ApiError
 from worker.models import Asset, Capture, Job
-from worker.pipelines import MODEL_KIND, Pipeline, ReconstructParams, RelightJobParams
+from worker.pipelines import (
+    MODEL_KIND,
+    ExportJobParams,
+    Pipeline,
+    ReconstructParams,
+    RelightJobParams,
+)
 
-__all__ = ["check_params", "check_reconstruct", "check_render", "refuse"]
+__all__ = ["check_export", "check_params", "check_reconstruct", "check_render", "refuse"]
 
 
 def refuse(path: str, message: str) -> ApiError:
@@ -66,6 +72,9 @@ def check_reconstruct(services: Services, tenant: str, capture: Capture,
                                f"{', '.join(offered)})")
     if cfg.normal_estimator is not None:
         _check_model(services, tenant, cfg.normal_estimator)
+    if cfg.split == "capture" and "views" in summary and not summary.get("test_cameras"):
+        raise refuse("params.config.split", "the capture declares no test_cameras; choose "
+                                            "auto, every8 or none")
 
 
 def _check_model(services: Services, tenant: str, name: str) -> None:
@@ -85,17 +94,37 @@ def _check_model(services: Services, tenant: str, name: str) -> None:
                  f"id, or name one of the server's models ({served})")
 
 
-def check_render(services: Services, source: Job, params: RelightJobParams) -> None:
-    """The frames are among the reconstruction's and the cameras among its capture's."""
-    capture = None
-    if source.capture_id is not None:
-        with services.store.session(write=False) as s:
-            capture = s.get(Capture, source.capture_id)
-    summary: dict[str, Any] = (capture.summary or {}) if capture is not None else {}
+def _source_summary(services: Services, source: Job) -> dict[str, Any]:
+    """The summary of the capture a reconstruction was made from (empty once deleted)."""
+    if source.capture_id is None:
+        return {}
+    with services.store.session(write=False) as s:
+        capture = s.get(Capture, source.capture_id)
+    return (capture.summary or {}) if capture is not None else {}
+
+
+def _check_source_frames(source: Job, summary: dict[str, Any], spec: str | None) -> None:
+    """`spec` (a request's `frames`) selects some of the frames the reconstruction made."""
     if "frames" in summary:
         made = _frames(source.params.get("frames"), int(summary["frames"]), "params.frames",
                        "capture")
-        _frames(params.frames, len(made), "frames", f"reconstruction {source.id}")
+        _frames(spec, len(made), "frames", f"reconstruction {source.id}")
+
+
+def check_export(services: Services, source: Job, params: ExportJobParams) -> None:
+    """The frames are among the reconstruction's; a subject export needs masks to find the
+    subject by."""
+    summary = _source_summary(services, source)
+    _check_source_frames(source, summary, params.frames)
+    if params.subject and summary.get("masks") == 0:
+        raise refuse("subject", "the capture has no masks, so nothing says where the subject "
+                                "is; export the whole scene")
+
+
+def check_render(services: Services, source: Job, params: RelightJobParams) -> None:
+    """The frames are among the reconstruction's and the cameras among its capture's."""
+    summary = _source_summary(services, source)
+    _check_source_frames(source, summary, params.frames)
     ids = summary.get("camera_ids")
     if params.orbit is None and params.cameras not in ("heldout", "all") and ids is not None:
         asked = [c.strip() for c in params.cameras.split(",")]

@@ -18,7 +18,7 @@ from worker.blobs import BlobStore
 from worker.models import utcnow
 from worker.store import JobStore
 
-__all__ = ["Services", "ServicesDep", "absolute_url", "default_expiry", "get_services"]
+__all__ = ["Services", "ServicesDep", "default_expiry", "get_services", "location"]
 
 
 @dataclass
@@ -43,11 +43,13 @@ async def get_services(request: Request) -> Services:
 ServicesDep = Annotated[Services, Depends(get_services)]
 
 
-def absolute_url(request: Request, services: Services, path: str) -> str:
-    """`path` (starting with /) as an absolute URL: under public_url when configured, else under
-    the request's own scheme and host."""
-    base = services.settings.public_url or str(request.base_url)
-    return base.rstrip("/") + path
+def location(services: Services, path: str) -> str:
+    """`path` (starting with /) as clients should follow it (Location, `url` fields): under
+    public_url when configured, else the path itself, a relative reference resolved against
+    the URL the client used. Never built from the request's Host header, which a client (or
+    whoever forwarded the request) chooses."""
+    base = services.settings.public_url
+    return base.rstrip("/") + path if base else path
 
 
 def default_expiry(services: Services, given: dt.datetime | None) -> dt.datetime | None:

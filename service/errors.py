@@ -21,6 +21,7 @@ __all__ = [
     "ErrorDetail",
     "ErrorInfo",
     "ErrorOut",
+    "body_problem",
     "error_responses",
     "install_error_handlers",
 ]
@@ -93,9 +94,9 @@ async def _api_error(request: Request, exc: ApiError) -> JSONResponse:
     return _respond(request, exc)
 
 
-def _body_problem(cause: BaseException) -> str:
-    """Why FastAPI could not parse a JSON body (it answers only "There was an error parsing
-    the body" and keeps the reason as the exception's cause)."""
+def body_problem(cause: BaseException) -> str:
+    """Why a JSON body could not be parsed (FastAPI answers only "There was an error parsing
+    the body" and keeps the reason as the exception's cause; service.body asks directly)."""
     if isinstance(cause, UnicodeDecodeError):
         return (f"body: not UTF-8 text (byte {cause.start} is {cause.object[cause.start]:#04x});"
                 " send JSON encoded as UTF-8")
@@ -110,7 +111,7 @@ async def _http_error(request: Request, exc: StarletteHTTPException) -> JSONResp
     message = exc.detail if isinstance(exc.detail, str) else str(exc.detail)
     if exc.status_code == 400 and exc.__cause__ is not None and \
             message == "There was an error parsing the body":
-        problem = _body_problem(exc.__cause__)
+        problem = body_problem(exc.__cause__)
         return _respond(request, ApiError(422, problem, details=[
             {"path": "body", "message": problem.removeprefix("body: ")}]))
     if exc.status_code == 404 and message == "Not Found":

@@ -17,7 +17,18 @@ from worker.blobs import BlobStore
 
 __all__ = ["blob_response", "parse_range"]
 
-_RANGE = re.compile(r"^\s*bytes\s*=\s*(\d*)\s*-\s*(\d*)\s*$", re.IGNORECASE)
+_RANGE = re.compile(r"^\s*bytes\s*=\s*([0-9]*)\s*-\s*([0-9]*)\s*$", re.IGNORECASE)
+# A byte position of more digits than this is past any blob (2**63 has 19): it is read as
+# BEYOND instead of converted (int() of a 4,300-digit string raises).
+MAX_DIGITS = 18
+BEYOND = 10 ** MAX_DIGITS
+
+
+def _position(digits: str) -> int:
+    """A byte position of the header, bounded before it is converted: leading zeros dropped,
+    anything longer than MAX_DIGITS digits is BEYOND every blob."""
+    digits = digits.lstrip("0") or "0"
+    return BEYOND if len(digits) > MAX_DIGITS else int(digits)
 
 
 def parse_range(header: str | None, size: int) -> tuple[int, int] | None | str:
@@ -30,17 +41,17 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None | str:
         return None
     first, last = m.group(1), m.group(2)
     if not first:  # the last n bytes
-        n = int(last)
+        n = _position(last)
         if n == 0 or size == 0:
             return "unsatisfiable"
         return max(0, size - n), size
-    start = int(first)
-    if last and int(last) < start:
+    start = _position(first)
+    end = _position(last) if last else None
+    if end is not None and end < start:
         return None  # invalid: ignored, as RFC 9110 says
     if start >= size:
         return "unsatisfiable"
-    end = min(int(last) + 1, size) if last else size
-    return start, end
+    return start, min(end + 1, size) if end is not None else size
 
 
 def _etag_matches(header: str, etag: str) -> bool:
@@ -61,8 +72,10 @@ def blob_response(request: Request, blobs: BlobStore, key: str, *, size: int, sh
     if if_range is not None and if_range.strip() != etag:
         wanted = None  # the client's partial copy is of another version: send it all
     if wanted == "unsatisfiable":
-        raise ApiError(416, f"range {request.headers.get('range')!r} is outside the "
-                            f"{size}-byte file", headers={"Content-Range": f"bytes */{size}"})
+        shown = request.headers.get("range", "")
+        shown = shown if len(shown) <= 80 else shown[:60] + "..."
+        raise ApiError(416, f"range {shown!r} is outside the {size}-byte file",
+                       headers={"Content-Range": f"bytes */{size}"})
     start, end, status = 0, size, 200
     if isinstance(wanted, tuple):
         start, end, status = wanted[0], wanted[1], 206

@@ -6,9 +6,11 @@ from __future__ import annotations
 import datetime as dt
 from typing import Annotated, Any, Literal
 
-from pydantic import AwareDatetime, BaseModel, ConfigDict, Field, WithJsonSchema
+from pydantic import AfterValidator, AwareDatetime, BaseModel, Field, WithJsonSchema
+from pydantic_core import PydanticCustomError
 
 from core.config import schema
+from core.config.base import AsTuple, StrictModel
 from core.data.importers import FORMATS
 from service.errors import ErrorInfo
 from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJobParams
@@ -16,10 +18,10 @@ from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJ
 __all__ = [
     "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
     "CaptureItem", "CaptureOut", "CapturePage", "CaptureSummary", "ExportIn", "FileOut", "FilePage",
-    "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut",
-    "PartOut", "JobPage", "JobState",
-    "LightIn", "LimitsOut", "LogsOut", "ManifestFileIn", "ManifestIn", "ManifestPatchIn", "PipelineOut",
-    "ProgressOut", "ReadyOut", "RenderIn", "TusOut", "manifest_entries",
+    "Format", "HealthOut", "ImageSize", "InfoOut", "JobIn", "JobOut", "JobPage", "JobState",
+    "LightIn", "LimitsOut", "LogsOut", "ManifestFileIn", "ManifestIn", "ManifestPatchIn", "Name",
+    "PATCH_FILES", "PartOut", "PipelineOut", "ProgressOut", "ReadyOut", "RenderIn", "RunOut",
+    "TusOut", "manifest_entries",
 ]
 
 # The importers' registry names the formats (core.data.importers.IMPORTERS).
@@ -28,10 +30,31 @@ JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 CaptureState = Literal["uploading", "committing", "ready", "failed"]
 FileState = Literal["received", "missing", "corrupt"]
 SHA256 = r"^[0-9a-fA-F]{64}$"
+PATCH_FILES = 10_000
+"""Most entries one manifest patch adds (and removes)."""
 
 
-class _In(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+MAX_NAME = 256
+
+
+def _printable(value: str) -> str:
+    bad = next((i for i, c in enumerate(value) if not c.isprintable()), None)
+    if bad is not None:
+        raise PydanticCustomError(
+            "name_printable", "a name takes printable characters only (no control, format or "
+            "line-separator characters); character {at} is {char}",
+            {"at": bad, "char": f"U+{ord(value[bad]):04X}"})
+    return value
+
+
+Name = Annotated[str, AfterValidator(_printable), Field(max_length=MAX_NAME, json_schema_extra={
+    "pattern": r"^[^\u0000-\u001f\u007f-\u009f\u2028\u2029]*$"})]
+"""A name a client gives an object: printable characters (str.isprintable: no control, format
+or separator characters but the space), at most 256 of them; stored and shown as given."""
+
+
+class _In(StrictModel):
+    """A request body: validated as strictly as the run configuration (core.config.base)."""
 
 
 # -- captures ------------------------------------------------------------------------------------
@@ -43,7 +66,7 @@ class ManifestFileIn(_In):
 
 
 class ManifestIn(_In):
-    files: list[ManifestFileIn] = Field(min_length=1)
+    files: list[ManifestFileIn] = Field(min_length=1, fail_fast=True)
 
 
 def manifest_entries(files: list[ManifestFileIn]) -> list[dict[str, Any]]:
@@ -52,14 +75,16 @@ def manifest_entries(files: list[ManifestFileIn]) -> list[dict[str, Any]]:
 
 
 class ManifestPatchIn(_In):
-    files: list[ManifestFileIn] = Field(default_factory=list, max_length=10_000, description=(
-        "Entries to add, or to replace (same path): a replaced file must be uploaded again."))
-    remove: list[str] = Field(default_factory=list, max_length=10_000,
+    files: list[ManifestFileIn] = Field(
+        default_factory=list, max_length=PATCH_FILES, fail_fast=True, description=(
+            "Entries to add, or to replace (same path): a replaced file must be uploaded "
+            "again."))
+    remove: list[str] = Field(default_factory=list, max_length=PATCH_FILES, fail_fast=True,
                               description="Paths to drop.")
 
 
 class CaptureIn(_In):
-    name: str = Field("", max_length=256)
+    name: Name = ""
     format: Format = Field(description=(
         "canonical (docs/design.md 3.1), an importer's format, or auto (detected at commit)."))
     manifest: ManifestIn
@@ -93,6 +118,8 @@ class CaptureSummary(BaseModel):
     views: int
     image_sizes: list[ImageSize]
     masks: int = Field(description="Views with a foreground mask.")
+    test_cameras: list[str] | None = Field(None, description=(
+        "The cameras the capture declares held out (capture.json test_cameras), or null."))
     normals: int = Field(description="Views with a normal prior.")
     source_format: str
 
@@ -142,7 +169,7 @@ class JobIn(_In):
             "The pipeline's parameters, checked before the job is made (422 naming each bad "
             "one); the reconstruct pipeline's are described here, every pipeline's in GET "
             "/v1/pipelines."))
-    name: str = Field("", max_length=256)
+    name: Name = ""
     expires_at: AwareDatetime | None = None
 
 
@@ -157,13 +184,31 @@ class ProgressOut(BaseModel):
     message: str
 
 
+class RunOut(BaseModel):
+    """One run of a job or part: a worker's claim of it, and how it ended."""
+
+    attempt: int = Field(description="The attempt it was (1, 2, ...; counted again after a "
+                                     "retry).")
+    worker: str = Field(description="host/pid of the worker process.")
+    started_at: dt.datetime
+    ended_at: dt.datetime | None = Field(None, description="null while it runs.")
+    outcome: Literal["succeeded", "failed", "cancelled", "released", "lost"] | None = Field(
+        None, description="released: its worker shut down and gave it back; lost: its worker "
+                          "stopped renewing its lease (killed, or its machine gone).")
+
+
+WORKER = "host/pid of the worker that runs it, or ran it last (kept after it ends)."
+RUNS = "Each worker that took it, oldest first (at most the last 20)."
+
+
 class PartOut(BaseModel):
     """One part of a sequence job run as parts (one group of pictures, docs/design.md 4.4)."""
 
     index: int = Field(description="The group of pictures (0-based).")
     frames: list[str] = Field(description="Its frames in order; the first is its key frame.")
     state: JobState
-    worker: str | None = Field(description="host/pid of the worker running it (while running).")
+    worker: str | None = Field(description=WORKER)
+    runs: list[RunOut] = Field(description=RUNS)
     attempts: int
     stage: str
     frame: int = Field(description="Its frame being made (1-based, within the part).")
@@ -188,6 +233,9 @@ class JobOut(BaseModel):
     progress: ProgressOut
     error: ErrorInfo | None
     attempts: int
+    worker: str | None = Field(None, description=WORKER + " A job run as parts: null (see "
+                                                          "its parts').")
+    runs: list[RunOut] = Field(default_factory=list, description=RUNS)
     cancel_requested: bool
     created_at: dt.datetime
     updated_at: dt.datetime
@@ -263,8 +311,9 @@ class RenderIn(RelightJobParams):
     job_id: str = Field(min_length=1, max_length=64, description=(
         "A succeeded reconstruct job of yours; it cannot be deleted while this render is "
         "queued or running."))
-    lights: tuple[LightIn, ...] = Field((), max_length=64, description="Lights added to the map.")
-    name: str = Field("", max_length=256)
+    lights: Annotated[tuple[LightIn, ...], AsTuple] = Field(
+        (), max_length=64, description="Lights added to the map.")
+    name: Name = ""
     expires_at: AwareDatetime | None = None
 
     def params(self) -> dict[str, Any]:
@@ -279,7 +328,7 @@ class ExportIn(ExportJobParams):
     job_id: str = Field(min_length=1, max_length=64, description=(
         "A succeeded reconstruct job of yours; it cannot be deleted while this export is "
         "queued or running."))
-    name: str = Field("", max_length=256)
+    name: Name = ""
     expires_at: AwareDatetime | None = None
 
     def params(self) -> dict[str, Any]:
@@ -297,7 +346,10 @@ class LimitsOut(BaseModel):
     max_archive_bytes: int
     max_archive_members: int
     max_asset_bytes: int
-    max_json_bytes: int
+    max_json_bytes: int = Field(description="Largest JSON request body but a manifest's.")
+    max_manifest_bytes: int = Field(description="Largest body of a capture manifest "
+                                                "(POST /v1/captures, PATCH its manifest).")
+    max_json_file_bytes: int = Field(description="Largest .json file in a capture.")
     max_image_pixels: int = Field(description="Largest image (width x height) accepted in a "
                                               "capture or as an environment map.")
 

@@ -48,8 +48,14 @@ class ServiceSettings(WorkerSettings):
     and calibration text stay far below it."""
     max_asset_bytes: int = Field(1 * GiB, ge=1)
     """Largest environment map (POST /v1/assets)."""
-    max_json_bytes: int = Field(256 * MiB, ge=1024)
-    """Largest JSON request body (a capture manifest of a million files is about 150 MiB)."""
+    max_json_bytes: int = Field(1 * MiB, ge=1024)
+    """Largest JSON request body but a manifest's (a job, render or export request is a few
+    kB; files go up with tus uploads or a zip archive, under their own limits)."""
+    max_manifest_bytes: int = Field(256 * MiB, ge=1024)
+    """Largest body of a capture manifest (POST /v1/captures, PATCH .../manifest): one of a
+    million files is about 150 MiB."""
+    max_json_file_bytes: int = Field(256 * MiB, ge=1024)
+    """Largest .json file in a capture manifest (parsed whole, in memory, at commit)."""
     commit_wait_seconds: float = Field(20.0, ge=0)
     """How long POST /v1/captures/{id}/commit waits for validation before it answers 202
     (state committing) and finishes in the background."""
@@ -57,6 +63,9 @@ class ServiceSettings(WorkerSettings):
     """How often an event stream polls the job store for new events."""
     sse_keepalive_seconds: float = Field(15.0, gt=0)
     """Interval of the keep-alive comment on an idle event stream (proxies drop silent ones)."""
+    idempotency_key_hours: float = Field(24.0, gt=0, le=24 * 30)
+    """How long a submit's Idempotency-Key answers the job it made (POST /v1/jobs, /v1/renders,
+    /v1/exports); after that the key may make a new job."""
     upload_sync_bytes: int = Field(64 * MiB, ge=MiB)
     """A long tus PATCH makes its progress durable (fsync, then the offset in the job store)
     every this many bytes, so a crash of the API process loses at most this much."""

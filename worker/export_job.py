@@ -45,7 +45,7 @@ class ExportJob(RelightJob):
                           f"{', '.join(p.formats)}")
             record = export_run(run, out, formats=p.formats, fps=p.fps, config=config,
                                 capture_dir=capture, on_progress=self._on_export,
-                                subject=p.subject)
+                                subject=p.subject, run_name=f"jobs/{source.id}")
             for fmt in ("spz", "stream"):
                 if fmt in record:
                     r = record[fmt]

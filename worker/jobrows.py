@@ -16,7 +16,9 @@ from typing import Any, Literal
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
+from worker.idempotency import Idempotency, remember
 from worker.models import Job, JobEvent, utcnow
+from worker.owner import run_ended
 from worker.parts import ASSEMBLY_SHARE, failed_error, part_event, parts_of, roll_up
 
 __all__ = ["JobState", "cancel_parts", "create_parted", "event", "finish", "lock", "new_id",
@@ -44,7 +46,7 @@ def event(s: Session, job_id: str, kind: str, data: dict[str, Any]) -> None:
 def state_event(s: Session, job: Job) -> None:
     """The job's state event (and, for a part, its parent's `part` event saying so)."""
     data = {"state": job.state, "error": job.error, "attempts": job.attempts,
-            **progress_of(job)}
+            "worker": job.worker, "runs": job.runs or [], **progress_of(job)}
     event(s, job.id, "state", data)
     if job.parent_id is not None:  # the parent's stream says what its parts do
         part_event(s, job, "state", data)
@@ -64,6 +66,7 @@ def finish(s: Session, job: Job, state: JobState, error: dict[str, Any] | None,
            message: str) -> None:
     """End the job; a part's end may end its parent or make it wait for its assembly."""
     job.state, job.error, job.finished_at = state, error, utcnow()
+    run_ended(job, state, job.finished_at)
     job.lease_owner = job.lease_expires_at = None
     job.eta_s = None
     job.stage = state
@@ -79,14 +82,17 @@ def finish(s: Session, job: Job, state: JobState, error: dict[str, Any] | None,
 # -- jobs run as parts ----------------------------------------------------------------------
 def create_parted(s: Session, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
                   capture_id: str | None, name: str = "",
-                  expires_at: dt.datetime | None = None) -> tuple[Job, list[Job]]:
+                  expires_at: dt.datetime | None = None,
+                  idempotency: Idempotency | None = None) -> tuple[Job, list[Job]]:
     """A sequence job and its parts (one per group of `groups`), all queued; the caller
-    dispatches the parts (the parent itself is dispatched when they have succeeded)."""
+    dispatches the parts (the parent itself is dispatched when they have succeeded).
+    `idempotency`: as `JobStore.create` (the key names the parent)."""
     parent = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline="reconstruct",
                  params=params, name=name, state="queued", stage="queued",
                  expires_at=expires_at, parts=len(groups), frames=sum(map(len, groups)))
     s.add(parent)
     s.flush()
+    remember(s, idempotency, parent.id)
     parts = [Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline="reconstruct",
                  params=params, name=name, state="queued", stage="queued", parent_id=parent.id,
                  part_index=i, part_frames=frames, frames=len(frames))

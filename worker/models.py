@@ -32,6 +32,7 @@ __all__ = [
     "Asset",
     "Base",
     "Capture",
+    "IdempotencyKey",
     "Job",
     "JobEvent",
     "JobLog",
@@ -171,6 +172,11 @@ class Job(Base):
     """Times a worker claimed the job since it was queued (the redelivery cap counts these)."""
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     lease_owner: Mapped[str | None] = mapped_column(String(256), default=None)
+    worker: Mapped[str | None] = mapped_column(String(256), default=None)
+    """host/pid of the worker that runs it or ran it last (kept when the lease ends)."""
+    runs: Mapped[list[Any] | None] = mapped_column(default=None)
+    """Each claim, newest last (at most worker.owner.MAX_RUNS): {"attempt", "worker",
+    "started_at", "ended_at", "outcome"}; a run its worker never ended is "lost"."""
     lease_expires_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     dispatched_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     dispatches: Mapped[int] = mapped_column(Integer, default=0)
@@ -244,3 +250,24 @@ class Asset(Base):
     meta: Mapped[dict[str, Any]] = mapped_column(default=dict)
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     expires_at: Mapped[dt.datetime | None] = mapped_column(default=None, index=True)
+
+
+class IdempotencyKey(Base):
+    """A client's Idempotency-Key of a submit (POST /v1/jobs, /v1/renders, /v1/exports) and the
+    job it made. Unique per tenant: two submits racing with one key make one job, because the
+    second insert fails on this constraint in the transaction that would add its job (never a
+    check, then an insert). Deleted with its job (cascade) or once expired (the sweeper)."""
+
+    __tablename__ = "idempotency_keys"
+    id: Mapped[int] = mapped_column(BigInteger().with_variant(Integer, "sqlite"),
+                                    primary_key=True, autoincrement=True)
+    tenant: Mapped[str] = mapped_column(String(64))
+    key: Mapped[str] = mapped_column(String(255))
+    request_sha256: Mapped[str] = mapped_column(String(64))
+    """What was asked (the operation and its validated body): a key reused for another
+    request is refused."""
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
+    expires_at: Mapped[dt.datetime] = mapped_column(index=True)
+
+    __table_args__ = (UniqueConstraint("tenant", "key", name="uq_idempotency_keys_tenant_key"),)

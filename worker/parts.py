@@ -12,14 +12,14 @@ import datetime as dt
 from collections.abc import Sequence
 from typing import Any
 
-from sqlalchemy import delete, select
-from sqlalchemy.orm import Session
+from sqlalchemy import delete, exists, select
+from sqlalchemy.orm import Session, aliased
 
 from core.config import RunConfig
 from worker.models import Job, JobEvent, utcnow
 
-__all__ = ["ASSEMBLY_SHARE", "delete_parts", "failed_error", "overall_progress", "part_event",
-           "part_out", "parts_of", "roll_up", "split_frames"]
+__all__ = ["ASSEMBLY_SHARE", "active_parts", "delete_parts", "failed_error", "overall_progress",
+           "part_event", "part_out", "parts_of", "roll_up", "split_frames", "worker_of"]
 
 ASSEMBLY_SHARE = 0.01
 """Share of a parted job's progress left for the assembly (merge, evaluation, publishing)."""
@@ -36,6 +36,12 @@ def split_frames(frames: Sequence[str], cfg: RunConfig) -> list[list[str]] | Non
     gop = cfg.gop if cfg.sequence.enabled else 1
     groups = [list(frames[s:s + gop]) for s in range(0, len(frames), gop)]
     return groups if len(groups) > 1 else None
+
+
+def active_parts(job_id) -> Any:
+    """SQL: the job has a queued or running part."""
+    part = aliased(Job)
+    return exists().where(part.parent_id == job_id, part.state.in_(("queued", "running")))
 
 
 def parts_of(s: Session, parent_id: str, *, lock: bool = False) -> list[Job]:
@@ -83,14 +89,19 @@ def failed_error(parts: list[Job]) -> dict[str, Any]:
     return error
 
 
+def worker_of(job: Job) -> str | None:
+    """host/pid of the worker that runs `job` or ran it last (from its lease for a row claimed
+    before migration 0004 kept it)."""
+    if job.worker is None and job.lease_owner:
+        return "/".join(job.lease_owner.split("/")[:2])
+    return job.worker
+
+
 def part_out(part: Job) -> dict[str, Any]:
     """A part as the API shows it."""
-    worker = None
-    if part.lease_owner:
-        host, pid = part.lease_owner.split("/")[:2]
-        worker = f"{host}/{pid}"
     return {"index": part.part_index, "frames": list(part.part_frames or []),
-            "state": part.state, "worker": worker, "attempts": part.attempts,
+            "state": part.state, "worker": worker_of(part), "runs": list(part.runs or []),
+            "attempts": part.attempts,
             "stage": part.stage, "frame": part.frame, "iteration": part.iteration,
             "iterations": part.iterations, "fraction": round(part.fraction, 6),
             "eta_s": part.eta_s, "started_at": part.started_at,

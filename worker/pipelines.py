@@ -11,16 +11,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
 
-from pydantic import (
-    BaseModel,
-    ConfigDict,
-    Field,
-    PrivateAttr,
-    WithJsonSchema,
-)
+from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, WithJsonSchema
 
-from core.config import RunConfig, load_config, schema
-from core.config.relight import BUILTIN_ENVMAPS, FRAMES, Light, RelightSettings
+from core.config import RunConfig, load_config, schema, validate
+from core.config.base import FrameSlice, StrictModel
+from core.config.relight import BUILTIN_ENVMAPS, Light, RelightSettings
 from core.rundir import kinds_written_by
 from worker.settings import WorkerSettings
 
@@ -32,18 +27,19 @@ __all__ = ["BUILTIN_ENVMAPS", "ExportJobParams", "Light", "MODEL_KIND", "PIPELIN
 MODEL_KIND = "normal_model"
 
 
-class ReconstructParams(BaseModel):
+class ReconstructParams(StrictModel):
     """Parameters of `reconstruct` (the `dgs reconstruct` command line, docs/design.md 3.2)."""
 
-    # frozen: the configuration `run_config` resolved stays the parameters' own
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # frozen: the configuration `run_config` resolved stays the parameters' own (the rest of
+    # the configuration is StrictModel's, which pydantic merges in)
+    model_config = ConfigDict(frozen=True)
 
     preset: Literal["paper", "fast", "test"] = Field(
         "fast", description="Training schedule: paper (30k steps per key frame), fast (7.5k), "
                             "test (500, for checks).")
-    frames: str | None = Field(
-        None, pattern=FRAMES, max_length=32,
-        description="Python slice over the capture's frame list, e.g. '0:10'; all by default.")
+    frames: FrameSlice | None = Field(
+        None, description="Python slice over the capture's frame list, e.g. '0:10'; all by "
+                          "default.")
     gop: int | None = Field(
         None, ge=1, le=10_000,
         description="Frames per group of pictures; default: config.gop (20 unless set).")
@@ -91,19 +87,16 @@ class RelightJobParams(RelightSettings):
             else self.envmap
 
 
-class ExportJobParams(BaseModel):
+class ExportJobParams(StrictModel):
     """Parameters of `export` (the `dgs export` command line): a succeeded reconstruction's
     frames as PLY, SPZ or the relightable sequence stream the web page plays."""
-
-    model_config = ConfigDict(extra="forbid")
 
     formats: list[Literal["ply", "spz", "stream"]] = Field(
         ["stream"], min_length=1, max_length=3,
         description="ply (the frame PLYs), spz (one SPZ per frame), stream "
                     "(export/stream.dgss, range-requestable, docs/stream.md).")
-    frames: str | None = Field(
-        None, pattern=FRAMES, max_length=32,
-        description="Python slice over the reconstruction's frames; all by default.")
+    frames: FrameSlice | None = Field(
+        None, description="Python slice over the reconstruction's frames; all by default.")
     fps: float | None = Field(None, gt=0, le=240, allow_inf_nan=False,
                               description="The stream's frame rate (default: the capture's, "
                                           "else 24).")
@@ -133,6 +126,11 @@ class Pipeline:
 
     def schema(self) -> dict[str, Any]:
         return self.params.model_json_schema()
+
+    def parse(self, params: Any, where: str = "params") -> BaseModel:
+        """The parameters from JSON data (a request's, or a job row's), validated strictly
+        (`core.config.validate`): core.config.ConfigError naming each bad one under `where`."""
+        return validate(self.params, params, where)
 
     def limits(self, settings: WorkerSettings) -> tuple[float, float]:
         """(soft, hard) time limits in seconds."""

@@ -87,7 +87,8 @@ class ReconstructJob:
                     frames=params.frames, resume=resume, progress=False,
                     model_files=self._model_files(run.parent),
                     on_progress=self._on_progress(run), should_stop=link.should_stop,
-                    gops=[self.job.part_index] if self.part else None)
+                    gops=[self.job.part_index] if self.part else None,
+                    capture_name=self.job.capture_id or "capture")
 
     def _model_files(self, work: Path) -> dict[str, Path]:
         """Where the models the configuration names are on this worker: an operator's
@@ -156,7 +157,7 @@ class ReconstructJob:
     def evaluate(self, run: Path, capture: Path) -> None:
         self.link.update(fraction=1 - PUBLISH_SHARE, stage="evaluating", message="")
         try:
-            result = evaluate_run(run, capture)
+            result = evaluate_run(run, capture, capture_name=self.job.capture_id or "capture")
         except ValueError as exc:  # e.g. no held-out camera: the job still succeeds
             self.link.log(f"evaluation skipped: {exc}")
             return

@@ -131,7 +131,7 @@ class Runner:
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
         pipeline = get_pipeline(job.pipeline)
-        params = pipeline.params.model_validate(job.params)
+        params = pipeline.parse(job.params)
         if job.parts:  # a job run as parts: what is left of it is their assembly
             return AssembleJob(self, job, params, link)
         kinds = {"reconstruct": ReconstructJob, "relight": RelightJob, "export": ExportJob}

@@ -13,20 +13,22 @@ that the API serves as server-sent events.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from sqlalchemy import exists, func, select, update
+from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
-from sqlalchemy.orm import Session, aliased
+from sqlalchemy.orm import Session
 
 from worker import jobrows
 from worker.db import session_scope
+from worker.housekeeping import Housekeeping
+from worker.idempotency import Idempotency, remember
 from worker.jobrows import JobState, new_id, progress_of
 from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
-from worker.owner import Owner
-from worker.parts import part_event, parts_of
+from worker.owner import Owner, run_ended, run_started
+from worker.parts import active_parts, part_event, parts_of
 
 __all__ = [
     "ACTIVE",
@@ -55,15 +57,10 @@ class Claim:
     retry_in: float = 0.0
 
 
-def _active_parts(job_id) -> Any:
-    """SQL: the job has a queued or running part."""
-    part = aliased(Job)
-    return exists().where(part.parent_id == job_id, part.state.in_(ACTIVE))
-
-
-class JobStore:
+class JobStore(Housekeeping):
     """Job lifecycle operations on the database at `url`, each in its own transaction (the
-    changes to the rows, those of jobs run as parts included, in `worker.jobrows`)."""
+    changes to the rows, those of jobs run as parts included, in `worker.jobrows`; the
+    sweepers' questions in `worker.housekeeping.Housekeeping`)."""
 
     def __init__(self, url: str):
         self.url = url
@@ -83,33 +80,41 @@ class JobStore:
 
     # -- created and changed by the API -------------------------------------------------------
     def create(self, tenant: str, pipeline: str, params: dict[str, Any], *,
-               capture_id: str | None, name: str = "",
-               expires_at: dt.datetime | None = None) -> Job:
+               capture_id: str | None, name: str = "", expires_at: dt.datetime | None = None,
+               idempotency: Idempotency | None = None) -> Job:
+        """A queued job; with `idempotency`, its key is kept with it in the same transaction
+        (IntegrityError, and no job, when a live row has the key: `worker.idempotency`)."""
         with self.session() as s:
             job = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
                       params=params, name=name, state="queued", stage="queued",
                       expires_at=expires_at)
             s.add(job)
             s.flush()
+            remember(s, idempotency, job.id)
             jobrows.state_event(s, job)
             return job
 
     def create_parted(self, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
                       capture_id: str | None, name: str = "",
-                      expires_at: dt.datetime | None = None) -> tuple[Job, list[Job]]:
+                      expires_at: dt.datetime | None = None,
+                      idempotency: Idempotency | None = None) -> tuple[Job, list[Job]]:
         """A sequence job and its parts (one per group of `groups`), all queued; the caller
-        dispatches the parts (the parent itself is dispatched when they have succeeded)."""
+        dispatches the parts (the parent itself is dispatched when they have succeeded).
+        `idempotency`: as `create` (the key names the parent)."""
         with self.session() as s:
             return jobrows.create_parted(s, tenant, params, groups, capture_id=capture_id,
-                                         name=name, expires_at=expires_at)
+                                         name=name, expires_at=expires_at,
+                                         idempotency=idempotency)
 
     def create_render(self, tenant: str, source_job_id: str, pipeline: str,
                       params: dict[str, Any], *, name: str = "",
-                      expires_at: dt.datetime | None = None) -> Job | None:
+                      expires_at: dt.datetime | None = None,
+                      idempotency: Idempotency | None = None) -> Job | None:
         """A job on the results of `source_job_id`, a succeeded job of `tenant` (on its
         capture); None when the source is not that (any more). The source row is locked
         while the job is added, so a concurrent delete of the source either happens first
-        (None here) or waits and then sees this job (and refuses)."""
+        (None here) or waits and then sees this job (and refuses). `idempotency`: as
+        `create`."""
         with self.session() as s:
             source = s.get(Job, source_job_id, with_for_update=True)
             if source is None or source.tenant != tenant or source.state != "succeeded":
@@ -119,6 +124,7 @@ class JobStore:
                       state="queued", stage="queued", expires_at=expires_at)
             s.add(job)
             s.flush()
+            remember(s, idempotency, job.id)
             jobrows.state_event(s, job)
             return job
 
@@ -208,7 +214,7 @@ class JobStore:
             if job.cancel_requested:
                 jobrows.finish(s, job, "cancelled", None, "cancelled before it resumed")
                 return Claim("terminal", job)
-            if job.parts and s.scalar(select(_active_parts(job.id))):
+            if job.parts and s.scalar(select(active_parts(job.id))):
                 return Claim("waiting", job)
             if job.lease_owner is not None and job.lease_expires_at and job.lease_expires_at > now:
                 holder = Owner.parse(job.lease_owner)
@@ -222,6 +228,7 @@ class JobStore:
                                "checkpoint"}, "")
                 return Claim("exhausted", job)
             job.attempts += 1
+            run_started(job, owner, now)
             job.lease_owner, job.lease_expires_at = str(owner), now + dt.timedelta(
                 seconds=lease_seconds)
             job.state = "running"
@@ -280,6 +287,7 @@ class JobStore:
             if job is None or job.lease_owner != str(owner) or job.state != "running":
                 return False
             job.state, job.stage, job.message = "queued", "queued", message[:512]
+            run_ended(job, "released", utcnow())
             job.lease_owner = job.lease_expires_at = job.eta_s = job.dispatched_at = None
             job.attempts = max(job.attempts - 1, 0)
             jobrows.state_event(s, job)
@@ -326,47 +334,3 @@ class JobStore:
             return list(s.scalars(select(JobLog).where(JobLog.job_id == job_id,
                                                        JobLog.seq >= offset)
                                   .order_by(JobLog.seq).limit(limit)))
-
-    # -- housekeeping ------------------------------------------------------------------------
-    def stranded(self, *, held: set[str] | None = None, grace: float = 0.0,
-                 requeue_after: float | None = None) -> dict[str, str]:
-        """Jobs that no worker has and no message will bring to one, with why: running with
-        an expired lease; queued and never sent (released by a worker that shut down, or the
-        broker was away when it was made); with `held` (the jobs the broker holds a message
-        for, worker.broker), queued, sent more than `grace` seconds ago and not held; with
-        `requeue_after` (for a broker that cannot be inspected), queued and last sent longer
-        ago than that."""
-        now = utcnow()
-        out: dict[str, str] = {}
-        with self.session(write=False) as s:
-            # A parted job's own turn (its assembly) comes when no part is left to run.
-            for job_id, owner in s.execute(select(Job.id, Job.lease_owner).where(
-                    Job.state == "running", ~_active_parts(Job.id),
-                    (Job.lease_owner.is_(None)) | (Job.lease_expires_at < now))):
-                out[job_id] = f"its worker ({owner}) stopped renewing its lease"
-            for job_id, sent in s.execute(select(Job.id, Job.dispatched_at).where(
-                    Job.state == "queued", Job.lease_owner.is_(None), ~_active_parts(Job.id))):
-                if sent is None:
-                    out[job_id] = ("it was never sent to the broker (released by a worker that "
-                                   "shut down, or the broker was away)")
-                elif held is not None and job_id not in held and \
-                        sent < now - dt.timedelta(seconds=grace):
-                    out[job_id] = "it is queued, but its message is no longer in the broker"
-                elif requeue_after is not None and \
-                        sent < now - dt.timedelta(seconds=requeue_after):
-                    out[job_id] = (f"it has been queued for more than {requeue_after:.0f} s "
-                                   "(this broker cannot be inspected)")
-        return out
-
-    def redispatch_stranded(self, send: Callable[[str], None], *, min_gap: float,
-                            **stranded: Any) -> dict[str, str]:
-        """Send every stranded job (`stranded(**stranded)`) to the broker again, at most once
-        per `min_gap` seconds per job whoever else sweeps; returns {job id: why} of those
-        sent."""
-        sent = {}
-        before = utcnow() - dt.timedelta(seconds=min_gap)
-        for job_id, why in self.stranded(**stranded).items():
-            if self.mark_dispatched(job_id, before=before):
-                send(job_id)
-                sent[job_id] = why
-        return sent

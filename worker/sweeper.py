@@ -24,6 +24,7 @@ from collections.abc import Callable
 from sqlalchemy import select, update
 
 from worker.blobs import BlobStore, open_store
+from worker.idempotency import forget_expired
 from worker.models import Asset, Capture, Job, utcnow
 from worker.parts import delete_parts
 from worker.scratch import clean_job_folders
@@ -125,6 +126,7 @@ class Sweeper:
                 self.blobs.delete_prefix(f"assets/{asset.id}")
                 s.delete(asset)
                 out["assets"].append(asset.id)
+            forget_expired(s)  # idempotency keys: rows only, nothing to log
         for kind, ids in out.items():
             for obj in ids:
                 log.warning("%s %s expired (expires_at passed): deleted with its files", kind[:-1],

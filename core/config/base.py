@@ -15,15 +15,27 @@ import typing
 from collections.abc import Callable
 from typing import Annotated, Any, TypeVar
 
-from pydantic import AfterValidator, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import (
+    AfterValidator,
+    BeforeValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    TypeAdapter,
+    ValidationError,
+)
 from pydantic.dataclasses import dataclass as pydantic_dataclass
+from pydantic_core import PydanticCustomError
 
-__all__ = ["ConfigError", "Device", "Fraction", "Positive", "Steps", "Weight", "section", "validate"]
+__all__ = ["AsTuple", "ConfigError", "Device", "FRAMES", "FrameSlice", "Fraction", "Positive",
+           "Steps", "StrictModel", "Weight", "section", "validate"]
 
 T = TypeVar("T")
 
 STRICT = ConfigDict(extra="forbid", strict=True, allow_inf_nan=False,
                     use_attribute_docstrings=True)
+"""The one strictness of everything a user or a client configures: the run configuration's
+sections, and (through `StrictModel`) every request body and job's parameters of the service."""
 
 # Upper bounds a request cannot exceed. They are far beyond any run that makes sense (the paper
 # preset is 30k steps; a 4 MP studio frame stays under a few million Gaussians) and low enough
@@ -50,6 +62,50 @@ def _device(value: str) -> str:
 Device = Annotated[str, AfterValidator(_device), Field(json_schema_extra={
     "pattern": DEVICE_PATTERN})]
 """A torch device as configuration names it (whether it exists is `core.device`'s question)."""
+
+_INDEX = r"-?\d{1,6}"
+FRAMES = rf"^{_INDEX}$|^({_INDEX})?:({_INDEX})?(:({_INDEX})?)?$"
+"""A Python slice over a frame list ('0:10', '2', '::2', '-5:'), each number at most 6 digits
+(a million frames): a number nothing can mean is refused, not clamped by `slice`."""
+
+
+def _frame_slice(value: str) -> str:
+    if not re.match(FRAMES, value):
+        raise PydanticCustomError(
+            "frame_slice", "expected a Python slice over the frame list: A, A:B or A:B:S, "
+            "each a whole number of at most 6 digits, got {value}",
+            {"value": json.dumps(value[:40])})
+    parts = value.split(":")
+    if len(parts) == 3 and parts[2] and int(parts[2]) == 0:
+        raise PydanticCustomError("frame_slice", "a slice's step must not be 0, got {value}",
+                                  {"value": json.dumps(value)})
+    return value
+
+
+FrameSlice = Annotated[str, AfterValidator(_frame_slice), Field(
+    max_length=32, json_schema_extra={"pattern": FRAMES})]
+"""A frame slice as a request or the command line gives it (whether it selects anything is a
+question for the capture: `core.config.parse_frames`)."""
+
+
+def _as_tuple(value: Any) -> Any:
+    return tuple(value) if isinstance(value, list) else value
+
+
+AsTuple = BeforeValidator(_as_tuple)
+"""On a tuple field of a StrictModel (`Annotated[tuple[...], AsTuple]`): a list is taken for
+it from Python too, as JSON gives one (strict mode wants a tuple there); its items are checked
+as strictly as ever. A field validator, not a model one: a model's `before` validator hands
+the whole input back as Python, where strict mode refuses a time written as text."""
+
+
+class StrictModel(BaseModel):
+    """A pydantic model validated as strictly as the configuration sections (`STRICT`): no
+    strings or booleans for numbers, no NaN or infinity, no unknown keys. Validate JSON data
+    with `validate`, which goes through JSON (an ISO string for a time), or with
+    `model_validate_json`; tuple fields are `AsTuple`."""
+
+    model_config = STRICT
 
 
 def section(cls: type[T]) -> type[T]:
@@ -82,11 +138,22 @@ class ConfigError(ValueError):
 
 
 def _field_type(cls: Any, name: str) -> Any:
-    """The declared type of field `name` of dataclass `cls` (None when there is none)."""
+    """The declared type of field `name` of dataclass or model `cls` (None when there is
+    none)."""
+    if isinstance(cls, type) and issubclass(cls, BaseModel):
+        field = cls.model_fields.get(name)
+        return None if field is None else field.annotation
     if not dataclasses.is_dataclass(cls):
         return None
     hints = typing.get_type_hints(cls)
     return hints.get(name)
+
+
+def _names(cls: Any) -> list[str]:
+    if isinstance(cls, type) and issubclass(cls, BaseModel):
+        return sorted(cls.model_fields)
+    return sorted(f.name for f in dataclasses.fields(cls)) if dataclasses.is_dataclass(cls) \
+        else []
 
 
 def _known_keys(root: Any, loc: tuple) -> list[str]:
@@ -96,18 +163,18 @@ def _known_keys(root: Any, loc: tuple) -> list[str]:
         cls = _field_type(cls, part) if isinstance(part, str) else None
         while typing.get_origin(cls) is Annotated:
             cls = typing.get_args(cls)[0]
-    return sorted(f.name for f in dataclasses.fields(cls)) if dataclasses.is_dataclass(cls) else []
+    return _names(cls)
 
 
 def _message(error: dict, root: Any) -> str:
     kind, loc = error["type"], tuple(error["loc"])
-    if kind == "unexpected_keyword_argument":
+    if kind in ("unexpected_keyword_argument", "extra_forbidden"):
         known = _known_keys(root, loc[:-1])
         return "unknown setting" + (f" (known: {', '.join(known)})" if known else "")
     message = error["msg"].removeprefix("Value error, ")
     value = error.get("input")
     if kind != "value_error" and isinstance(value, (bool, int, float, str)) and \
-            len(repr(value)) <= 40:
+            len(repr(value)) <= 40 and ", got " not in message:
         message += f", got {json.dumps(value)}"
     return message
 

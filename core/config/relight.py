@@ -9,7 +9,6 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from pydantic import (
-    BaseModel,
     ConfigDict,
     Field,
     field_validator,
@@ -18,23 +17,22 @@ from pydantic import (
 )
 from pydantic_core import PydanticCustomError
 
-__all__ = ["BUILTIN_ENVMAPS", "FRAMES", "Light", "RelightSettings"]
+from core.config.base import FRAMES, AsTuple, FrameSlice, StrictModel
 
-FRAMES = r"^-?\d*(:-?\d*){0,2}$"
-"""A Python slice over a frame list ('0:10', '2', '::2')."""
+__all__ = ["BUILTIN_ENVMAPS", "FRAMES", "FrameSlice", "Light", "RelightSettings"]
 # The built-in maps of core.relight.presets (a test keeps the two equal).
 BUILTIN_ENVMAPS = ("studio", "sunset", "neon")
 
 Coordinate = Annotated[float, Field(ge=-1e6, le=1e6, allow_inf_nan=False)]
 Channel = Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)]
-Vec3 = tuple[Coordinate, Coordinate, Coordinate]
+Vec3 = Annotated[tuple[Coordinate, Coordinate, Coordinate], AsTuple]
 
 
-class Light(BaseModel):
+class Light(StrictModel):
     """A light added to the environment: it adds `intensity * color * max(0, n . l)` of
     irradiance, a point light's falling off as 1/d^2 (docs/design.md 5.8)."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(frozen=True)
 
     kind: Literal["directional", "point"] = Field(
         "directional", description="directional (infinitely far) or point.")
@@ -43,7 +41,7 @@ class Light(BaseModel):
                           "coordinates (need not be unit length; not zero).")
     position: Vec3 | None = Field(
         None, description="Point lights: the light's position, capture world coordinates.")
-    color: tuple[Channel, Channel, Channel] = Field(
+    color: Annotated[tuple[Channel, Channel, Channel], AsTuple] = Field(
         (1.0, 1.0, 1.0), description="Linear RGB tint (not all zero).")
     intensity: float = Field(
         1.0, le=1e6, allow_inf_nan=False, json_schema_extra={"exclusiveMinimum": 0},
@@ -94,10 +92,8 @@ class Light(BaseModel):
         return self.direction if self.kind == "directional" else self.position
 
 
-class RelightSettings(BaseModel):
+class RelightSettings(StrictModel):
     """What to relight and how: an environment map turned and exposed, lights, the views."""
-
-    model_config = ConfigDict(extra="forbid")
 
     envmap: str | None = Field(
         None, min_length=1, max_length=4096,
@@ -110,15 +106,15 @@ class RelightSettings(BaseModel):
         description="Turn of the map about the capture's up axis, degrees (right-hand rule).")
     exposure: float = Field(0.0, ge=-20, le=20, allow_inf_nan=False,
                             description="Map exposure in stops (radiance x 2**exposure).")
-    lights: tuple[Light, ...] = Field((), max_length=64, description="Lights added to the map.")
+    lights: Annotated[tuple[Light, ...], AsTuple] = Field(
+        (), max_length=64, description="Lights added to the map.")
     cameras: str = Field(
         "heldout", min_length=1, max_length=4096,
         description="heldout (every 8th capture camera), all, or camera ids ID,ID,... "
                     "(ignored with an orbit or a camera path).")
-    frames: str | None = Field(
-        None, pattern=FRAMES, max_length=32,
-        description="Python slice over the reconstruction's finished frames, e.g. '0:10' or "
-                    "'2'; all by default.")
+    frames: FrameSlice | None = Field(
+        None, description="Python slice over the reconstruction's finished frames, e.g. '0:10' "
+                          "or '2'; all by default.")
     orbit: int | None = Field(
         None, ge=1, le=720,
         description="Render this many views on an orbit around the subject instead of the "

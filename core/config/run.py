@@ -159,7 +159,7 @@ def parse_frames(spec: str | None, frames: tuple[str, ...] | list[str]) -> list[
             raise ValueError
         chosen = (list(frames)[slice(*parts)] if len(parts) > 1
                   else [list(frames)[parts[0]]])
-    except (ValueError, IndexError):
+    except (ValueError, IndexError, TypeError):
         raise ValueError(f"frames: expected A:B (a slice over {len(frames)} frames), "
                          f"got {spec!r}") from None
     if not chosen:

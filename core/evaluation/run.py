@@ -105,10 +105,12 @@ def _summary(rows: list[dict]) -> dict:
 
 
 def evaluate_run(run_dir: str | os.PathLike[str],
-                 capture_dir: str | os.PathLike[str] | None = None, device: str = "auto") -> dict:
+                 capture_dir: str | os.PathLike[str] | None = None, device: str = "auto",
+                 capture_name: str | None = None) -> dict:
     """Score the held-out renders of every finished frame of `run_dir`; writes RUN/eval.json and
     returns its content. `capture_dir` defaults to the capture recorded in RUN/config.json;
-    `device` (auto, cpu, cuda, cuda:N) is where the relit views are rendered."""
+    `device` (auto, cpu, cuda, cuda:N) is where the relit views are rendered; `capture_name`
+    is how eval.json names the capture (default: its folder; a service gives its id)."""
     torch_device = resolve_device(device)
     run = Path(run_dir)
     if not (run / "config.json").is_file():
@@ -149,8 +151,9 @@ def evaluate_run(run_dir: str | os.PathLike[str],
         rows += views
         per_frame.append({"frame": frame, **_summary(views), "views": views})
     result = {**_summary(rows), "chamfer": None,
-              "normal_reference": rows[0]["normal_reference"], "capture": str(capture_dir),
-              "split": split.to_json(), "views": len(rows), "per_frame": per_frame}
+              "normal_reference": rows[0]["normal_reference"],
+              "capture": capture_name or str(capture_dir), "split": split.to_json(),
+              "views": len(rows), "per_frame": per_frame}
     result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame,
                                       torch_device))
 

@@ -131,11 +131,12 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
                fps: float | None = None, config: StreamConfig = StreamConfig(),
                capture_dir: str | os.PathLike[str] | None = None,
                on_progress: Callable[[str, int, int], None] | None = None,
-               subject: bool = False) -> dict:
+               subject: bool = False, run_name: str | None = None) -> dict:
     """Export `run_dir` into `out_dir` in each of `formats`; returns (and writes as
     OUT/export.json) the record. `frames` (a slice) keeps whole groups for the stream: a group
     is cut where the slice cuts it, its first kept frame becoming the key frame. `subject`:
-    only the Gaussians inside the subject masks' hull (`core.export.subject`)."""
+    only the Gaussians inside the subject masks' hull (`core.export.subject`). `run_name` is
+    how the record names the run (default: its folder; a service gives the job's id)."""
     run, out = Path(run_dir), Path(out_dir)
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
@@ -151,6 +152,7 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     order = [f for g in groups for f in g]
     out.mkdir(parents=True, exist_ok=True)
     frame, record = _frames(run, out, groups, subject, capture_dir)
+    record["run"] = run_name or str(run)
     record["formats"] = list(formats)
     total = len(order) * len(formats)
     done = 0

@@ -32,9 +32,8 @@ INDEPENDENT_NOTE = ("sequence.enabled is off: every frame was reconstructed inde
                     "full static stages")
 
 
-def _config_record(capture_dir: Path, preset: str, chosen: list[str], cfg: RunConfig) -> dict:
-    return {"version": 1, "preset": preset, "capture": str(capture_dir.resolve()),
-            "frames": chosen, **asdict(cfg)}
+def _config_record(capture: str, preset: str, chosen: list[str], cfg: RunConfig) -> dict:
+    return {"version": 1, "preset": preset, "capture": capture, "frames": chosen, **asdict(cfg)}
 
 
 def _same_config(old: dict, new: dict) -> bool:
@@ -78,7 +77,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
                 progress: bool = True, on_progress: Callable[[Progress], None] | None = None,
                 should_stop: Callable[[], bool] | None = None, device: str | None = None,
                 model_files: dict[str, Path] | None = None,
-                gops: Collection[int] | None = None, config: RunConfig | None = None) -> dict:
+                gops: Collection[int] | None = None, config: RunConfig | None = None,
+                capture_name: str | None = None) -> dict:
     """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
     `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
     run: finished frames are skipped, an unfinished one restarts from its checkpoint. The
@@ -95,7 +95,9 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     id or allow-listed name) to the file to load; config.json keeps the name. `gops` runs only
     those groups of pictures (a part of a sequence job, docs/design.md 4.4: with
     `sequence.refine_scope` "group" a group needs no other group's records);
-    `core.pipeline.assemble` merges the parts' records."""
+    `core.pipeline.assemble` merges the parts' records. `capture_name` is how config.json
+    names the capture (default: its folder, resolved; a service gives the capture's id, so
+    that no record it hands out names a folder of the server)."""
     capture_dir, run = Path(capture_dir), RunDir(run_dir)
     if config is not None and (config_file is not None or overrides or gop is not None):
         raise ValueError("config: give a resolved configuration or config_file, overrides and "
@@ -108,7 +110,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     capture = check_capture(capture_dir)
     chosen = parse_frames(frames, capture.frames)
     camera_split(capture, cfg.split)  # a split the capture cannot follow, before any file
-    _start(run, _config_record(capture_dir, preset, chosen, cfg), resume)
+    _start(run, _config_record(capture_name or str(capture_dir.resolve()), preset, chosen, cfg),
+           resume)
     metrics = run.read_metrics()
     metrics.update({"version": 1, "preset": preset, "gop": cfg.gop,
                     "note": SEQUENCE_NOTE if cfg.sequence.enabled else INDEPENDENT_NOTE})

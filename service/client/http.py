@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import json
 import os
+import time
+import uuid
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -12,9 +14,11 @@ from typing import Any, Literal
 
 import httpx
 
-__all__ = ["ApiError", "Event", "Http", "TERMINAL"]
+__all__ = ["ApiError", "Event", "Http", "RETRIED", "TERMINAL"]
 
 TERMINAL = ("succeeded", "failed", "cancelled")
+RETRIED = (429, 500, 502, 503, 504)
+"""Statuses a submit is sent again after (with its Idempotency-Key, that is safe)."""
 
 
 class ApiError(RuntimeError):
@@ -46,17 +50,23 @@ class Http:
     checks the whole file against the manifest's SHA-256. "sha1" (or sha256, md5) sends
     CHUNK-byte PATCHes with a tus Upload-Checksum each, so a chunk damaged on the way is
     refused alone and sent again; it costs a hash on both sides and a request per chunk
-    (benchmarks/service.py measures both)."""
+    (benchmarks/service.py measures both).
+    `submit_attempts`: how many times a submit (a job, render or export) is sent when the
+    connection fails, times out or the server answers 429 or 5xx, `retry_delay` seconds apart
+    (doubling); every submit carries an Idempotency-Key, so the server makes one job however
+    many times it arrives."""
 
     def __init__(self, base_url: str, api_key: str | None = None, *, timeout: float = 60.0,
                  transport: httpx.BaseTransport | None = None,
                  url_store: str | os.PathLike[str] | None = None,
-                 chunk_checksum: Literal["sha1", "sha256", "md5"] | None = None):
+                 chunk_checksum: Literal["sha1", "sha256", "md5"] | None = None,
+                 submit_attempts: int = 5, retry_delay: float = 0.5):
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
         self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers,
                                  timeout=timeout, transport=transport)
         self.url_store = Path(url_store) if url_store is not None else None
         self.chunk_checksum = chunk_checksum
+        self.submit_attempts, self.retry_delay = max(1, submit_attempts), retry_delay
         self._uploads: dict[str, str] = (
             json.loads(self.url_store.read_text()) if self.url_store is not None
             and self.url_store.is_file() else {})
@@ -86,6 +96,23 @@ class Http:
     def _json(self, method: str, url: str, **kw) -> Any:
         r = self._check(self.http.request(method, url, **kw))
         return r.json() if r.content else None
+
+    def _submit(self, url: str, body: dict, key: str | None = None) -> dict:
+        """POST a submit with an Idempotency-Key (`key`, else a new UUID), sent again with the
+        same key after a lost connection, a timeout, 429 or a 5xx (see the class docstring)."""
+        headers = {"Idempotency-Key": key or str(uuid.uuid4())}
+        for attempt in range(self.submit_attempts):
+            last = attempt + 1 == self.submit_attempts
+            try:
+                r = self.http.post(url, json=body, headers=headers)
+            except httpx.TransportError:
+                if last:
+                    raise
+            else:
+                if last or r.status_code not in RETRIED:
+                    return self._check(r).json()
+            time.sleep(self.retry_delay * 2 ** attempt)
+        raise AssertionError("unreachable")  # the last attempt returns or raises
 
     def _pages(self, url: str, params: dict) -> Iterator[dict]:
         cursor = None

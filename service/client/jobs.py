@@ -23,11 +23,13 @@ class Jobs(Http):
     """Jobs, their events and artifacts."""
 
     def submit(self, capture_id: str, params: dict | None = None, *,
-               pipeline: str = "reconstruct", name: str = "") -> dict:
-        """Queue a job (202); returns it (state queued)."""
-        return self._json("POST", "/v1/jobs", json={
-            "capture_id": capture_id, "pipeline": pipeline, "params": params or {},
-            "name": name})
+               pipeline: str = "reconstruct", name: str = "",
+               idempotency_key: str | None = None) -> dict:
+        """Queue a job (202); returns it (state queued). Sent again on a lost connection, a
+        timeout or a 5xx with one Idempotency-Key (`idempotency_key`, else a new UUID), so it
+        makes one job; give your own key to make a submit safe across processes too."""
+        return self._submit("/v1/jobs", {"capture_id": capture_id, "pipeline": pipeline,
+                                         "params": params or {}, "name": name}, idempotency_key)
 
     def job(self, job_id: str) -> dict:
         return self._json("GET", f"/v1/jobs/{job_id}")
@@ -97,24 +99,26 @@ class Jobs(Http):
 
     # -- relighting ---------------------------------------------------------------------------
     def render(self, job_id: str, envmap: str, *, lights: list[dict] | None = None,
-               name: str = "", **params: Any) -> dict:
+               name: str = "", idempotency_key: str | None = None, **params: Any) -> dict:
         """Request relit renders of the succeeded reconstruction `job_id` under envmap asset
         `envmap` (202); returns the render job (pipeline relight), to follow with `wait` and
         download like any job (artifacts of kind relit, video, relight). `lights`:
         [{"kind": "directional", "direction": [x, y, z], "intensity": i, "color": [r, g, b]}
         or {"kind": "point", "position": [...], ...}]; `params`: rotation_deg, exposure,
-        cameras, frames, orbit, fps, ao, capture_light (GET /v1/pipelines has them all)."""
+        cameras, frames, orbit, fps, ao, capture_light (GET /v1/pipelines has them all).
+        Sent again safely as `submit` is."""
         body = {"job_id": job_id, "envmap": envmap, "lights": lights or [], "name": name,
                 **params}
-        return self._json("POST", "/v1/renders", json=body)
+        return self._submit("/v1/renders", body, idempotency_key)
 
     def export(self, job_id: str, formats: tuple[str, ...] = ("stream",), *, name: str = "",
-               **params: Any) -> dict:
+               idempotency_key: str | None = None, **params: Any) -> dict:
         """Request an export of the succeeded reconstruction `job_id` (202): the relightable
         stream (export/stream.dgss, kind stream), SPZ or PLY per frame; returns the export job
-        (pipeline export), to follow with `wait`. `params`: frames, fps, position_tolerance."""
-        return self._json("POST", "/v1/exports", json={"job_id": job_id, "formats": list(formats),
-                                                        "name": name, **params})
+        (pipeline export), to follow with `wait`. `params`: frames, fps, position_tolerance.
+        Sent again safely as `submit` is."""
+        return self._submit("/v1/exports", {"job_id": job_id, "formats": list(formats),
+                                            "name": name, **params}, idempotency_key)
 
     # -- artifacts ----------------------------------------------------------------------------
     def artifacts(self, job_id: str, kind: str | None = None) -> list[dict]:

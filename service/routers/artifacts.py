@@ -14,7 +14,8 @@ from fastapi.responses import StreamingResponse
 from sqlalchemy import select
 
 from service.auth import TenantDep
-from service.deps import ServicesDep, absolute_url
+from service.body import JsonRoute
+from service.deps import ServicesDep, location
 from service.errors import COMMON, ApiError, error_responses
 from service.pagination import decode_cursor, encode_cursor
 from service.ranges import blob_response
@@ -25,7 +26,7 @@ from worker.models import Artifact
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["artifacts"],
+router = APIRouter(prefix="/v1/jobs/{job_id}", tags=["artifacts"], route_class=JsonRoute,
                    responses=error_responses(*COMMON))
 BINARY = {"content": {"application/octet-stream": {"schema": {"type": "string",
                                                               "format": "binary"}}}}
@@ -58,7 +59,7 @@ def list_artifacts(job_id: str, request: Request, services: ServicesDep, tenant:
     base = f"/v1/jobs/{job_id}/artifacts/"
     items = [ArtifactOut(path=a.path, kind=a.kind, frame=a.frame, size=a.size, sha256=a.sha256,
                          content_type=a.content_type, created_at=a.created_at,
-                         url=absolute_url(request, services, base + quote(a.path)))
+                         url=location(services, base + quote(a.path)))
              for a in rows]
     return ArtifactPage(items=items, next_cursor=encode_cursor(rows[-1].path) if more else None)
 

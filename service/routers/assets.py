@@ -16,7 +16,8 @@ from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool as run
 
 from service.auth import TenantDep
-from service.deps import Services, ServicesDep, absolute_url, default_expiry
+from service.body import JsonRoute
+from service.deps import Services, ServicesDep, default_expiry, location
 from service.envmap import CONTENT_TYPES, EnvmapError, inspect_envmap
 from service.errors import COMMON, ApiError, error_responses
 from service.modelfile import MODEL_CONTENT_TYPES, ModelFileError, inspect_model
@@ -31,7 +32,7 @@ from worker.store import JobStore, new_id
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/assets", tags=["assets"],
+router = APIRouter(prefix="/v1/assets", tags=["assets"], route_class=JsonRoute,
                    responses=error_responses(*COMMON))
 _FILENAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.\-]{0,200}$")
 BINARY = {"content": {"application/octet-stream": {"schema": {"type": "string",
@@ -90,7 +91,7 @@ async def upload_asset(request: Request, services: ServicesDep, tenant: TenantDe
         tmp.unlink(missing_ok=True)
     out = asset_out(asset)
     return JSONResponse(out.model_dump(mode="json"), status_code=201, headers={
-        "Location": absolute_url(request, services, out.links["self"])})
+        "Location": location(services, out.links["self"])})
 
 
 def _store_asset(services: Services, tenant: str, kind: str, filename: str, suffix: str,

@@ -14,7 +14,8 @@ from sqlalchemy.orm import defer
 from starlette.concurrency import run_in_threadpool as run
 
 from service.auth import TenantDep
-from service.deps import Services, ServicesDep, absolute_url, default_expiry
+from service.body import JsonRoute, body_limit
+from service.deps import Services, ServicesDep, default_expiry, location
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.pagination import decode_cursor, encode_cursor, newest_page
 from service.records import get_capture
@@ -28,7 +29,9 @@ from service.schemas import (
     FileOut,
     FilePage,
     Format,
+    PATCH_FILES,
     ManifestPatchIn,
+    Name,
     manifest_entries,
 )
 from service.upload.archive import extract, inspect_zip, spool
@@ -40,7 +43,7 @@ from worker.store import ACTIVE, Owner, new_id
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/captures", tags=["captures"],
+router = APIRouter(prefix="/v1/captures", tags=["captures"], route_class=JsonRoute,
                    responses=error_responses(*COMMON))
 FIRST_PATHS = 20
 
@@ -87,10 +90,11 @@ def capture_out(services: Services, c: Capture) -> CaptureOut:
 
 def _created(request: Request, services: Services, out: CaptureOut) -> JSONResponse:
     return JSONResponse(out.model_dump(mode="json"), status_code=201, headers={
-        "Location": absolute_url(request, services, out.links["self"])})
+        "Location": location(services, out.links["self"])})
 
 
 @router.post("", status_code=201, response_model=CaptureOut, responses=error_responses(400, 413))
+@body_limit("max_manifest_bytes", lambda s: 8 * s.max_capture_files + 1024)
 def create_capture(body: CaptureIn, request: Request, services: ServicesDep,
                    tenant: TenantDep) -> JSONResponse:
     """Declare a capture by its manifest; then upload each file with tus and commit."""
@@ -153,6 +157,7 @@ def list_files(capture_id: str, services: ServicesDep, tenant: TenantDep,
 
 @router.patch("/{capture_id}/manifest", response_model=CaptureOut,
               responses=error_responses(400, 409, 413))
+@body_limit("max_manifest_bytes", lambda s: 8 * 2 * PATCH_FILES + 1024)
 def amend_manifest(capture_id: str, body: ManifestPatchIn, services: ServicesDep,
                    tenant: TenantDep) -> CaptureOut:
     """Add, replace or remove manifest entries while uploading (to fix what a failed commit
@@ -245,7 +250,7 @@ def delete_capture(capture_id: str, services: ServicesDep, tenant: TenantDep) ->
                  "application/zip": {"schema": {"type": "string", "format": "binary"}}}}})
 async def upload_archive(request: Request, services: ServicesDep, tenant: TenantDep,
                          format: Format = "auto",
-                         name: Annotated[str, Query(max_length=256)] = "",
+                         name: Annotated[Name, Query()] = "",
                          expires_at: AwareDatetime | None = None) -> JSONResponse:
     """A whole (small) capture as one zip body: checked, extracted, committed. 201 with the
     ready capture, or 4xx with nothing kept."""

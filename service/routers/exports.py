@@ -8,27 +8,37 @@ the reconstruction as `source_job_id`, which cannot be deleted while the export 
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
 from service.auth import TenantDep
+from service.body import JsonRoute
+from service.checks import check_export
 from service.deps import ServicesDep
 from service.errors import COMMON, error_responses
+from service.idempotency import IdempotencyKey, Submit
 from service.records import get_job
-from service.routers.jobs import queue_on_source
+from service.routers.jobs import REPLAYED, accepted, queue_on_source
 from service.schemas import ExportIn, JobOut
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/exports", tags=["exports"], responses=error_responses(*COMMON))
+router = APIRouter(prefix="/v1/exports", tags=["exports"], route_class=JsonRoute,
+                   responses=error_responses(*COMMON))
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409),
-             response_description="The export job, queued (Location names it)")
-def request_export(body: ExportIn, request: Request, services: ServicesDep,
-                   tenant: TenantDep) -> JSONResponse:
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413),
+             response_description=REPLAYED)
+def request_export(body: ExportIn, services: ServicesDep, tenant: TenantDep,
+                   idempotency_key: IdempotencyKey = None) -> JSONResponse:
     """Queue an export of a succeeded reconstruction (404 for a job that is not yours; 409 when
-    it is not a succeeded reconstruction)."""
+    it is not a succeeded reconstruction). With an Idempotency-Key, sending it again answers
+    the same job."""
+    submit = Submit(services, tenant, idempotency_key, "POST /v1/exports", body)
+    if (first := submit.first()) is not None:
+        return accepted(services, first, replayed=True)
     source = get_job(services.store, body.job_id, tenant)
-    return queue_on_source(request, services, tenant, source, "export", body.params(),
-                           "exports", body)
+    if source.pipeline == "reconstruct" and source.state == "succeeded":
+        check_export(services, source, body)
+    return queue_on_source(services, tenant, source, "export", body.params(), "exports", body,
+                           submit)

@@ -12,6 +12,7 @@ from sqlalchemy import func, select, text
 
 from core.data.importers import IMPORTERS
 from service.auth import TenantDep, has_active_key
+from service.body import JsonRoute
 from service.deps import Services, ServicesDep
 from service.errors import error_responses
 from service.schemas import HealthOut, InfoOut, LimitsOut, PipelineOut, ReadyOut, TusOut
@@ -21,7 +22,7 @@ from worker.pipelines import PIPELINES
 
 __all__ = ["router"]
 
-router = APIRouter(tags=["info"])
+router = APIRouter(tags=["info"], route_class=JsonRoute)
 CHECK_SECONDS = 3.0
 _checks = concurrent.futures.ThreadPoolExecutor(max_workers=2, thread_name_prefix="readyz")
 

@@ -7,31 +7,38 @@ import logging
 import shutil
 from typing import Annotated
 
-from fastapi import APIRouter, Header, Query, Request, Response
+from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import JSONResponse, StreamingResponse
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel
 from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 
+from core.config import ConfigError
 from service.auth import TenantDep
+from service.body import JsonRoute
 from service.checks import check_params, check_reconstruct
-from service.deps import Services, ServicesDep, absolute_url, default_expiry
+from service.deps import Services, ServicesDep, default_expiry, location
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.events import job_events
+from service.idempotency import IdempotencyKey, Submit
 from service.pagination import newest_page
 from service.parts import job_parts, split_job
 from service.records import get_capture, get_job
 from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressOut
 from worker.celery_app import dispatch
 from worker.models import Job
-from worker.parts import delete_parts
+from worker.parts import delete_parts, worker_of
 from worker.pipelines import get_pipeline
 from worker.store import ACTIVE, TERMINAL, JobStore, progress_of
 
-__all__ = ["accepted", "job_out", "queue_on_source", "router", "send"]
+__all__ = ["REPLAYED", "accepted", "job_out", "queue_on_source", "router", "send"]
 
 log = logging.getLogger("dgs.service")
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"], responses=error_responses(*COMMON))
+REPLAYED = ("The job, queued (Location names it); with an Idempotency-Key already used for the "
+            "same request, the job that request made, whatever its state (header "
+            "Idempotent-Replayed: true)")
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=JsonRoute,
+                   responses=error_responses(*COMMON))
 
 
 def job_out(job: Job, services: Services | None = None) -> JobOut:
@@ -44,6 +51,7 @@ def job_out(job: Job, services: Services | None = None) -> JobOut:
         pipeline=job.pipeline, parts=parts,
         params=job.params, state=job.state, progress=ProgressOut(**progress),
         error=ErrorInfo(**job.error) if job.error else None, attempts=job.attempts,
+        worker=worker_of(job), runs=job.runs or [],
         cancel_requested=job.cancel_requested, created_at=job.created_at,
         updated_at=job.updated_at, started_at=job.started_at, finished_at=job.finished_at,
         expires_at=job.expires_at,
@@ -52,10 +60,14 @@ def job_out(job: Job, services: Services | None = None) -> JobOut:
                "cancel": f"{base}/cancel", "retry": f"{base}/retry"})
 
 
-def accepted(request: Request, services: Services, job: Job) -> JSONResponse:
+def accepted(services: Services, job: Job, *, replayed: bool = False) -> JSONResponse:
+    """202 with the job and its Location; `replayed`: the job an Idempotency-Key made before
+    (header Idempotent-Replayed: true)."""
     out = job_out(job, services)
-    return JSONResponse(out.model_dump(mode="json"), status_code=202, headers={
-        "Location": absolute_url(request, services, out.links["self"])})
+    headers = {"Location": location(services, out.links["self"])}
+    if replayed:
+        headers["Idempotent-Replayed"] = "true"
+    return JSONResponse(out.model_dump(mode="json"), status_code=202, headers=headers)
 
 
 def send(services: Services, job: Job) -> None:
@@ -70,11 +82,11 @@ def send(services: Services, job: Job) -> None:
             s.execute(update(Job).where(Job.id == job.id).values(dispatched_at=None))
 
 
-def queue_on_source(request: Request, services: Services, tenant: str, source: Job,
-                    pipeline: str, params: dict, what: str, body) -> JSONResponse:
+def queue_on_source(services: Services, tenant: str, source: Job, pipeline: str, params: dict,
+                    what: str, body, submit: Submit) -> JSONResponse:
     """Queue a `pipeline` job on the results of `source`, a succeeded reconstruction of
     `tenant` (409 otherwise, retryable while it runs; 404 when it is deleted meanwhile):
-    renders and exports (`what`: "renders", "exports")."""
+    renders and exports (`what`: "renders", "exports"), kept with `submit`'s key."""
     if source.pipeline != "reconstruct":
         raise ApiError(409, f"job {source.id} is a {source.pipeline} job; {what} are made from "
                             "a reconstruct job")
@@ -83,12 +95,18 @@ def queue_on_source(request: Request, services: Services, tenant: str, source: J
         raise ApiError(409, f"job {source.id} is {source.state}; {what} are made from a "
                             "succeeded reconstruction" + (" (wait for it to end)" if running
                                                           else ""), retryable=running)
-    job = services.store.create_render(tenant, source.id, pipeline, params, name=body.name,
-                                       expires_at=default_expiry(services, body.expires_at))
+    try:
+        job = services.store.create_render(tenant, source.id, pipeline, params, name=body.name,
+                                           expires_at=default_expiry(services, body.expires_at),
+                                           idempotency=submit.idempotency)
+    except IntegrityError:  # a submit with the same key made its job first
+        if (first := submit.first()) is not None:
+            return accepted(services, first, replayed=True)
+        raise
     if job is None:  # deleted meanwhile
         raise ApiError(404, f"no job {body.job_id!r}")
     send(services, job)
-    return accepted(request, services, job)
+    return accepted(services, job)
 
 
 def _params(pipeline_name: str, params: dict) -> BaseModel:
@@ -101,22 +119,24 @@ def _params(pipeline_name: str, params: dict) -> BaseModel:
     except ValueError as exc:
         raise ApiError(422, str(exc), details=[{"path": "pipeline", "message": str(exc)}]) from None
     try:
-        model = pipeline.params.model_validate(params)
-    except ValidationError as exc:
-        details = [{"path": ".".join(["params", *map(str, e["loc"])]), "message": e["msg"]}
-                   for e in exc.errors()]
-        raise ApiError(422, f"{details[0]['path']}: {details[0]['message']}",
-                       details=details) from None
+        model = pipeline.parse(params, "params")
+    except ConfigError as exc:
+        raise ApiError(422, str(exc), details=exc.details) from None
     check_params(pipeline, model)
     return model
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409))
-def create_job(body: JobIn, request: Request, services: ServicesDep,
-               tenant: TenantDep) -> JSONResponse:
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413),
+             response_description=REPLAYED)
+def create_job(body: JobIn, services: ServicesDep, tenant: TenantDep,
+               idempotency_key: IdempotencyKey = None) -> JSONResponse:
     """Queue a pipeline run on a ready capture (202; Location is the job). Every parameter is
     checked first, against the capture too (its frames), the devices this deployment offers
-    and the models the tenant may use: 422 naming each bad one, and no job is made."""
+    and the models the tenant may use: 422 naming each bad one, and no job is made. With an
+    Idempotency-Key, sending it again answers the same job."""
+    submit = Submit(services, tenant, idempotency_key, "POST /v1/jobs", body)
+    if (first := submit.first()) is not None:
+        return accepted(services, first, replayed=True)
     params = _params(body.pipeline, body.params)
     capture = get_capture(services.store, body.capture_id, tenant)
     if capture.state != "ready":
@@ -131,17 +151,19 @@ def create_job(body: JobIn, request: Request, services: ServicesDep,
         if groups:
             job, sent = services.store.create_parted(
                 tenant, params.model_dump(mode="json"), groups, capture_id=capture.id,
-                name=body.name, expires_at=expires_at)
+                name=body.name, expires_at=expires_at, idempotency=submit.idempotency)
         else:
             job = services.store.create(tenant, body.pipeline, params.model_dump(mode="json"),
                                         capture_id=capture.id, name=body.name,
-                                        expires_at=expires_at)
+                                        expires_at=expires_at, idempotency=submit.idempotency)
             sent = [job]
-    except IntegrityError:  # the capture was deleted meanwhile
+    except IntegrityError:  # a submit with the same key won, or the capture was deleted
+        if (first := submit.first()) is not None:
+            return accepted(services, first, replayed=True)
         raise ApiError(404, f"no capture {body.capture_id!r}") from None
     for each in sent:
         send(services, each)
-    return accepted(request, services, job)
+    return accepted(services, job)
 
 
 @router.get("", response_model=JobPage)
@@ -172,9 +194,10 @@ def job_event_stream(job_id: str, services: ServicesDep, tenant: TenantDep,
     get_job(services.store, job_id, tenant)
     after = None
     if last_event_id is not None and last_event_id.strip():
-        if not last_event_id.strip().isdigit() or len(last_event_id.strip()) > 18:
-            raise ApiError(400, f"Last-Event-ID: expected an event id, got {last_event_id!r}")
-        after = int(last_event_id)
+        value = last_event_id.strip()
+        if not (value.isascii() and value.isdigit()) or len(value) > 18:
+            raise ApiError(400, f"Last-Event-ID: expected an event id, got {value[:40]!r}")
+        after = int(value)
     s = services.settings
     stream = job_events(services.store, job_id, after, poll=s.sse_poll_seconds,
                         keepalive=s.sse_keepalive_seconds)
@@ -198,8 +221,7 @@ def job_logs(job_id: str, services: ServicesDep, tenant: TenantDep,
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,
              responses=error_responses(409))
-def cancel_job(job_id: str, request: Request, services: ServicesDep,
-               tenant: TenantDep) -> JSONResponse:
+def cancel_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JSONResponse:
     """Cancel: a queued job at once, a running one at its next step (its worker process is
     ended if it does not stop within seconds); a job run as parts: every part likewise, none
     left queued. 409 when it has already ended."""
@@ -209,13 +231,12 @@ def cancel_job(job_id: str, request: Request, services: ServicesDep,
     job = services.store.request_cancel(job_id, tenant)
     if job is None:
         raise ApiError(404, f"no job {job_id!r}")
-    return accepted(request, services, job)
+    return accepted(services, job)
 
 
 @router.post("/{job_id}/retry", status_code=202, response_model=JobOut,
              responses=error_responses(409))
-def retry_job(job_id: str, request: Request, services: ServicesDep,
-              tenant: TenantDep) -> JSONResponse:
+def retry_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JSONResponse:
     """Queue a failed or cancelled job again: a reconstruction resumes from its last
     checkpoint (run as parts: only its failed and cancelled parts run again, each from its
     own checkpoint), a render starts over."""
@@ -236,7 +257,7 @@ def retry_job(job_id: str, request: Request, services: ServicesDep,
                             "retried")
     for each in services.store.to_dispatch(job.id):
         send(services, services.store.get(each) or job)
-    return accepted(request, services, job)
+    return accepted(services, job)
 
 
 @router.delete("/{job_id}", status_code=204, responses={204: {"description": "Deleted"},

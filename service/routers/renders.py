@@ -8,30 +8,36 @@ reconstruction cannot be deleted while the render is queued or running.
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Request
+from fastapi import APIRouter
 from fastapi.responses import JSONResponse
 
 from service.auth import TenantDep
+from service.body import JsonRoute
 from service.checks import check_render
 from service.deps import ServicesDep
 from service.errors import COMMON, ApiError, error_responses
+from service.idempotency import IdempotencyKey, Submit
 from service.records import get_asset, get_job
-from service.routers.jobs import queue_on_source
+from service.routers.jobs import REPLAYED, accepted, queue_on_source
 from service.schemas import JobOut, RenderIn
 
 __all__ = ["router"]
 
-router = APIRouter(prefix="/v1/renders", tags=["renders"],
+router = APIRouter(prefix="/v1/renders", tags=["renders"], route_class=JsonRoute,
                    responses=error_responses(*COMMON))
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409),
-             response_description="The render job, queued (Location names it)")
-def request_render(body: RenderIn, request: Request, services: ServicesDep,
-                   tenant: TenantDep) -> JSONResponse:
+@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413),
+             response_description=REPLAYED)
+def request_render(body: RenderIn, services: ServicesDep, tenant: TenantDep,
+                   idempotency_key: IdempotencyKey = None) -> JSONResponse:
     """Queue a relight job on a succeeded reconstruction under an envmap asset, a built-in map
     (builtin:NAME) or lights alone (404 for a job or envmap asset that is not yours; 409 when
-    the job is not a succeeded reconstruction)."""
+    the job is not a succeeded reconstruction). With an Idempotency-Key, sending it again
+    answers the same job."""
+    submit = Submit(services, tenant, idempotency_key, "POST /v1/renders", body)
+    if (first := submit.first()) is not None:
+        return accepted(services, first, replayed=True)
     source = get_job(services.store, body.job_id, tenant)
     if body.envmap_asset is not None:
         asset = get_asset(services.store, body.envmap_asset, tenant)
@@ -40,5 +46,5 @@ def request_render(body: RenderIn, request: Request, services: ServicesDep,
                            details=[{"path": "envmap", "message": "not an envmap asset"}])
     if source.pipeline == "reconstruct" and source.state == "succeeded":
         check_render(services, source, body)
-    return queue_on_source(request, services, tenant, source, "relight", body.params(),
-                           "renders", body)
+    return queue_on_source(services, tenant, source, "relight", body.params(), "renders", body,
+                           submit)

@@ -17,7 +17,8 @@ from starlette.concurrency import run_in_threadpool as run
 from starlette.requests import ClientDisconnect
 
 from service.auth import TenantDep
-from service.deps import Services, ServicesDep, absolute_url
+from service.body import JsonRoute, content_length
+from service.deps import Services, ServicesDep, location
 from service.errors import COMMON, ApiError, error_responses
 from service.records import get_upload
 from service.upload.files import (
@@ -54,7 +55,7 @@ def require_tus(tenant: TenantDep,
                             f"{tus_resumable!r}", headers={"Tus-Version": TUS_VERSION})
 
 
-router = APIRouter(prefix="/v1/uploads", tags=["uploads"],
+router = APIRouter(prefix="/v1/uploads", tags=["uploads"], route_class=JsonRoute,
                    responses=error_responses(*COMMON, 412))
 Tus = Depends(require_tus)
 NO_CONTENT = {"description": "Done (tus headers only)", "content": None}
@@ -85,7 +86,7 @@ def tus_create(request: Request, services: ServicesDep, tenant: TenantDep,
         raise ApiError(400, "Upload-Metadata must name the capture ('capture') and the file's "
                             "manifest path ('path')")
     upload = create_upload(services, tenant, capture_id, path, length)
-    url = absolute_url(request, services, f"/v1/uploads/{upload.id}")
+    url = location(services, f"/v1/uploads/{upload.id}")
     return Response(status_code=201, headers=tus_headers(Location=url, Upload_Offset=0))
 
 
@@ -135,8 +136,8 @@ async def tus_patch(upload_id: str, request: Request, services: ServicesDep, ten
 async def _refuse_past_end(request: Request, upload: Upload) -> None:
     """413 when a PATCH at the end of a complete upload carries bytes: they would pass
     Upload-Length, and dropping them silently would tell the client they were kept."""
-    declared = request.headers.get("content-length")
-    extra = declared is not None and declared.isdigit() and int(declared) > 0
+    declared = content_length(request)
+    extra = declared is not None and declared > 0
     if not extra and declared is None:  # chunked: look at what arrives
         async for chunk in request.stream():
             if chunk:
@@ -158,8 +159,8 @@ def _check_patch(request: Request, upload: Upload, offset: int) -> None:
         raise ApiError(409, f"Upload-Offset {offset} does not match the upload's offset "
                             f"{upload.offset}; HEAD it and resume from there",
                        headers=tus_headers(Upload_Offset=upload.offset))
-    declared = request.headers.get("content-length")
-    if declared and declared.isdigit() and offset + int(declared) > upload.length:
+    declared = content_length(request)
+    if declared is not None and offset + declared > upload.length:
         raise ApiError(413, f"{declared} bytes at offset {offset} would pass Upload-Length "
                             f"{upload.length}")
 

@@ -22,6 +22,7 @@ from pathlib import Path
 from fastapi import Request
 from starlette.concurrency import run_in_threadpool as run
 
+from service.body import content_length
 from service.errors import ApiError
 from service.settings import ServiceSettings
 from service.upload.manifest import check_manifest, path_problem
@@ -36,8 +37,8 @@ RATIO_FLOOR = 1 << 20
 async def spool(request: Request, dest: Path, limit: int, what: str) -> tuple[int, str]:
     """Write the request body to `dest`, refusing (413) as soon as it passes `limit` bytes;
     returns (size, sha256). `dest` is removed on any failure."""
-    declared = request.headers.get("content-length")
-    if declared and declared.isdigit() and int(declared) > limit:
+    declared = content_length(request)
+    if declared is not None and declared > limit:
         raise ApiError(413, f"{what} is {declared} bytes; the limit is {limit}")
     sha, size, buf = hashlib.sha256(), 0, bytearray()
     f = await run(open, dest, "wb")

@@ -114,7 +114,8 @@ def _resolve_format(fmt: str, src: Path) -> str:
 
 
 def summarize(capture, fmt: str) -> dict[str, Any]:
-    """frames, cameras, image sizes, and how many views have masks and normals."""
+    """frames, cameras, image sizes, how many views have masks and normals, and the cameras
+    the capture holds out (its test_cameras, or None)."""
     sizes = collections.Counter((c.width, c.height) for c in capture.cameras)
     views = capture.views()
     return {"frames": len(capture.frames), "cameras": len(capture.cameras),
@@ -122,7 +123,8 @@ def summarize(capture, fmt: str) -> dict[str, Any]:
             "image_sizes": [{"width": w, "height": h, "cameras": n}
                             for (w, h), n in sorted(sizes.items())],
             "masks": sum(v.mask is not None for v in views),
-            "normals": sum(v.normal is not None for v in views), "source_format": fmt}
+            "normals": sum(v.normal is not None for v in views), "source_format": fmt,
+            "test_cameras": None if capture.test_cameras is None else list(capture.test_cameras)}
 
 
 def freeze(services: Services, root: Path, capture_id: str) -> None:

@@ -78,9 +78,9 @@ def check_manifest(files: Iterable[tuple[str, int]], fmt: str,
             problem = "is listed twice"
         if problem is None and size > settings.max_file_bytes:
             problem = f"is {size} bytes; the limit per file is {settings.max_file_bytes}"
-        if problem is None and path.endswith(".json") and size > settings.max_json_bytes:
+        if problem is None and path.endswith(".json") and size > settings.max_json_file_bytes:
             problem = (f"is {size} bytes; a JSON file (parsed whole, in memory) may have "
-                       f"{settings.max_json_bytes}")
+                       f"{settings.max_json_file_bytes}")
         if problem is not None:
             problems.append({"path": str(path), "message": f"{path!r} {problem}"})
         seen[path] = None

@@ -54,8 +54,9 @@ def parse_length(value: str | None, name: str) -> int:
     """A non-negative integer header (Upload-Length, Upload-Offset); 400 otherwise."""
     if value is None:
         raise ApiError(400, f"{name} header is required")
-    if not value.isdigit() or len(value) > 19:
-        raise ApiError(400, f"{name}: expected a non-negative integer, got {value!r}")
+    if not (value.isascii() and value.isdigit()) or len(value) > 18:
+        raise ApiError(400, f"{name}: expected a non-negative integer of at most 18 digits, "
+                            f"got {value[:40]!r}")
     return int(value)
 
 

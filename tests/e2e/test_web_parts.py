@@ -1,6 +1,7 @@
 """The web page's strip of parts, in headless Chromium against a real `dgs serve`: a sequence of
 three groups of pictures (submitted with the Python client) shows one cell per group, each
-running with its percentage and then done, and the job succeeds; no console errors.
+running with its percentage and then done (naming the worker that ran it), and the job
+succeeds; no console errors.
 
 Needs Debian's chromium and chromium-driver, as tests/e2e/test_web.py."""
 
@@ -95,6 +96,11 @@ def test_the_page_shows_a_strip_of_parts(tmp_path):
         driver.save_screenshot(str(SHOTS / "parts-done.png"))
         assert "succeeded" in driver.find_element(By.ID, "job-status").text
         assert _cells(driver) == [("part part-succeeded", "✓")] * 3
+        # A finished part still names the worker that ran it (issue 32).
+        workers = driver.execute_script(
+            "return [...document.querySelectorAll('#job-parts .part')]"
+            ".map((c) => [c.dataset.worker, c.title]);")
+        assert all(w and f" on {w}" in title for w, title in workers), workers
         errors = [e for e in driver.get_log("browser") if e["level"] == "SEVERE"]
         assert not errors, errors
     finally:

@@ -4,17 +4,21 @@ artifact store; a few tests also on PostgreSQL), keys of two tenants, a small re
 
 from __future__ import annotations
 
+import socket
+import threading
 import warnings
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+import uvicorn
 
 # Starlette's TestClient now suggests httpx2; the dev extra installs httpx, which works.
 warnings.filterwarnings("ignore", message="Using `httpx` with `starlette.testclient`")
 from fastapi.testclient import TestClient  # noqa: E402
 from leak_scan import LeakScan  # noqa: E402
 from service_harness import capture_files, make_settings, manifest_of, upload_file  # noqa: E402
+from live_server import wait_for  # noqa: E402
 
 from service.app import create_app
 from service.auth import create_key
@@ -52,7 +56,7 @@ def database_url(request, tmp_path: Path) -> str | None:
     migrate(url)
     with engine_for(url).begin() as c:  # one database per session: start each test empty
         c.execute(text("TRUNCATE api_keys, captures, uploads, jobs, job_events, job_logs, "
-                       "artifacts, assets"))
+                       "idempotency_keys, artifacts, assets"))
     return url
 
 
@@ -75,6 +79,23 @@ def client(app) -> TestClient:
 @pytest.fixture
 def services(app):
     return app.state.services
+
+
+@pytest.fixture
+def live_api(app):
+    """(URL, services): `app` (the one `client` talks to) also served by a real uvicorn on a
+    loopback port, for requests that must really run at the same time."""
+    sock = socket.socket()
+    sock.bind(("127.0.0.1", 0))
+    server = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
+    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
+    thread.start()
+    wait_for(lambda: server.started or not thread.is_alive(), 30, "uvicorn to start")
+    assert thread.is_alive(), "uvicorn stopped"
+    yield f"http://127.0.0.1:{sock.getsockname()[1]}", app.state.services
+    server.should_exit = True
+    thread.join(timeout=10)
+    sock.close()
 
 
 @pytest.fixture

@@ -107,7 +107,7 @@ def test_a_bad_capture_json_answers_422(client, settings, synth_capture, data, w
 
 
 def test_a_json_file_over_the_json_limit_is_refused_in_the_manifest(tmp_path):
-    settings = make_settings(tmp_path / "d", max_json_bytes=1024)
+    settings = make_settings(tmp_path / "d", max_json_file_bytes=1024)
     with TestClient(create_app(settings)) as client:
         r = client.post("/v1/captures", json={"format": "canonical", "manifest": {"files": [
             {"path": "capture.json", "size": 1025, "sha256": "0" * 64}]}})
@@ -132,7 +132,8 @@ def test_bad_zips_answer_4xx(client, settings, synth_capture, body, status, word
 @pytest.mark.parametrize("body, words", [
     (b'{"format": "canonical", "manifest": {"files": [', "body: not valid JSON at character"),
     (b"\x89PNG\r\n\x1a\n", "body: not UTF-8 text (byte 0 is 0x89)"),
-    (b"[" * 100_000, "body: the JSON is nested too deeply"),
+    (b'{"format": ' + b"[" * 100_000, "body: the JSON is nested too deeply"),
+    (b"[" * 100_000, "body: expected a JSON object"),  # refused before it is parsed
     (b'{"format": "auto", "manifest": {"files": [{"path": "a", "size": 1' + b"0" * 5000,
      "body: a JSON number has more than"),
     (b"", "body: Field required"),

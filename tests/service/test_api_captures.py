@@ -73,7 +73,7 @@ def test_limits(tmp_path):
     from service.app import create_app
 
     settings = make_settings(tmp_path / "d", max_file_bytes=100, max_capture_bytes=150,
-                             max_capture_files=3, max_json_bytes=4096)
+                             max_capture_files=3, max_manifest_bytes=4096)
     client = TestClient(create_app(settings))
 
     def post(files):
@@ -84,7 +84,7 @@ def test_limits(tmp_path):
     r = post([100, 60])
     assert r.status_code == 413 and "150" in r.json()["error"]["message"]
     assert post([1, 1, 1, 1]).status_code == 413
-    assert post([1] * 200).status_code == 413  # a body over max_json_bytes
+    assert post([1] * 200).status_code == 413  # a body over max_manifest_bytes
     assert post([100, 50]).status_code == 201
     info = client.get("/v1/info").json()["limits"]
     assert info["max_file_bytes"] == 100 and info["max_capture_files"] == 3

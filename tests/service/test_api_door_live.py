@@ -1,13 +1,16 @@
-"""Issue 20's bad requests (malformed uploads, server folders in messages, tus edge cases)
-replayed against a real `dgs serve` (API and embedded worker, fresh data folder): each gets a
-4xx that says what is wrong, naming files as the client knows them; nothing answers 500 and no
-answer or job error shows the server's data folder."""
+"""Issue 20's bad requests (malformed uploads, server folders in messages, tus edge cases) and
+issue 32's nine findings replayed against a real `dgs serve` (API and embedded worker, fresh
+data folder): each bad request gets a 4xx that says what is wrong, naming files as the client
+knows them; nothing answers 500 and no answer, job error or artifact shows the server's data
+folder; a large body never holds the API; Location never comes from Host; submits with one
+Idempotency-Key make one job; a finished part names its worker."""
 
 from __future__ import annotations
 
 import base64
 import io
 import sys
+import threading
 import time
 import zipfile
 from pathlib import Path
@@ -18,9 +21,12 @@ from service_harness import TUS, capture_files, manifest_of, metadata
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bad_inputs import HUGE, bad_variants, good_image, png_header  # noqa: E402
-from live_server import LiveServer  # noqa: E402
+from live_server import LiveServer, wait_for  # noqa: E402
 
-pytestmark = pytest.mark.timeout(420)
+from core.rundir import ARTIFACT_KINDS  # noqa: E402
+from service.client import Client  # noqa: E402
+
+pytestmark = pytest.mark.timeout(1200)
 ZIP = {"Content-Type": "application/zip"}
 
 
@@ -132,3 +138,206 @@ def test_a_failed_job_names_the_capture_file_not_the_server_folder(live, synth_c
     logs = http.get(f"/v1/jobs/{job['id']}/logs").text
     for text in (str(state), logs):
         assert str(server.data_dir) not in text
+
+
+# -- issue 32: the door, second pass ------------------------------------------------------------
+TINY = {"train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3_start": 28,
+                               "densify_from": 2, "densify_until": 24, "densify_interval": 4,
+                               "reset_interval": 16, "sh_interval": 4}, "init_points": 300},
+        "sequence": {"enabled": False}}
+JSON = {"Content-Type": "application/json"}
+
+
+def _ended(http: httpx.Client, job_id: str) -> dict:
+    def ended() -> dict | None:
+        job = http.get(f"/v1/jobs/{job_id}").json()
+        return job if job["state"] not in ("queued", "running") else None
+
+    return wait_for(ended, 600, f"job {job_id} to end")
+
+
+@pytest.fixture(scope="module")
+def made(live, tmp_path_factory):
+    """A two-frame capture reconstructed as two parts (sequence off: a part per frame, meshes
+    on), then rendered on an orbit and exported in every format: every kind of artifact."""
+    from core.synth import SynthConfig, synthesize
+
+    server, http = live
+    server.wait_worker()
+    folder = tmp_path_factory.mktemp("door-two") / "capture"
+    synthesize(folder, SynthConfig(frames=2, views=8, width=32, height=32, seed=5,
+                                   ao_directions=8))
+    r = http.post("/v1/captures/archive", content=_zip(capture_files(folder)), headers=ZIP)
+    assert r.status_code == 201, r.text
+    capture = r.json()["id"]
+    job = http.post("/v1/jobs", json={"capture_id": capture, "params": {
+        "preset": "test", "config": TINY}}).json()
+    assert len(job["parts"]) == 2
+    done = _ended(http, job["id"])
+    assert done["state"] == "succeeded", (done, server.log())
+    render = http.post("/v1/renders", json={"job_id": job["id"], "envmap": "builtin:studio",
+                                            "orbit": 3, "fps": 8}).json()
+    export = http.post("/v1/exports", json={"job_id": job["id"],
+                                            "formats": ["stream", "spz", "ply"]}).json()
+    for each in (render, export):
+        assert _ended(http, each["id"])["state"] == "succeeded", server.log()
+    return {"capture": capture, "job": done, "render": render["id"], "export": export["id"]}
+
+
+def test_every_artifact_names_the_capture_by_id_never_a_server_path(live, made):
+    """Finding 2: config.json, eval.json, relight.json, export.json, every other artifact and
+    each job's artifacts.zip are scanned for the data folder (which holds the scratch and the
+    store)."""
+    server, http = live
+    folders = {str(server.data_dir), str(server.data_dir.resolve())}
+    kinds: set[str] = set()
+    for job_id in (made["job"]["id"], made["render"], made["export"]):
+        items = Client(server.url).artifacts(job_id)
+        for item in items:
+            data = http.get(item["url"]).content
+            assert len(data) == item["size"]
+            assert not [f for f in folders if f.encode() in data], item["path"]
+            kinds.add(item["kind"])
+        archive = http.get(f"/v1/jobs/{job_id}/artifacts.zip").content
+        assert not [f for f in folders if f.encode() in archive]
+        with zipfile.ZipFile(io.BytesIO(archive)) as zf:
+            assert len(zf.namelist()) == len(items)
+            for name in zf.namelist():
+                assert not [f for f in folders if f.encode() in zf.read(name)], name
+    assert set(ARTIFACT_KINDS) <= kinds, set(ARTIFACT_KINDS) - kinds  # every kind there is
+    job = made["job"]["id"]
+    for name in ("config.json", "eval.json"):
+        record = http.get(f"/v1/jobs/{job}/artifacts/{name}").json()
+        assert record["capture"] == made["capture"], name
+
+
+def test_finished_parts_keep_their_worker(live, made):
+    """Finding 9: a part that has ended still names the worker that ran it, and its runs."""
+    _, http = live
+    parts = http.get(f"/v1/jobs/{made['job']['id']}").json()["parts"]
+    assert [p["state"] for p in parts] == ["succeeded"] * 2
+    for part in parts:
+        assert part["worker"] and part["worker"].count("/") == 1, part
+        assert [(r["worker"], r["outcome"]) for r in part["runs"]][-1] == (part["worker"],
+                                                                           "succeeded")
+    events = http.get(f"/v1/jobs/{made['job']['id']}/events",  # every event: it has ended
+                      headers={"Last-Event-ID": "0"}).text
+    assert all(f'"worker":"{p["worker"]}"' in events for p in parts)
+
+
+def _jobs(http: httpx.Client) -> int:
+    return len(http.get("/v1/jobs", params={"limit": 200}).json()["items"])
+
+
+@pytest.mark.parametrize("path, body, field", [
+    ("/v1/jobs", {"params": {"checkpoint_every": True}}, "params.checkpoint_every"),
+    ("/v1/jobs", {"params": {"gop": "5"}}, "params.gop"),
+    ("/v1/jobs", {"params": {"frames": "-99999999999999999999:"}}, "params.frames"),
+    ("/v1/jobs", {"name": "a\x00b\x1b[2J\r\nc"}, "body.name"),
+    ("/v1/renders", {"envmap": "builtin:studio", "rotation_deg": "90"}, "body.rotation_deg"),
+    ("/v1/renders", {"envmap": "builtin:studio", "orbit": True}, "body.orbit"),
+    ("/v1/renders", {"envmap": "builtin:studio", "orbit": "8"}, "body.orbit"),
+    ("/v1/renders", {"envmap": "builtin:studio", "ao": "yes"}, "body.ao"),
+    ("/v1/renders", {"lights": [{"kind": "point", "position": [0, 0, 1], "intensity": "2"}]},
+     "body.lights.0.intensity"),
+    ("/v1/renders", {"envmap": "builtin:studio", "frames": "-99999999999999999999:"},
+     "body.frames"),
+    ("/v1/renders", {"envmap": "builtin:studio", "name": "x\x00"}, "body.name"),
+    ("/v1/exports", {"fps": "24"}, "body.fps"),
+    ("/v1/exports", {"fps": True}, "body.fps"),
+    ("/v1/exports", {"frames": "5:9"}, "frames"),
+    ("/v1/exports", {"frames": "::0"}, "body.frames"),
+    ("/v1/exports", {"frames": "-99999999999999999999:"}, "body.frames"),
+    ("/v1/exports", {"name": "\r\n"}, "body.name"),
+])
+def test_loose_values_frames_and_names_are_refused_at_the_door(live, made, path, body, field):
+    """Findings 3 to 5: coerced types, export frames checked only in the worker, unbounded
+    slices and control characters in names: 422 naming the field, and no job."""
+    server, http = live
+    before = _jobs(http)
+    target = ({"capture_id": made["capture"]} if path == "/v1/jobs"
+              else {"job_id": made["job"]["id"]})
+    r = http.post(path, json={**target, **body})
+    assert _refused(r, server)["details"][0]["path"] == field
+    assert _jobs(http) == before
+
+
+@pytest.mark.parametrize("value", ["bytes=" + "0" * 4400 + "-1", "bytes=-" + "9" * 4400,
+                                   "bytes=" + "9" * 4400 + "-"])
+def test_range_numbers_of_thousands_of_digits(live, made, value, tmp_path):
+    """Finding 1: on an artifact and on an asset's content, the plain and the suffix form."""
+    server, http = live
+    asset = http.post("/v1/assets", params={"filename": "sky.hdr"},
+                      content=good_image("hdr", tmp_path, 16, 8)).json()
+    for url in (f"/v1/jobs/{made['job']['id']}/artifacts/config.json",
+                f"/v1/assets/{asset['id']}/content"):
+        r = http.get(url, headers={"Range": value})
+        assert r.status_code in (206, 416), r.text[:200]
+        assert str(server.data_dir) not in r.text
+
+
+def test_a_large_body_is_refused_without_holding_the_api(live, made):
+    """Finding 6: a 50 MB body of a 25M-element array is refused by every JSON operation before
+    it is parsed (413 past the limit, or a manifest's shape checked at memchr speed), and
+    /healthz answers while such a body is still arriving (no clock: the body waits for it)."""
+    server, http = live
+    array = b"[" + b"0," * (25_000_000 - 1) + b"0]"
+    for path in ("/v1/jobs", "/v1/renders", "/v1/exports"):
+        error = _refused(http.post(path, content=array, headers=JSON), server, 413)
+        assert "passes the limit of 1048576 bytes" in error["message"]
+    assert "expected a JSON object" in _refused(
+        http.post("/v1/captures", content=array, headers=JSON), server)["message"]
+    files = b'{"format": "auto", "manifest": {"files": ' + array + b"}}"
+    assert "JSON values" in _refused(http.post("/v1/captures", content=files, headers=JSON),
+                                     server, 413)["message"]
+    halfway, probed = threading.Event(), threading.Event()
+
+    def slow_body():
+        yield files[:len(files) // 2]
+        halfway.set()
+        probed.wait(120)
+        yield files[len(files) // 2:]
+
+    answers = []
+    sender = threading.Thread(target=lambda: answers.append(http.post(
+        "/v1/captures", content=slow_body(), headers=JSON)))
+    sender.start()
+    assert halfway.wait(120)
+    with httpx.Client(base_url=server.url, timeout=60) as other:
+        assert other.get("/healthz").status_code == 200
+    probed.set()
+    sender.join(120)
+    assert answers and answers[0].status_code == 413
+
+
+def test_location_never_comes_from_the_host_header(live, made):
+    """Finding 7: without DGS_PUBLIC_URL, Location is a relative reference."""
+    _, http = live
+    evil = {"Host": "evil.example", "X-Forwarded-Host": "evil.example"}
+    r = http.post("/v1/exports", json={"job_id": made["job"]["id"], "formats": ["ply"]},
+                  headers=evil)
+    assert r.status_code == 202 and r.headers["Location"] == f"/v1/jobs/{r.json()['id']}"
+    http.post(f"/v1/jobs/{r.json()['id']}/cancel")
+
+
+def test_concurrent_submits_with_one_key_make_one_job(live, made):
+    """Finding 8: eight submits at once with one Idempotency-Key make one job."""
+    server, http = live
+    before = _jobs(http)
+    start, answers = threading.Barrier(8), []
+    body = {"job_id": made["job"]["id"], "formats": ["spz"]}
+
+    def submit():
+        with httpx.Client(base_url=server.url, timeout=120) as own:
+            start.wait()
+            answers.append(own.post("/v1/exports", json=body,
+                                    headers={"Idempotency-Key": "door-8"}))
+
+    threads = [threading.Thread(target=submit) for _ in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert [a.status_code for a in answers] == [202] * 8, [a.text for a in answers]
+    assert len({a.json()["id"] for a in answers}) == 1 and _jobs(http) == before + 1
+    http.post(f"/v1/jobs/{answers[0].json()['id']}/cancel")

@@ -277,3 +277,26 @@ def test_readyz_reports_an_unreachable_broker(tmp_path):
     assert r.status_code == 503 and r.json()["status"] == "unavailable"
     assert r.json()["checks"]["database"] == "ok"
     assert r.json()["checks"]["broker"].startswith("error")
+
+
+def test_a_split_or_subject_the_capture_cannot_follow_is_refused(client, services):
+    """split 'capture' needs the capture's test_cameras, a subject export its masks: both are
+    known from the capture's summary, so both answer 422 before a job exists."""
+    from worker.models import Capture, Job
+
+    summary = {"frames": 1, "cameras": 8, "views": 8, "image_sizes": [], "masks": 0,
+               "normals": 0, "source_format": "canonical", "test_cameras": None}
+    with services.store.session() as s:
+        s.add(Capture(id="cap_plain", tenant="local", format="canonical", state="ready",
+                      summary=summary))
+        s.add(Job(id="job_done", tenant="local", capture_id="cap_plain", pipeline="reconstruct",
+                  params={}, state="succeeded", stage="succeeded"))
+    r = client.post("/v1/jobs", json={"capture_id": "cap_plain",
+                                      "params": {"config": {"split": "capture"}}})
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["details"][0]["path"] == "params.config.split"
+    r = client.post("/v1/exports", json={"job_id": "job_done", "subject": True})
+    assert r.status_code == 422, r.text
+    assert r.json()["error"]["details"][0]["path"] == "subject"
+    assert "no masks" in r.json()["error"]["message"]
+    assert client.post("/v1/exports", json={"job_id": "job_done"}).status_code == 202

@@ -100,11 +100,11 @@ def test_a_dropped_connection_keeps_what_arrived(server, tmp_path):
     files = {"capture.json": b"{}", "images/000000/a.png": data}
     capture = httpx.post(f"{base}/v1/captures", json={
         "format": "canonical", "manifest": manifest_of(files)}).json()
-    url = httpx.post(f"{base}/v1/uploads", headers={
+    path = httpx.post(f"{base}/v1/uploads", headers={
         **TUS, "Upload-Length": str(len(data)),
         "Upload-Metadata": metadata(capture=capture["id"], path="images/000000/a.png")},
-    ).headers["Location"]
-    path = url.split("127.0.0.1", 1)[1].split("/", 1)[1]
+    ).headers["Location"].removeprefix("/")  # a relative reference
+    url = f"{base}/{path}"
     port = int(base.rsplit(":", 1)[1])
     sent = 2 * MiB + 12345
     with socket.create_connection(("127.0.0.1", port)) as conn:
@@ -175,7 +175,7 @@ def test_concurrent_patches_do_not_interleave(server, monkeypatch):
         **TUS, "Upload-Length": str(len(data)),
         "Upload-Metadata": metadata(capture=capture["id"], path="images/000000/a.png")},
     ).headers["Location"]
-    path, port = "/" + url.split("/", 3)[3], int(base.rsplit(":", 1)[1])
+    path, port = url, int(base.rsplit(":", 1)[1])  # Location is relative
     second: list[tuple[int, bytes]] = []
 
     def retry():

@@ -82,6 +82,11 @@ def test_a_sequence_job_runs_as_parts(client, services, capture_id):
     assert out["state"] == "running"
     assert [p["state"] for p in out["parts"]] == ["succeeded", "running", "queued"]
     assert out["parts"][1]["worker"] == f"{owner.host}/{owner.pid}"
+    # A finished part still names the worker that ran it (its lease is gone).
+    done = out["parts"][0]
+    assert done["state"] == "succeeded" and done["worker"] == f"{owner.host}/{owner.pid}"
+    assert [(r["worker"], r["outcome"]) for r in done["runs"]] == [(done["worker"],
+                                                                    "succeeded")]
     assert out["progress"]["fraction"] == pytest.approx((1 + 0.5) / 3 * 0.99)
     assert out["progress"]["frames"] == 6 and out["progress"]["frame"] == 2
     # While it runs, its stream follows the parts' events with the job's overall progress.

@@ -86,6 +86,12 @@ def test_parts_run_at_once_and_a_killed_workers_part_resumes_alone(server, tmp_p
         parts = {p["index"]: p for p in done["parts"]}
         assert all(p["state"] == "succeeded" for p in parts.values())
         assert parts[part["index"]]["attempts"] == 2  # resumed, by whichever worker
+        # It keeps who ran it: the killed worker's run lost, the last one succeeded.
+        runs = parts[part["index"]]["runs"]
+        assert [r["outcome"] for r in runs] == ["lost", "succeeded"], runs
+        assert runs[0]["worker"] == part["worker"] and parts[part["index"]]["worker"] == \
+            runs[1]["worker"]
+        assert all(p["worker"] and p["runs"] for p in parts.values())
         for other in others:  # the other part went on, never interrupted
             assert parts[other["index"]]["attempts"] == 1
         client.download(job["id"], "sequence.json", tmp_path / "sequence.json")

@@ -17,12 +17,14 @@ import httpx
 import pytest
 import uvicorn
 from service_harness import make_settings
+from sqlalchemy import select
 from test_api_artifacts import add_artifacts
 from test_api_live import padded_png
 
 from service.client import uploads as client_module
 from service.app import create_app
 from service.client import ApiError, Client, manifest_of
+from worker.models import Job
 from worker.store import Owner
 
 MiB = 1 << 20
@@ -323,3 +325,39 @@ def test_downloads_resume_with_range_and_are_checked(server, tmp_path):
         with pytest.raises(ApiError) as gone:
             c.download(job.id, "frames/../../etc/passwd", tmp_path / "x")
         assert gone.value.status == 404
+
+
+def test_a_submit_whose_answer_was_lost_is_sent_again_and_makes_one_job(server, folder):
+    """Every submit carries an Idempotency-Key and is sent again with it after a lost answer, a
+    timeout or a 5xx (issue 32): the job, the render and the export each exist once."""
+    base, services = server
+    lost: set[str] = set()
+
+    def drop(request):  # the first answer to each submit never arrives; the server made it
+        path = request.url.path
+        if request.method == "POST" and path in ("/v1/jobs", "/v1/renders", "/v1/exports") \
+                and path not in lost:
+            lost.add(path)
+            return "after"
+        return None
+
+    transport = Flaky(drop)
+    with Client(base, transport=transport, retry_delay=0) as c:
+        cap = c.create_capture(folder)
+        c.upload_capture(cap["id"], folder)
+        c.commit(cap["id"])
+        job = c.submit(cap["id"], {"preset": "test"}, name="once")
+        source = services.store.create("local", "reconstruct", {}, capture_id=cap["id"])
+        owner = Owner.current()
+        services.store.claim(source.id, owner, 5, 3)
+        services.store.finish(source.id, owner, "succeeded")
+        render = c.render(source.id, "builtin:studio", orbit=4)
+        export = c.export(source.id, ("spz",))
+    posts = [r for r in transport.requests if r.method == "POST" and r.url.path in lost]
+    assert len(posts) == 6 and lost == {"/v1/jobs", "/v1/renders", "/v1/exports"}
+    for path in lost:  # sent twice, with one key
+        keys = [r.headers["Idempotency-Key"] for r in posts if r.url.path == path]
+        assert len(keys) == 2 and keys[0] == keys[1]
+    with services.store.session(write=False) as s:
+        made = set(s.scalars(select(Job.id).where(Job.id != source.id)))
+    assert made == {job["id"], render["id"], export["id"]} and job["name"] == "once"

@@ -130,3 +130,25 @@ def test_progress_is_over_the_parts_and_their_events_reach_the_parent(store: Job
     part_events = [e.data for e in store.events_after(parent.id, 0) if e.kind == "part"]
     assert {"state", "progress"} <= {e["event"] for e in part_events}
     assert all(e["part"] == 0 for e in part_events)
+
+
+def test_a_part_keeps_the_worker_that_ran_it_and_each_attempts(store: JobStore):
+    """The lease is cleared when a part ends; the part keeps who ran it (issue 32): its last
+    worker, and every run with how it ended (lost with its worker, released, finished)."""
+    _, parts = make(store)
+    lost, gone, last = (Owner(f"gpu-{n}", 100 + i, "?", "t") for i, n in enumerate("abc"))
+    assert store.claim(parts[0].id, lost, lease_seconds=0, max_attempts=5).status == "claimed"
+    assert store.claim(parts[0].id, gone, lease_seconds=60, max_attempts=5).status == "claimed"
+    assert store.release(parts[0].id, gone, "shutting down")
+    assert claim(store, parts[0].id, last).status == "claimed"
+    assert store.finish(parts[0].id, last, "succeeded")
+    part = store.parts(parts[0].parent_id)[0]
+    assert part.lease_owner is None and part.worker == "gpu-c/102"
+    assert [(r["worker"], r["outcome"]) for r in part.runs] == [
+        ("gpu-a/100", "lost"), ("gpu-b/101", "released"), ("gpu-c/102", "succeeded")]
+    assert all(r["started_at"] <= r["ended_at"] for r in part.runs)
+    # The parent's stream says so too: the part's state events name its worker.
+    events = [e.data for e in store.events_after(part.parent_id, 0) if e.kind == "part"
+              and e.data.get("event") == "state" and "runs" in e.data]
+    assert events[-1]["state"] == "succeeded" and events[-1]["worker"] == "gpu-c/102"
+    assert [r["worker"] for r in events[-1]["runs"]] == ["gpu-a/100", "gpu-b/101", "gpu-c/102"]

@@ -20,8 +20,21 @@ function describe(job) {
 }
 
 // A sequence run as parts (one per group of pictures): a strip with a cell per part, queued,
-// running with its percentage, done or failed.
+// running with its percentage, done or failed; its tooltip names the worker that runs or ran
+// it and every earlier run (a lost or released one included), so a bad node can be found.
 const CELL = { queued: '', running: null, succeeded: '✓', failed: '✗', cancelled: '–' };
+
+function partTitle(part, pct) {
+  const frames = part.frames || [];
+  let title = `part ${part.index}: frames ${frames[0]}..${frames[frames.length - 1]}, ${part.state}`;
+  if (part.state === 'running') title += ` ${pct}%`;
+  if (part.worker) title += ` on ${part.worker}`;
+  const runs = part.runs || [];
+  if (runs.length > 1 || (runs.length === 1 && runs[0].worker !== part.worker)) {
+    title += '\nruns: ' + runs.map((r) => `${r.worker} (${r.outcome || 'running'})`).join(', ');
+  }
+  return title;
+}
 
 function renderParts(parts) {
   const strip = $('job-parts');
@@ -29,13 +42,12 @@ function renderParts(parts) {
   if (strip.hidden) return;
   strip.replaceChildren(...parts.map((part) => {
     const pct = Math.round(100 * (part.fraction || 0));
-    const frames = part.frames || [];
     const cell = el('span', {
       className: `part part-${part.state}`,
       textContent: CELL[part.state] ?? `${pct}%`,
-      title: `part ${part.index}: frames ${frames[0]}..${frames[frames.length - 1]}, ${part.state}` +
-        (part.state === 'running' ? ` ${pct}%${part.worker ? ` on ${part.worker}` : ''}` : ''),
+      title: partTitle(part, pct),
     });
+    if (part.worker) cell.dataset.worker = part.worker;
     if (part.state === 'running') {
       cell.style.background = `linear-gradient(to right, var(--part-done) ${pct}%, var(--part-left) ${pct}%)`;
     }
