@@ -177,7 +177,7 @@ def test_an_export_is_an_export_job_and_bad_requests_are_refused(client, service
     job = r.json()
     assert job["pipeline"] == "export" and job["source_job_id"] == source
     assert job["params"] == {"formats": ["stream", "spz"], "frames": None, "fps": 30.0,
-                             "position_tolerance": None}
+                             "position_tolerance": None, "subject": False}
     for body, status, words in (
             ({"job_id": source, "formats": ["gif"]}, 422, "formats"),
             ({"job_id": source, "formats": []}, 422, "formats"),
