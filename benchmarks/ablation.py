@@ -3,14 +3,16 @@
 Variants (same preset, same capture, same number of iterations):
 - disentangled: the method (beta annealed from 0 to 0.7 over stages 2 and 3);
 - merged: beta = 0 throughout, so both branches blend with the same (averaged) opacity;
-- appearance-only: plain 3DGS (stage 1 for the whole budget); its normals are each Gaussian's
-  shortest axis, blended with the appearance opacity, as usual for 3DGS.
+- 3dgs: a plain 3D Gaussian Splatting (`train.method` 3dgs, docs/design.md 5.14.1): one
+  opacity, the photometric loss, 3DGS's densification and rates; its normals are each Gaussian's
+  shortest axis, blended with its one opacity, as a 3DGS user reads them off.
 Held-out PSNR (figure pixels and whole image) / SSIM against the capture and normal cosine
-against the ground-truth normals. With --out an existing capture and finished variants there are
-reused (a run directory with eval.json is scored again, not trained again).
+against the ground-truth normals, one row per run and, with several `--train-seeds`, the mean
+and range per variant. With --out an existing capture and finished runs there are reused (a run
+directory with eval.json is scored again, not trained again).
 
     python benchmarks/ablation.py [--preset fast] [--views 16] [--size 128] [--seed 0]
-                                  [--out DIR] [--quick]
+                                  [--variants ...] [--train-seeds 0 1 2] [--out DIR] [--quick]
 """
 
 from __future__ import annotations
@@ -20,59 +22,33 @@ import json
 import sys
 import tempfile
 from pathlib import Path
-from types import SimpleNamespace
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-VARIANTS = ("disentangled", "merged", "appearance-only")
+VARIANTS = ("disentangled", "merged", "3dgs")
 
 
-def _overrides(variant: str, iterations: int) -> dict:
+def _overrides(variant: str, seed: int) -> dict:
+    train: dict = {"seed": seed}
     if variant == "merged":
-        return {"train": {"schedule": {"beta_max": 0.0}}}
-    if variant == "appearance-only":
-        return {"train": {"schedule": {"stage2_start": iterations, "stage3_start": iterations}}}
-    return {}
+        train["schedule"] = {"beta_max": 0.0}
+    if variant == "3dgs":
+        train["method"] = "3dgs"
+    return {"train": train}
 
 
-def _appearance_normals(capture_dir: Path, run: Path, preset: str) -> None:
-    """Give a plain 3DGS model the usual normals (shortest axes, appearance opacity) and render
-    its held-out views again."""
-    import torch
-
-    from core.data import load_capture
-    from core.model import GaussianModel
-    from core.pipeline import render_heldout
-    from core.render import RenderCamera
-    from core.config import train_config
-
-    capture = load_capture(capture_dir)
-    centers = torch.stack([RenderCamera.from_camera(c).center for c in capture.cameras])
-    for ply in sorted((run / "frames").glob("*/gaussians.ply")):
-        frame = ply.parent.name
-        model = GaussianModel.load_ply(ply)
-        model.init_geometry(centers)  # normals = shortest axes; opacity_g = opacity_c
-        model.assign("visibility", torch.full_like(model.params["visibility"], 9.0))
-        stand_in = SimpleNamespace(model=model, config=train_config(preset))
-        render_heldout(capture, frame, stand_in, run / "renders" / frame)
-
-
-def run_variant(capture: Path, out: Path, variant: str, preset: str) -> dict:
+def run_variant(capture: Path, out: Path, variant: str, preset: str, seed: int) -> dict:
     from core.evaluation import evaluate_run
     from core.pipeline import reconstruct
-    from core.config import train_config
 
-    iterations = train_config(preset).schedule.iterations
     if (out / "eval.json").is_file() and (out / "metrics.json").is_file():
         metrics = json.loads((out / "metrics.json").read_text())  # finished earlier: reuse
     else:  # resume: an interrupted variant continues from its checkpoint
         metrics = reconstruct(capture, out, preset=preset, resume=True,
-                              overrides=_overrides(variant, iterations), progress=False)
-        if variant == "appearance-only":
-            _appearance_normals(capture, out, preset)
+                              overrides=_overrides(variant, seed), progress=False)
     ev = evaluate_run(out)
     frame = next(iter(metrics["frames"].values()))
-    return {"variant": variant, "psnr": ev["psnr"], "psnr_full": ev["psnr_full"],
+    return {"variant": variant, "seed": seed, "psnr": ev["psnr"], "psnr_full": ev["psnr_full"],
             "ssim": ev["ssim"], "normal_cos": ev["normal_cos"], "normal_deg": ev["normal_deg"],
             "gaussians": frame["gaussians"], "seconds": frame["seconds"]}
 
@@ -84,10 +60,18 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--seed", type=int, default=0, help="dgs synth seed of the capture")
     ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
+    ap.add_argument("--train-seeds", nargs="+", type=int, default=[0],
+                    help="training seeds (train.seed): one run per variant and seed")
+    ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--quick", action="store_true", help="test preset, 8 views of 32x32")
     args = ap.parse_args()
     if args.quick:
         args.preset, args.views, args.size = "test", 8, 32
+    if args.threads:
+        import torch
+
+        torch.set_num_threads(args.threads)
     from core.synth import SynthConfig, synthesize
 
     root = args.out or Path(tempfile.mkdtemp(prefix="dgs-ablation-"))
@@ -97,19 +81,39 @@ def main() -> None:
                                         height=args.size, seed=args.seed, priors=True))
     print(f"capture: {args.views} views, {args.size}x{args.size}, seed {args.seed}, preset "
           f"{args.preset}, output in {root}\n")
-    print("| variant | PSNR figure (dB) | PSNR image (dB) | SSIM | normal cosine "
+    print("| variant | seed | PSNR figure (dB) | PSNR image (dB) | SSIM | normal cosine "
           "| normal error (deg) | Gaussians | seconds |")
-    print("|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|")
     rows = []
-    for variant in VARIANTS:
-        r = run_variant(capture, root / variant, variant, args.preset)
-        rows.append(r)
-        fmt = lambda v, f: "n/a" if v is None else format(v, f)  # noqa: E731
-        print(f"| {variant} | {fmt(r['psnr'], '.2f')} | {fmt(r['psnr_full'], '.2f')} | "
-              f"{fmt(r['ssim'], '.4f')} | "
-              f"{fmt(r['normal_cos'], '.4f')} | {fmt(r['normal_deg'], '.1f')} | "
-              f"{fmt(r['gaussians'], 'd')} | {r['seconds']:.0f} |", flush=True)
-    (root / "ablation.json").write_text(json.dumps(rows, indent=2))
+    fmt = lambda v, f: "n/a" if v is None else format(v, f)  # noqa: E731
+    for seed in args.train_seeds:  # seeds outermost: every variant has a row before the next
+        for variant in args.variants:
+            name = variant if seed == 0 else f"{variant}-s{seed}"  # seed 0 keeps its old folder
+            r = run_variant(capture, root / name, variant, args.preset, seed)
+            rows.append(r)
+            print(f"| {variant} | {seed} | {fmt(r['psnr'], '.2f')} | "
+                  f"{fmt(r['psnr_full'], '.2f')} | {fmt(r['ssim'], '.4f')} | "
+                  f"{fmt(r['normal_cos'], '.4f')} | {fmt(r['normal_deg'], '.1f')} | "
+                  f"{fmt(r['gaussians'], 'd')} | {r['seconds']:.0f} |", flush=True)
+            (root / "ablation.json").write_text(json.dumps(rows, indent=2))
+    if len(args.train_seeds) > 1:
+        print("\n| variant | runs | PSNR figure mean (range) | PSNR image mean (range) "
+              "| SSIM mean | normal cosine mean |")
+        print("|---|---|---|---|---|---|")
+        for variant in args.variants:
+            runs = [r for r in rows if r["variant"] == variant]
+
+            def spread(key: str) -> str:
+                v = [r[key] for r in runs if r[key] is not None]
+                if not v:
+                    return "n/a"
+                return f"{sum(v) / len(v):.2f} ({min(v):.2f}-{max(v):.2f})"
+
+            mean = lambda key: fmt(  # noqa: E731
+                None if any(r[key] is None for r in runs)
+                else sum(r[key] for r in runs) / len(runs), ".4f")
+            print(f"| {variant} | {len(runs)} | {spread('psnr')} | {spread('psnr_full')} | "
+                  f"{mean('ssim')} | {mean('normal_cos')} |")
 
 
 if __name__ == "__main__":

@@ -22,7 +22,8 @@ steps that finish in about 30 minutes on two cores; the GPU run: every frame at 
 
     python benchmarks/panoptic.py [SRC] --out DIR --pack --frames 0:50   (a slice to carry)
     python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
-        [--preset fast] [--steps N] [--gop 10] [--mesh-voxels 256] [--serve N] [--hdri EXR]
+        [--preset fast] [--steps N] [--gop 10] [--max-gaussians N] [--mesh-voxels 256]
+        [--serve N] [--hdri EXR]
         [--device auto] [--threads N]
 """
 
@@ -118,9 +119,11 @@ def overrides(args) -> dict:
     s = train_config(args.preset).schedule
     if args.steps:
         s = s.scaled(args.steps)
-    return {"downscale": args.downscale, "gop": args.gop,
-            "train": {"schedule": asdict(s), "rates": {"means_decay_steps": s.iterations},
-                      "device": args.device},
+    train = {"schedule": asdict(s), "rates": {"means_decay_steps": s.iterations},
+             "device": args.device}
+    if args.max_gaussians:
+        train["densify"] = {"max_gaussians": args.max_gaussians}
+    return {"downscale": args.downscale, "gop": args.gop, "train": train,
             "mesh": {"enabled": args.mesh_voxels > 0, "subject": True,
                      "resolution": max(args.mesh_voxels, 16)}}
 
@@ -269,6 +272,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", default="fast")
     ap.add_argument("--steps", type=int, default=None, help="a key frame's steps")
     ap.add_argument("--gop", type=int, default=10)
+    ap.add_argument("--max-gaussians", type=int, default=None,
+                    help="densification's cap (the CPU twin's budget; default: none)")
     ap.add_argument("--mesh-voxels", type=int, default=256, help="0: no meshes")
     ap.add_argument("--serve", type=int, default=0, metavar="N",
                     help="also run through dgs serve --workers N")

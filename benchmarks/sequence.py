@@ -7,6 +7,8 @@ Variants (same capture, same key-frame schedule):
 - independent: every frame a key frame with the static stages scaled to total / frames steps,
   where total is the sequential run's total count of rendered training images (equal budget:
   a deform step that averages k views costs k);
+- independent-3dgs: the same with a plain 3DGS per frame (`train.method` 3dgs, docs/design.md
+  5.14.1), what a 3DGS user without a sequence method would run;
 - no-temporal, no-anisotropy: sequential with that loss off.
 Reported: held-out PSNR (figure pixels) and normal cosine (against ground truth), flicker of the
 normal and AO maps (core.sequence.metrics), the largest PSNR drop between consecutive frames of
@@ -33,7 +35,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-VARIANTS = ("sequential", "independent", "no-temporal", "no-anisotropy")
+VARIANTS = ("sequential", "independent", "independent-3dgs", "no-temporal", "no-anisotropy")
 # The group-boundary study (issue 22): the refine budget drawn on the whole run instead of
 # each group, and key frames trained for key_steps x the schedule (the default is 2: key-1 is
 # the plain schedule, as before 2026-11-26).
@@ -53,10 +55,12 @@ def overrides(variant: str, iterations: int, total: int | None, frames: int, gop
     base = {"gop": gop, "checkpoint_every": 100_000,
             "train": {"schedule": _schedule(iterations), "init_points": 2_000,
                       "seed": train_seed}}
-    if variant == "independent":
+    if variant in ("independent", "independent-3dgs"):
         per_frame = max(3, round(total / frames))
         base["train"]["schedule"] = _schedule(per_frame)
         base["sequence"] = {"enabled": False}
+        if variant == "independent-3dgs":
+            base["train"]["method"] = "3dgs"
     elif variant == "run-budget":
         base.setdefault("sequence", {})["refine_scope"] = "run"
     elif variant.startswith("key-"):

@@ -16,6 +16,7 @@ from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
+import core  # noqa: F401  (first: OpenMP's passive wait is set before torch loads it)
 import torch
 from billiard.exceptions import SoftTimeLimitExceeded
 from pydantic import ValidationError
