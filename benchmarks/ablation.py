@@ -53,6 +53,16 @@ def run_variant(capture: Path, out: Path, variant: str, preset: str, seed: int) 
             "gaussians": frame["gaussians"], "seconds": frame["seconds"]}
 
 
+def _spread(runs: list[dict], key: str, spec: str = ".2f", extent: bool = True) -> str:
+    """The mean of `key` over `runs` and, with `extent`, its range over the runs that have it;
+    a bare mean is n/a when a run lacks it (n/a too when none has it)."""
+    values = [r[key] for r in runs if r[key] is not None]
+    if not values or (not extent and len(values) < len(runs)):
+        return "n/a"
+    mean = format(sum(values) / len(values), spec)
+    return f"{mean} ({min(values):{spec}}-{max(values):{spec}})" if extent else mean
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     ap.add_argument("--preset", default="fast")
@@ -102,18 +112,9 @@ def main() -> None:
         print("|---|---|---|---|---|---|")
         for variant in args.variants:
             runs = [r for r in rows if r["variant"] == variant]
-
-            def spread(key: str) -> str:
-                v = [r[key] for r in runs if r[key] is not None]
-                if not v:
-                    return "n/a"
-                return f"{sum(v) / len(v):.2f} ({min(v):.2f}-{max(v):.2f})"
-
-            mean = lambda key: fmt(  # noqa: E731
-                None if any(r[key] is None for r in runs)
-                else sum(r[key] for r in runs) / len(runs), ".4f")
-            print(f"| {variant} | {len(runs)} | {spread('psnr')} | {spread('psnr_full')} | "
-                  f"{mean('ssim')} | {mean('normal_cos')} |")
+            print(f"| {variant} | {len(runs)} | {_spread(runs, 'psnr')} | "
+                  f"{_spread(runs, 'psnr_full')} | {_spread(runs, 'ssim', '.4f', False)} | "
+                  f"{_spread(runs, 'normal_cos', '.4f', False)} |")
 
 
 if __name__ == "__main__":

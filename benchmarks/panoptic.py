@@ -199,29 +199,21 @@ def relit_video(run: Path, out: Path, hdri: Path, camera: str) -> str:
 
 
 def sheet(capture: Path, run: Path, relit: Path, camera: str, out: Path) -> Path:
-    """OUT/sheet.png: the test camera at the first, middle and last frame: capture, render,
-    normals, AO, relit under the HDRI (the relit video's frames)."""
+    """OUT/sheet.png: the test camera at the first, middle and last frame, as `dgs eval`'s
+    contact sheet draws a view (capture, render, normal, AO), relit under the HDRI beside it
+    (the relit video's frames)."""
     import numpy as np
-    from PIL import Image, ImageDraw
+    from PIL import Image
+
+    from core.relight.sheet import contact_sheet
 
     frames = sorted(p.name for p in (run / "renders").iterdir() if p.is_dir())
-    rows = []
-    for frame in dict.fromkeys([frames[0], frames[len(frames) // 2], frames[-1]]):
-        base = run / "renders" / frame / camera
-        paths = [next((capture / "images" / frame).glob(f"{camera}.*")),
-                 Path(f"{base}_rgb.png"), Path(f"{base}_normal.png"), Path(f"{base}_ao.png"),
-                 relit / frame / f"{camera}.png"]
-        size = Image.open(paths[1]).size
-        tiles = [np.asarray(Image.open(q).convert("RGB").resize(size)) if q.is_file()
-                 else np.zeros((size[1], size[0], 3), np.uint8) for q in paths]
-        rows.append(np.concatenate(tiles, axis=1))
-    image = Image.fromarray(np.concatenate(rows, axis=0))
-    draw = ImageDraw.Draw(image)
-    for i, label in enumerate(("capture", "render", "normals", "AO", "relit (HDRI)")):
-        draw.text((i * image.width // 5 + 4, 2), label, fill=(255, 255, 0))
-    path = out / "sheet.png"
-    image.save(path)
-    return path
+    views = [(f, camera) for f in dict.fromkeys([frames[0], frames[len(frames) // 2],
+                                                  frames[-1]])]
+    pictures = {(f, camera): {"relit (HDRI)": np.asarray(Image.open(path).convert("RGB"))
+                              / 255.0}
+                for f, _ in views if (path := relit / f / f"{camera}.png").is_file()}
+    return contact_sheet(capture, run, views, pictures, out / "sheet.png", scale=1)
 
 
 def _fmt(v, spec: str) -> str:

@@ -5,13 +5,10 @@ from __future__ import annotations
 
 import os
 
-# Before anything loads torch (and its OpenMP): core/__init__.py's passive wait, also for test
-# modules that import torch before core.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+import pytest
 
-import pytest  # noqa: E402
-
-import real_services as services  # noqa: E402
+import core  # noqa: F401  (before any test module loads torch: OpenMP's passive wait)
+import real_services as services
 
 # Training's device `auto` means the CPU in the tests, also in the processes they start (workers,
 # CLI runs): STYLE 12, and the exact-resume checks hold on the CPU only (CUDA's atomic gradient

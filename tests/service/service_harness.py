@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import threading
 from pathlib import Path
 
+import httpx
 from fastapi.testclient import TestClient
 
 from service.settings import ServiceSettings
@@ -66,3 +68,22 @@ def upload_file(client: TestClient, capture_id: str, path: str, data: bytes,
     if data:
         done = tus_patch(client, created.headers["Location"], 0, data, headers)
         assert done.status_code == 204, done.text
+
+
+def submit_together(url: str, path: str, body: dict, key: str,
+                    n: int = 8) -> list[httpx.Response]:
+    """`n` POSTs of `body` to `path` of the server at `url` with one Idempotency-Key, each on
+    its own connection and thread, released together by a barrier; their answers."""
+    start, answers = threading.Barrier(n), []
+
+    def submit() -> None:
+        with httpx.Client(base_url=url, timeout=120) as http:
+            start.wait()
+            answers.append(http.post(path, json=body, headers={"Idempotency-Key": key}))
+
+    threads = [threading.Thread(target=submit) for _ in range(n)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return answers

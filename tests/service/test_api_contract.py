@@ -51,6 +51,27 @@ def test_the_api_process_never_imports_torch():
     assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
 
 
+# `EXAMPLES` generated requests an operation, no shrinking: bounded time.
+GENERATED = settings(max_examples=EXAMPLES, deadline=None, database=None,
+                     suppress_health_check=list(HealthCheck),
+                     phases=[Phase.explicit, Phase.generate])
+
+
+def _schema(app, key: str):
+    """The app's schema, every request it generates sending `key`."""
+    schema = schemathesis.openapi.from_asgi("/openapi.json", app)
+
+    @schema.auth()
+    class BearerKey:
+        def get(self, case, ctx):
+            return key
+
+        def set(self, case, data, ctx):
+            case.headers = {**(case.headers or {}), "Authorization": f"Bearer {data}"}
+
+    return schema
+
+
 @pytest.fixture(scope="module")
 def api(tmp_path_factory):
     s = make_settings(tmp_path_factory.mktemp("schemathesis") / "data",
@@ -67,24 +88,13 @@ def test_no_server_errors_and_responses_match_the_schema(api, mode):
     from schemathesis.generation import GenerationMode
 
     app, key = api
-    schema = schemathesis.openapi.from_asgi("/openapi.json", app)
-
-    @schema.auth()
-    class BearerKey:
-        def get(self, case, ctx):
-            return key
-
-        def set(self, case, data, ctx):
-            case.headers = {**(case.headers or {}), "Authorization": f"Bearer {data}"}
-
+    schema = _schema(app, key)
     failures, statuses = [], collections.Counter()
     for result in schema.get_all_operations():
         operation = result.ok()
 
         @given(case=operation.as_strategy(GenerationMode(mode), auth_storage=schema.auth))
-        @settings(max_examples=EXAMPLES, deadline=None, database=None,
-                  suppress_health_check=list(HealthCheck),
-                  phases=[Phase.explicit, Phase.generate])  # no shrinking: bounded time
+        @GENERATED
         def check(case):
             # Schema-valid requests may still be refused by runtime rules a schema cannot state
             # (an unsafe path, a size over the configured limit, a time in the past): 4xx for
@@ -145,16 +155,7 @@ def test_request_models_on_real_objects(api, objects, mode):
 
     app, key = api
     ready, uploading, job = objects
-    schema = schemathesis.openapi.from_asgi("/openapi.json", app)
-
-    @schema.auth()
-    class BearerKey:
-        def get(self, case, ctx):
-            return key
-
-        def set(self, case, data, ctx):
-            case.headers = {**(case.headers or {}), "Authorization": f"Bearer {data}"}
-
+    schema = _schema(app, key)
     failures, statuses = [], collections.Counter()
     for result in schema.get_all_operations():
         operation = result.ok()
@@ -163,9 +164,7 @@ def test_request_models_on_real_objects(api, objects, mode):
             continue
 
         @given(case=operation.as_strategy(GenerationMode(mode), auth_storage=schema.auth))
-        @settings(max_examples=EXAMPLES, deadline=None, database=None,
-                  suppress_health_check=list(HealthCheck),
-                  phases=[Phase.explicit, Phase.generate])
+        @GENERATED
         def check(case):
             field = MODELS[(case.operation.method.upper(), case.operation.path)]
             path = (case.path_parameters or {}).get("capture_id")

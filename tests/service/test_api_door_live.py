@@ -17,7 +17,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from service_harness import TUS, capture_files, manifest_of, metadata
+from service_harness import TUS, capture_files, manifest_of, metadata, submit_together
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bad_inputs import HUGE, bad_variants, good_image, png_header  # noqa: E402
@@ -324,20 +324,8 @@ def test_concurrent_submits_with_one_key_make_one_job(live, made):
     """Finding 8: eight submits at once with one Idempotency-Key make one job."""
     server, http = live
     before = _jobs(http)
-    start, answers = threading.Barrier(8), []
-    body = {"job_id": made["job"]["id"], "formats": ["spz"]}
-
-    def submit():
-        with httpx.Client(base_url=server.url, timeout=120) as own:
-            start.wait()
-            answers.append(own.post("/v1/exports", json=body,
-                                    headers={"Idempotency-Key": "door-8"}))
-
-    threads = [threading.Thread(target=submit) for _ in range(8)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    answers = submit_together(server.url, "/v1/exports",
+                              {"job_id": made["job"]["id"], "formats": ["spz"]}, "door-8")
     assert [a.status_code for a in answers] == [202] * 8, [a.text for a in answers]
     assert len({a.json()["id"] for a in answers}) == 1 and _jobs(http) == before + 1
     http.post(f"/v1/jobs/{answers[0].json()['id']}/cancel")

@@ -6,12 +6,11 @@ PostgreSQL (the database's unique constraint decides, not a check before the ins
 from __future__ import annotations
 
 import json
-import threading
 
-import httpx
 import pytest
 from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
+from service_harness import submit_together
 from test_api_renders import finished
 
 from worker.idempotency import Idempotency, forget_expired
@@ -135,18 +134,7 @@ def test_concurrent_submits_with_one_key_make_one_job(services, live_api, ready_
     url, _ = live_api
     capture = ready_capture()
     body = {"capture_id": capture, "params": TEST}
-    start, answers = threading.Barrier(8), []
-
-    def submit() -> None:
-        with httpx.Client(base_url=url, timeout=120) as http:
-            start.wait()
-            answers.append(http.post("/v1/jobs", json=body, headers={"Idempotency-Key": "k"}))
-
-    threads = [threading.Thread(target=submit) for _ in range(8)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join()
+    answers = submit_together(url, "/v1/jobs", body, "k")
     assert [r.status_code for r in answers] == [202] * 8, [r.text for r in answers]
     assert len({r.json()["id"] for r in answers}) == 1
     assert sum("Idempotent-Replayed" not in r.headers for r in answers) == 1
