@@ -6,6 +6,7 @@ light beside that light's ground truth, and the ground-truth normals.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -43,12 +44,23 @@ TILE_MAX = 512
 """Longest side of a tile in pixels: a real capture's 1080x1920 views stay a readable sheet."""
 
 
-def _capture_tile(capture_dir: Path, frame: str, cam: str, size: tuple[int, int]) -> np.ndarray:
-    """The captured view as the camera saw it: straight colour times its coverage mask (on the
-    black of the synthetic studio)."""
+def _mattes(capture_dir: Path) -> bool:
+    """Whether the capture's masks cut its subject out (capture.json `masks` "matte", the
+    default), rather than mark a subject inside a scene reconstructed whole ("subject")."""
+    try:
+        return json.loads((capture_dir / "capture.json").read_text()).get("masks") != "subject"
+    except (OSError, ValueError, AttributeError):
+        return True
+
+
+def _capture_tile(capture_dir: Path, frame: str, cam: str, size: tuple[int, int],
+                  matte: bool = True) -> np.ndarray:
+    """The captured view as the camera saw it: straight colour, times its coverage mask when
+    the masks are mattes (on the black of the synthetic studio); a subject mask leaves the
+    scene around the subject in the picture, as the run reconstructs it."""
     image = _png(_captured(capture_dir, frame, cam), size).astype(np.float32)
     mask = capture_dir / "masks" / frame / f"{cam}.png"
-    if mask.is_file():
+    if matte and mask.is_file():
         cover = np.asarray(Image.open(mask).convert("L").resize(size, Image.NEAREST)) / 255.0
         image = image * cover[..., None]
     return (image + 0.5).astype(np.uint8)
@@ -73,6 +85,7 @@ def contact_sheet(capture_dir: Path, run_dir: Path, views: list[tuple[str, str]]
     if not views:
         raise ValueError("views: expected at least one (frame, camera) to show")
     rows, names = [], None
+    matte = _mattes(capture_dir)
     for frame, cam in views:
         r = run_dir / "renders" / frame
         # Tiles at the render's size (the run's resolution) times `scale`, at most TILE_MAX.
@@ -82,7 +95,7 @@ def contact_sheet(capture_dir: Path, run_dir: Path, views: list[tuple[str, str]]
         size = (max(1, round(first.width * factor)), max(1, round(first.height * factor)))
         pictures = relit.get((frame, cam), {})
         gt_normal = _gt_normal(capture_dir, frame, cam, size)
-        tiles = {"capture": _capture_tile(capture_dir, frame, cam, size),
+        tiles = {"capture": _capture_tile(capture_dir, frame, cam, size, matte),
                  "render": _png(r / f"{cam}_rgb.png", size),
                  "normal": _png(r / f"{cam}_normal.png", size),
                  "AO": _png(r / f"{cam}_ao.png", size),

@@ -146,6 +146,15 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     wait_for(d, "the workspace", lambda d: d.find_element(By.ID, "workspace").is_displayed())
     assert "tenant studio" in text(d, "whoami")
     assert server.key not in d.current_url
+    # A spy on the page's fetch: which submits it sends, with which Idempotency-Key.
+    d.execute_script("""
+        window.submits = [];
+        const send = window.fetch;
+        window.fetch = (url, init = {}) => {
+          if (init.method === 'POST' && /^\\/v1\\/(jobs|renders|exports)$/.test(String(url)))
+            window.submits.push([String(url), (init.headers || {})['Idempotency-Key'] || null]);
+          return send(url, init);
+        };""")
 
     # 1. The capture folder, uploaded with tus and committed. The source formats come from the
     # server's importers.
@@ -218,6 +227,11 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
         "return v !== null && v.readyState >= 1 && v.duration > 0;"), 180)
     assert "relit" in text(d, "relight-status"), text(d, "relight-status")
     shot(d, "06-relight-orbit")
+    # Every submit carried an Idempotency-Key of its own (a retry of one would reuse it).
+    submits = d.execute_script("return window.submits")
+    assert [url for url, _ in submits] == ["/v1/jobs", "/v1/renders", "/v1/renders"], submits
+    keys = [key for _, key in submits]
+    assert all(keys) and len(set(keys)) == len(keys), submits
     severe = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
     assert not severe, severe
     print(f"browser test: {time.monotonic() - started:.1f} s")

@@ -60,6 +60,38 @@ export async function sendJson(method, path, json) {
   return r.status === 204 ? null : r.json();
 }
 
+/** A new Idempotency-Key: a UUID (crypto.randomUUID needs a secure context; over plain http
+ * beyond localhost it is built from getRandomValues, version 4 like the client library's). */
+export function newKey() {
+  if (crypto.randomUUID) return crypto.randomUUID();
+  const b = crypto.getRandomValues(new Uint8Array(16));
+  b[6] = (b[6] & 0x0f) | 0x40;
+  b[8] = (b[8] & 0x3f) | 0x80;
+  const h = [...b].map((x) => x.toString(16).padStart(2, '0')).join('');
+  return `${h.slice(0, 8)}-${h.slice(8, 12)}-${h.slice(12, 16)}-${h.slice(16, 20)}-${h.slice(20)}`;
+}
+
+/** Statuses a submit is sent again after, as the client library (service/client/http.py). */
+const RETRIED = [429, 500, 502, 503, 504];
+const SUBMIT_ATTEMPTS = 5;
+
+/** POST a submit (a job, a render, an export) with one Idempotency-Key for every attempt: sent
+ * again after a lost connection or a retryable answer, 0.5 s apart doubling, so however many of
+ * the attempts arrive the server makes one job. Returns the answer's JSON. */
+export async function submitJson(path, json) {
+  const headers = { 'Idempotency-Key': newKey() };
+  for (let attempt = 0; ; attempt++) {
+    try {
+      return await (await request('POST', path, { json, headers: { ...headers } })).json();
+    } catch (err) {
+      const lost = err instanceof TypeError; // fetch's network failure
+      const retried = err instanceof ApiError && RETRIED.includes(err.status);
+      if (!(lost || retried) || attempt + 1 >= SUBMIT_ATTEMPTS) throw err;
+      await new Promise((done) => { setTimeout(done, 500 * 2 ** attempt); });
+    }
+  }
+}
+
 /** Every item of a paginated listing (`items`, `next_cursor`). */
 export async function listAll(path, params = {}) {
   const items = [];

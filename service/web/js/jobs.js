@@ -1,7 +1,7 @@
 // Panel 2: start a reconstruction on a ready capture with a preset, and follow a job live
 // (server-sent events, read with fetch so the key stays in a header), with its log.
 
-import { followJob, getJson, listAll, sendJson } from './api.js';
+import { followJob, getJson, listAll, sendJson, submitJson } from './api.js';
 import { $, el, emit, on, showError, showStatus } from './ui.js';
 
 const TERMINAL = new Set(['succeeded', 'failed', 'cancelled']);
@@ -166,7 +166,7 @@ async function start() {
   if (frames) params.frames = frames;
   $('job-start').disabled = true;
   try {
-    const job = await sendJson('POST', '/v1/jobs', { capture_id: $('job-capture').value,
+    const job = await submitJson('/v1/jobs', { capture_id: $('job-capture').value,
       pipeline: 'reconstruct', params, name: $('job-capture').selectedOptions[0].textContent.split(' (')[0] });
     state.job = job;
     await loadJobs();

@@ -2,7 +2,7 @@
 // map (rotated about the up axis) plus added lights: POST /v1/renders, then show the relit
 // images (or the API's error, as it says it).
 
-import { blobUrl, followJob, getJson, listAll, request } from './api.js';
+import { blobUrl, followJob, getJson, listAll, request, submitJson } from './api.js';
 import { $, el, on, showError, showStatus } from './ui.js';
 
 const state = { job: null, frame: null, index: 0, schema: null };
@@ -106,8 +106,7 @@ async function render() {
     const degrees = Number($('envmap-rotation').value);
     if (rotation) body[rotation] = degrees;
     else if (degrees) showStatus(status, 'this server takes no environment rotation; rendering unrotated');
-    const r = await request('POST', '/v1/renders', { json: body });
-    const out = await r.json();
+    const out = await submitJson('/v1/renders', body);
     let items = out.items || out.artifacts || null;
     if (!items && out.id) {
       const job = await followJob(out.id, (event) => {
