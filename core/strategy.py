@@ -14,8 +14,9 @@ object with explicit state, in the manner of gsplat's `strategy/` (called after 
   the copy starts at 0.005.
 - At each opacity reset: drop the rho fraction with the lowest contribution (max over views of
   alpha*T in either branch since the last reset) and those transparent in both branches; then
-  rho *= 0.75 and opacities become min(o, 0.01) (3DGS reset). With `prune_at` densify the
-  transparent ones go at every densification instead, as in 3DGS.
+  rho *= 0.75 and opacities become min(o, 0.01) (3DGS reset; `reset_opacity` off leaves them,
+  as released gsplat 1.5.3 does). With `prune_at` densify the transparent ones go at every
+  densification instead, as in 3DGS.
 - From the first reset on, every densification and reset also drops Gaussians whose largest scale
   exceeds 0.1 x the scene extent (3DGS densify_and_prune `big_points_ws`; gsplat
   DefaultStrategy prune_scale3d 0.1): a sheet that large is a floater the training views cannot
@@ -218,7 +219,7 @@ class DensifyStrategy:
     def prune_and_reset(self, model: GaussianModel, optimizer: torch.optim.Optimizer | None,
                         state: StrategyState, tied: bool = False) -> dict[str, int]:
         """Prune (lowest-contribution fraction rho, transparent in both branches), decay rho,
-        reset both opacities to min(o, reset_value). `tied`: opacity_g follows opacity_c (stage 1),
+        reset both opacities to min(o, reset_value) (unless `reset_opacity` is off). `tied`: opacity_g follows opacity_c (stage 1),
         so transparency is judged on opacity_c alone."""
         cfg = self.config
         with torch.no_grad():
@@ -233,9 +234,10 @@ class DensifyStrategy:
                 drop[state.contribution.argmax()] = False  # never leave an empty model
             model.keep(~drop, optimizer)
             state.select(~drop)
-            limit = math.log(cfg.reset_value / (1 - cfg.reset_value))
-            for name in ("opacity_c", "opacity_g"):
-                model.assign(name, model.params[name].detach().clamp_max(limit), optimizer)
+            if cfg.reset_opacity:
+                limit = math.log(cfg.reset_value / (1 - cfg.reset_value))
+                for name in ("opacity_c", "opacity_g"):
+                    model.assign(name, model.params[name].detach().clamp_max(limit), optimizer)
             state.contribution.zero_()
             record = {"pruned": int(drop.sum()), "n": len(model), "rho_percent": round(
                 100 * state.rho)}

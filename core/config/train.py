@@ -153,6 +153,11 @@ class DensifyConfig:
     """rho is multiplied by this after each reset."""
     reset_value: Annotated[float, Field(gt=0, lt=1)] = 0.01
     """Opacity reset: o = min(o, reset_value) (3DGS)."""
+    reset_opacity: bool = True
+    """Reset opacities at each reset step (3DGS). Off: the reset steps still prune and count as
+    resets (the too-big pruning starts after the first), but opacities are left alone, as in
+    gsplat 1.5.3's `DefaultStrategy`, whose reset condition `step % reset_every == 0 & step > 0`
+    never holds (fixed by gsplat pull request 776, after that release)."""
     max_gaussians: Annotated[int, Field(ge=1, le=50_000_000)] | None = None
     """Stop growing beyond this many Gaussians (highest gradients densify first); None: no cap."""
     prune_scale: Positive | None = 0.1

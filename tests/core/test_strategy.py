@@ -199,6 +199,28 @@ def test_prune_and_reset():
     assert st.rho == pytest.approx(0.1 * 0.75**2) and st.resets == 2
 
 
+def test_a_reset_without_the_opacity_reset():
+    """`reset_opacity` off (released gsplat 1.5.3): the reset step prunes, counts and decays rho
+    as before, opacities and their Adam moments are left as they were, and the too-big pruning
+    starts after it as after a real reset."""
+    m = tiny_model(6)
+    opt = _stepped_optimizer(m)
+    s = DensifyStrategy(DensifyConfig(rho=0.0, reset_opacity=False), extent=4.0)
+    st = s.initialize_state(6)
+    before = {k: m.params[k].detach().clone() for k in ("opacity_c", "opacity_g")}
+    moments = {g["name"]: opt.state[g["params"][0]]["exp_avg"].clone()
+               for g in opt.param_groups if g["name"].startswith("opacity")}
+    assert before["opacity_c"].sigmoid().max() > 0.01  # a real reset would lower these
+    assert s.prune_and_reset(m, opt, st)["pruned"] == 0 and st.resets == 1
+    for name, values in before.items():
+        assert torch.equal(m.params[name].detach(), values)
+    for g in opt.param_groups:
+        if g["name"] in moments:
+            assert torch.equal(opt.state[g["params"][0]]["exp_avg"], moments[g["name"]])
+            assert bool(moments[g["name"]].abs().sum() > 0)
+    assert s.densify(m, opt, st)["pruned_big"] == 2 and len(m) == 4
+
+
 def test_tied_opacity_prunes_on_appearance_alone():
     m = tiny_model(3)
     with torch.no_grad():
