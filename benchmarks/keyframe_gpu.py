@@ -11,7 +11,13 @@ same number of steps with the same step-to-view order rule (each view once per e
   trains (`gsplat.rasterization`, classic mode, `DefaultStrategy` with its step counts scaled
   by the same factor, Adam per parameter with 3DGS's rates, the position rate decaying to
   1/100 over the run, SH degree raised every 1000 steps scaled), with our photometric loss
-  (0.8 L1 + 0.2 D-SSIM, as 3DGS) so the losses are the same.
+  (0.8 L1 + 0.2 D-SSIM, as 3DGS) so the losses are the same; the installed `DefaultStrategy`
+  as it is: released gsplat 1.5.3 never resets opacities (its reset condition
+  `step % reset_every == 0 & step > 0` never holds; gsplat pull request 776 fixed it after);
+- gsplat-3dgs: the same with 3DGS's opacity resets, made by this script (gsplat's own
+  `reset_opa`, to 0.01 at each reset step inside the refine window) when the installed
+  strategy skips them;
+- ours-3dgs: our trainer's plain 3DGS (`train.method` 3dgs on the same schedule), beside them.
 
 Reported per system: seconds per stage and steps/s (the device synchronized at each stage
 boundary), the AO bake's seconds, the whole frame's seconds, peak GPU memory
@@ -23,7 +29,7 @@ of cudaStreamSynchronize / cudaDeviceSynchronize / device-to-host copies) and th
 kernels; then a mesh of our frame at `--mesh-voxels` (`core.mesh.build.mesh_model`).
 
     python benchmarks/keyframe_gpu.py CAPTURE --out DIR [--steps 3000] [--downscale 1]
-                                      [--systems ours gsplat] [--frame ID]
+                                      [--systems ours gsplat ...] [--frame ID]
 
 CAPTURE is a canonical capture or anything `dgs import` reads (the instant-ngp fox folder);
 DIR receives result.json after every part (a run cut short keeps what it measured) and the
@@ -51,7 +57,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from core.color import linear_to_srgb  # noqa: E402
-from core.config import train_config  # noqa: E402
+from core.config import method_defaults, train_config  # noqa: E402
 from core.data import CaptureDataset, import_capture, load_capture  # noqa: E402
 from core.evaluation.run import _view_metrics  # noqa: E402
 from core.losses import depth_to_normals, photometric_loss  # noqa: E402
@@ -65,6 +71,10 @@ from core.training.views import frame_views  # noqa: E402
 
 SYNC_OPS = ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize",
             "aten::_local_scalar_dense", "aten::item", "aten::nonzero")
+
+
+SYSTEMS = ("ours", "ours-3dgs", "gsplat", "gsplat-3dgs")
+"""What `--systems` picks from (module docstring)."""
 
 
 def sync() -> None:
@@ -166,7 +176,11 @@ def run_ours(capture, frame, views, model0, config, out: Path, args) -> dict:
     clock = StageClock({sched.stage2_start, sched.stage3_start})
     reset_peak()
     t0 = time.perf_counter()
-    trainer = Trainer(views, config, model=model0, callbacks=[clock])
+    # A copy: the trainer grows and prunes its model in place, and every system starts from
+    # the same initial Gaussians (before 2026-11-27 the systems after ours started from ours'
+    # trained model, on a CUDA device where `to` returns the model itself).
+    start = GaussianModel({k: v.detach().clone() for k, v in model0.params.items()})
+    trainer = Trainer(views, config, model=start, callbacks=[clock])
     trainer.train()
     sync()
     seconds = time.perf_counter() - t0
@@ -236,14 +250,38 @@ def bake_parts(trainer) -> dict:
 
 
 # -- gsplat -------------------------------------------------------------------------------------
+def gsplat_resets(gsplat) -> bool:
+    """Whether the installed gsplat's `DefaultStrategy` resets opacities at its reset steps:
+    released 1.5.3 never does (its condition `step % reset_every == 0 & step > 0` is a chained
+    comparison with 0 > 0; gsplat pull request 776 fixed it after that release). Probed on one
+    CPU Gaussian at step 1 with a reset every step."""
+    strategy = gsplat.DefaultStrategy(refine_start_iter=10**9, refine_stop_iter=10,
+                                      reset_every=1)
+    params = torch.nn.ParameterDict({k: torch.zeros(1, n) for k, n in
+                                     (("means", 3), ("scales", 3), ("quats", 4))})
+    params["quats"].data[:, 0] = 1
+    params["opacities"] = torch.nn.Parameter(torch.full((1,), 5.0))
+    optimizers = {k: torch.optim.Adam([params[k]]) for k in params}
+    means2d = torch.zeros(1, 2, requires_grad=True)
+    means2d.grad = torch.zeros(1, 2)
+    info = {"width": 1, "height": 1, "n_cameras": 1, "radii": torch.ones(1, 2),
+            "gaussian_ids": torch.zeros(1, dtype=torch.long), "means2d": means2d}
+    strategy.step_post_backward(params, optimizers, strategy.initialize_state(), 1, info,
+                                packed=True)
+    return float(torch.sigmoid(params["opacities"].detach())[0]) < 0.5
+
+
 class GsplatTrainer:
-    """A plain 3DGS on gsplat's API (module docstring), from our initial model."""
+    """A plain 3DGS on gsplat's API (module docstring), from our initial model. `reset`: the
+    opacity resets of 3DGS, made here when the installed strategy skips them (gsplat 1.5.3);
+    off, the installed strategy as it is."""
 
     def __init__(self, views, model0: GaussianModel, steps: int, extent: float, background,
-                 seed: int):
+                 seed: int, reset: bool = False):
         import gsplat
 
         self.gsplat = gsplat
+        self.own_resets = reset and not gsplat_resets(gsplat)
         dev = torch.device("cuda")
         self.views, self.steps, self.background = views, steps, background
         f = steps / 30_000
@@ -306,6 +344,12 @@ class GsplatTrainer:
         self.decay.step()
         self.strategy.step_post_backward(self.params, self.optimizers, self.state, self.step,
                                          info, packed=True)
+        st = self.strategy
+        if self.own_resets and 0 < self.step < st.refine_stop_iter \
+                and self.step % st.reset_every == 0:
+            from gsplat.strategy.ops import reset_opa
+
+            reset_opa(self.params, self.optimizers, self.state, value=st.prune_opa * 2.0)
         self.step += 1
 
     def train(self, clock: StageClock) -> None:
@@ -315,16 +359,19 @@ class GsplatTrainer:
             clock.count("plain", self.step - 1, self.step == self.steps)
 
 
-def run_gsplat(capture, frame, views, model0, steps, extent, background, args) -> dict:
+def run_gsplat(capture, frame, views, model0, steps, extent, background, args,
+               reset: bool = False) -> dict:
     clock = StageClock()
     reset_peak()
     t0 = time.perf_counter()
-    g = GsplatTrainer(views, model0, steps, extent, background, args.seed)
+    g = GsplatTrainer(views, model0, steps, extent, background, args.seed, reset)
     g.train(clock)
     seconds = time.perf_counter() - t0
     res = {"stages": clock.table(), "seconds": round(seconds, 2),
            "peak_gb": peak_gb(),
-           "gaussians": int(g.params["means"].shape[0])}
+           "gaussians": int(g.params["means"].shape[0]),
+           "gsplat": g.gsplat.__version__, "installed_strategy_resets": gsplat_resets(g.gsplat),
+           "resets_made_here": g.own_resets}
 
     def draw(cam):
         return g.draw_normals(RenderCamera.from_camera(cam, device="cuda"))
@@ -366,9 +413,11 @@ def part(report: dict, out: Path, name: str, fn):
 def table(report: dict) -> str:
     lines = ["| system | s (frame) | stage s (steps/s) | AO bake s | peak GB | Gaussians | "
              "held-out PSNR | SSIM | normals deg |", "|---|---|---|---|---|---|---|---|---|"]
-    for name in ("ours", "gsplat"):
+    for name in SYSTEMS:
         r = report.get(name)
-        if not r or "error" in r:
+        if r is None:
+            continue
+        if "error" in r:
             lines.append(f"| {name} | {r and r.get('error', '')[:80]} |||||||")
             continue
         st = "; ".join(f"{k} {v['seconds']:.1f} ({v['steps_per_s']:.0f})"
@@ -389,7 +438,7 @@ def main() -> int:
     ap.add_argument("--steps", type=int, default=3000)
     ap.add_argument("--downscale", type=float, default=1.0)
     ap.add_argument("--frame", default=None)
-    ap.add_argument("--systems", nargs="+", default=["ours", "gsplat"])
+    ap.add_argument("--systems", nargs="+", default=["ours", "gsplat"], choices=SYSTEMS)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--profile-steps", type=int, default=20)
     ap.add_argument("--mesh-voxels", type=int, default=512)
@@ -433,10 +482,15 @@ def main() -> int:
     if "ours" in args.systems:
         part(report, args.out, "ours",
              lambda: run_ours(capture, frame, views, model0, config, args.out, args))
-    if "gsplat" in args.systems:
-        part(report, args.out, "gsplat",
-             lambda: run_gsplat(capture, frame, views, model0, args.steps, extent, background,
-                                args))
+    if "ours-3dgs" in args.systems:
+        plain = method_defaults(config, "3dgs")
+        part(report, args.out, "ours-3dgs",
+             lambda: run_ours(capture, frame, views, model0, plain, args.out, args))
+    for name in ("gsplat", "gsplat-3dgs"):
+        if name in args.systems:
+            part(report, args.out, name,
+                 lambda name=name: run_gsplat(capture, frame, views, model0, args.steps, extent,
+                                              background, args, reset=name == "gsplat-3dgs"))
     print(table(report), flush=True)
     for name in ("ours", "gsplat"):
         tr = (report.get(name) or {}).get("_trainer")
