@@ -40,7 +40,10 @@ class AOBaker(Protocol):
 
 
 class Trainer(FrameFitter):
-    """Reconstructs one key frame from its training views (module docstring)."""
+    """Reconstructs one key frame from its training views (module docstring). A `model` given
+    to it is trained in place when it is on the trainer's device (densification replaces its
+    tensors): give a copy to keep the original (two trainers given one model do not start from
+    the same Gaussians)."""
 
     def __init__(self, views: Sequence[View], config: TrainConfig = TrainConfig(), *,
                  model: GaussianModel | None = None, callbacks: Sequence[Callback] = (),
