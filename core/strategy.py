@@ -219,8 +219,8 @@ class DensifyStrategy:
     def prune_and_reset(self, model: GaussianModel, optimizer: torch.optim.Optimizer | None,
                         state: StrategyState, tied: bool = False) -> dict[str, int]:
         """Prune (lowest-contribution fraction rho, transparent in both branches), decay rho,
-        reset both opacities to min(o, reset_value) (unless `reset_opacity` is off). `tied`: opacity_g follows opacity_c (stage 1),
-        so transparency is judged on opacity_c alone."""
+        reset both opacities to min(o, reset_value) (unless `reset_opacity` is off). `tied`:
+        opacity_g follows opacity_c (stage 1), so transparency is judged on opacity_c alone."""
         cfg = self.config
         with torch.no_grad():
             n = len(model)
