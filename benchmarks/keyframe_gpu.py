@@ -281,7 +281,8 @@ class GsplatTrainer:
         import gsplat
 
         self.gsplat = gsplat
-        self.own_resets = reset and not gsplat_resets(gsplat)
+        self.installed_resets = gsplat_resets(gsplat)
+        self.own_resets = reset and not self.installed_resets
         dev = torch.device("cuda")
         self.views, self.steps, self.background = views, steps, background
         f = steps / 30_000
@@ -370,7 +371,7 @@ def run_gsplat(capture, frame, views, model0, steps, extent, background, args,
     res = {"stages": clock.table(), "seconds": round(seconds, 2),
            "peak_gb": peak_gb(),
            "gaussians": int(g.params["means"].shape[0]),
-           "gsplat": g.gsplat.__version__, "installed_strategy_resets": gsplat_resets(g.gsplat),
+           "gsplat": g.gsplat.__version__, "installed_strategy_resets": g.installed_resets,
            "resets_made_here": g.own_resets}
 
     def draw(cam):

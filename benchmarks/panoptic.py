@@ -205,6 +205,7 @@ def sheet(capture: Path, run: Path, relit: Path, camera: str, out: Path) -> Path
     import numpy as np
     from PIL import Image
 
+    from core.data import load_capture
     from core.relight.sheet import contact_sheet
 
     frames = sorted(p.name for p in (run / "renders").iterdir() if p.is_dir())
@@ -213,7 +214,8 @@ def sheet(capture: Path, run: Path, relit: Path, camera: str, out: Path) -> Path
     pictures = {(f, camera): {"relit (HDRI)": np.asarray(Image.open(path).convert("RGB"))
                               / 255.0}
                 for f, _ in views if (path := relit / f / f"{camera}.png").is_file()}
-    return contact_sheet(capture, run, views, pictures, out / "sheet.png", scale=1)
+    matte = load_capture(capture).masks == "matte"  # Panoptic's mark the players: "subject"
+    return contact_sheet(capture, run, views, pictures, out / "sheet.png", scale=1, matte=matte)
 
 
 def _fmt(v, spec: str) -> str:

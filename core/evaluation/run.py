@@ -155,7 +155,7 @@ def evaluate_run(run_dir: str | os.PathLike[str],
               "capture": capture_name or str(capture_dir), "split": split.to_json(),
               "views": len(rows), "per_frame": per_frame}
     result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame,
-                                      torch_device))
+                                      torch_device, matte))
 
     result["temporal"] = temporal_metrics(run, capture_dir, frames, held, per_frame)
     result["flicker"] = result["temporal"]["flicker"]
@@ -177,7 +177,8 @@ def _mesh_scores(run: Path, capture_dir: Path, frame: str) -> dict | None:
 
 
 def _relight_and_meshes(run: Path, capture_dir: Path, frames: list[str], held: list[str],
-                        downscale: float, per_frame: list[dict], device="cpu") -> dict:
+                        downscale: float, per_frame: list[dict], device="cpu",
+                        matte: bool = True) -> dict:
     """Relit held-out views against the second light's ground truth, meshes against the
     ground-truth meshes (added to each `per_frame` entry), and RUN/contact_sheet.png (the first
     and last frames' held-out views)."""
@@ -208,6 +209,7 @@ def _relight_and_meshes(run: Path, capture_dir: Path, frames: list[str], held: l
         keys = ("chamfer", "chamfer_relative", "normal_consistency")
         out["mesh"] = {k: _mean(meshes, k) for k in keys}
         out["chamfer"] = out["mesh"]["chamfer"]
-    sheet = contact_sheet(capture_dir, run, list(pictures), pictures, run / "contact_sheet.png")
+    sheet = contact_sheet(capture_dir, run, list(pictures), pictures, run / "contact_sheet.png",
+                          matte=matte)
     out["contact_sheet"] = sheet.name
     return out

@@ -6,7 +6,6 @@ light beside that light's ground truth, and the ground-truth normals.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -44,15 +43,6 @@ TILE_MAX = 512
 """Longest side of a tile in pixels: a real capture's 1080x1920 views stay a readable sheet."""
 
 
-def _mattes(capture_dir: Path) -> bool:
-    """Whether the capture's masks cut its subject out (capture.json `masks` "matte", the
-    default), rather than mark a subject inside a scene reconstructed whole ("subject")."""
-    try:
-        return json.loads((capture_dir / "capture.json").read_text()).get("masks") != "subject"
-    except (OSError, ValueError, AttributeError):
-        return True
-
-
 def _capture_tile(capture_dir: Path, frame: str, cam: str, size: tuple[int, int],
                   matte: bool = True) -> np.ndarray:
     """The captured view as the camera saw it: straight colour, times its coverage mask when
@@ -77,15 +67,16 @@ def _gt_normal(capture_dir: Path, frame: str, cam: str, size) -> np.ndarray | No
 
 def contact_sheet(capture_dir: Path, run_dir: Path, views: list[tuple[str, str]],
                   relit: dict[tuple[str, str], dict[str, np.ndarray]], out: Path,
-                  scale: int = 2) -> Path:
+                  scale: int = 2, matte: bool = True) -> Path:
     """Write the sheet of `views` ((frame, camera) pairs) to `out`; `relit[(frame, camera)]`
     maps a column name to an sRGB picture (H, W, 3) in 0..1 (the same names in every row).
     Tiles are the rendered view's size (else the captured image's) times `scale` (nearest
-    neighbour), at most TILE_MAX pixels on the longer side; captured images may be .png or .jpg."""
+    neighbour), at most TILE_MAX pixels on the longer side; captured images may be .png or .jpg.
+    `matte`: the run read the capture's masks as mattes (the capture tile is cut by them); off,
+    they mark a subject inside a scene reconstructed whole and the tile stays whole."""
     if not views:
         raise ValueError("views: expected at least one (frame, camera) to show")
     rows, names = [], None
-    matte = _mattes(capture_dir)
     for frame, cam in views:
         r = run_dir / "renders" / frame
         # Tiles at the render's size (the run's resolution) times `scale`, at most TILE_MAX.

@@ -317,15 +317,15 @@ def test_contact_sheet(run: Path, capture: Path, tmp_path: Path):
     pixel = sheet[LABEL_HEIGHT + 256, 144].astype(int)  # the JPEG (lossy), not black
     assert (abs(pixel - (200, 120, 40)) <= 4).all(), pixel
 
-    # Masks that mark a subject inside a scene (capture.json `masks: subject`, Panoptic's)
-    # leave the capture tile whole; mattes cut the subject out of it.
+    # Masks that mark a subject inside a scene (`masks: subject`, Panoptic's) leave the capture
+    # tile whole; mattes cut the subject out of it.
     (jpg / "masks" / "000000").mkdir(parents=True)
     Image.new("L", (1080, 1920), 0).save(jpg / "masks" / "000000" / "cam00.png")
-    for masks, expected in (("subject", (200, 120, 40)), ("matte", (0, 0, 0))):
-        (jpg / "capture.json").write_text(json.dumps({"masks": masks}))
-        out = contact_sheet(jpg, big, [("000000", "cam00")], {}, tmp_path / f"{masks}.png")
+    for matte, expected in ((False, (200, 120, 40)), (True, (0, 0, 0))):
+        out = contact_sheet(jpg, big, [("000000", "cam00")], {}, tmp_path / f"{matte}.png",
+                            matte=matte)
         pixel = np.asarray(Image.open(out).convert("RGB"))[LABEL_HEIGHT + 256, 144].astype(int)
-        assert (abs(pixel - expected) <= 4).all(), (masks, pixel)
+        assert (abs(pixel - expected) <= 4).all(), (matte, pixel)
 
 
 def test_relight_over_frames_writes_a_video_per_camera(run: Path, tmp_path: Path):

@@ -82,7 +82,7 @@ export async function submitJson(path, json) {
   const headers = { 'Idempotency-Key': newKey() };
   for (let attempt = 0; ; attempt++) {
     try {
-      return await (await request('POST', path, { json, headers: { ...headers } })).json();
+      return await (await request('POST', path, { json, headers })).json();
     } catch (err) {
       const lost = err instanceof TypeError; // fetch's network failure
       const retried = err instanceof ApiError && RETRIED.includes(err.status);
