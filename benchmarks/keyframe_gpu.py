@@ -440,7 +440,8 @@ def main() -> int:
     ap.add_argument("--downscale", type=float, default=1.0)
     ap.add_argument("--frame", default=None)
     ap.add_argument("--systems", nargs="+", default=["ours", "gsplat"], choices=SYSTEMS)
-    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--seed", type=int, default=0,
+                    help="training seed of every system (the initial points do not change)")
     ap.add_argument("--profile-steps", type=int, default=20)
     ap.add_argument("--mesh-voxels", type=int, default=512)
     ap.add_argument("--seed-file", type=Path, default=None,
@@ -456,7 +457,7 @@ def main() -> int:
     report: dict = {"device": torch.cuda.get_device_name() if dev != "cpu" else "cpu",
                     "torch": torch.__version__,
                     "cuda": torch.version.cuda, "steps": args.steps,
-                    "downscale": args.downscale}
+                    "downscale": args.downscale, "seed": args.seed}
     t = time.perf_counter()
     capture = open_capture(args.capture, work)
     frame = args.frame or next(iter(capture.frames))
@@ -474,6 +475,9 @@ def main() -> int:
         if args.seed_file is not None:
             np.savez(args.seed_file, points=points.numpy(), colors=colors.numpy(), note=note)
     model0 = GaussianModel.from_points(points.to(dev), colors.to(dev))
+    # `--seed` is every system's training seed (view order, densification draws); the initial
+    # points above come from the preset's fixed seed (or the seed file), the same for every S.
+    config = replace(config, seed=args.seed)
     extent = scene_extent([v.camera for v in views])
     report["setup"] = {"seconds": round(time.perf_counter() - t, 2), "views": len(views),
                        "resolution": list(views[0].image.shape[:2]), "seed": note,
