@@ -149,7 +149,7 @@ def test_test_preset_end_to_end(views: list[View], tmp_path: Path, one_thread):
     assert trainer.ao_targets is not None and len(trainer.ao_targets) == len(views)
     assert all(0.0 <= float(t.min()) and float(t.max()) <= 1.0 for t in trainer.ao_targets)
     assert "visibility" in seen[-1].losses
-    assert float(trainer.model.visibility.std()) > 0  # initialised per Gaussian, not constant
+    assert float(trainer.model.visibility.detach().std()) > 0  # initialised per Gaussian, not constant
     assert len(lines.getvalue().splitlines()) == 6  # steps 1, 101, ..., 401 and the last
     assert len(trainer.model) > cfg.init_points  # densification ran
     assert len(trainer.model) <= cfg.densify.max_gaussians  # each densified one adds one row
@@ -207,7 +207,7 @@ def test_random_background_makes_background_coloured_coverage_cost(views: list[V
     p = plan(0, cfg.schedule)
     background = views[0].mask[..., 0] == 0
     black = torch.zeros(3)
-    wall = trainer.render_view(trainer.model, 0, p, black).rgb
+    wall = trainer.render_view(trainer.model, 0, p, black).rgb.detach()
     assert float((wall - trainer.target(0, black))[background].abs().max()) < 1e-3
     colours = [trainer.step_background(0) for _ in range(2)]
     assert not torch.equal(colours[0], colours[1])  # a new colour every step
