@@ -149,7 +149,8 @@ def test_test_preset_end_to_end(views: list[View], tmp_path: Path, one_thread):
     assert trainer.ao_targets is not None and len(trainer.ao_targets) == len(views)
     assert all(0.0 <= float(t.min()) and float(t.max()) <= 1.0 for t in trainer.ao_targets)
     assert "visibility" in seen[-1].losses
-    assert float(trainer.model.visibility.detach().std()) > 0  # initialised per Gaussian, not constant
+    # initialised per Gaussian, not constant
+    assert float(trainer.model.visibility.detach().std()) > 0
     assert len(lines.getvalue().splitlines()) == 6  # steps 1, 101, ..., 401 and the last
     assert len(trainer.model) > cfg.init_points  # densification ran
     assert len(trainer.model) <= cfg.densify.max_gaussians  # each densified one adds one row
