@@ -70,7 +70,9 @@ run() {
   [ "$task" != panoptic ] && gs=
   python3 benchmarks/gpu.py --build-only $gs > /tmp/r/build.log 2>&1
   echo "builds: rc $? in $((SECONDS - t0)) s"; snap
-  ( while sleep 15; do snap; done ) & local snapper=$!
+  # The snapshots in the background: TERM ends the loop at once in its sleep and only after a
+  # snapshot under way, so the last one below never writes r.tgz.tmp beside another.
+  ( trap exit TERM; while true; do sleep 15 & wait $!; snap; done ) & local snapper=$!
   case $task in
     panoptic) python3 benchmarks/panoptic.py .lend/panoptic --out /tmp/r/p "$@" \
                 > /tmp/r/panoptic.log 2>&1; tail -30 /tmp/r/panoptic.log ;;
@@ -84,7 +86,7 @@ run() {
                 --systems "$@" > /tmp/r/full.log 2>&1; tail -25 /tmp/r/full.log ;;
     *) echo "run: panoptic, fox-seeds or fox-full" >&2 ;;
   esac
-  kill $snapper; snap
+  kill $snapper; wait $snapper; snap
 }
 
 case $verb in
