@@ -1,11 +1,12 @@
 # Two commands: `make demo` and `make test`. Both bootstrap .venv on a fresh machine.
+# `make deploy-test` brings deploy/'s stack up for real (Docker; tests/deploy/run.sh).
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 PIP := $(VENV)/bin/pip
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test venv bench clean
+.PHONY: demo test deploy-test venv bench clean
 
 venv: $(STAMP)
 
@@ -20,6 +21,9 @@ $(STAMP): pyproject.toml
 
 test: $(STAMP)
 	$(PY) -m pytest -q tests
+
+deploy-test: $(STAMP)
+	bash tests/deploy/run.sh
 
 demo: $(STAMP)
 	$(PY) -m core.cli demo

@@ -12,6 +12,8 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
+from sqlalchemy.exc import InterfaceError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
@@ -36,6 +38,8 @@ CODES = {400: "invalid_request", 401: "unauthorized", 403: "forbidden", 404: "no
          500: "internal", 501: "not_implemented", 503: "unavailable",
          507: "insufficient_storage"}
 TUS_PREFIX = "/v1/uploads"
+RETRY_AFTER_SECONDS = 5
+"""Retry-After of a 503 while the job store is unreachable."""
 COMMON = (400, 401, 404, 422, 500)
 """Errors any /v1 operation may answer (malformed input, no key, not found, invalid, bug)."""
 
@@ -153,7 +157,22 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
                                       details=details))
 
 
+STORE_DOWN = (OperationalError, InterfaceError, PoolTimeout)
+"""What SQLAlchemy raises when the job store cannot be reached or has no connection to spare:
+the service is unavailable for a moment, nothing is wrong with the request."""
+
+
+async def _store_down(request: Request, exc: Exception) -> JSONResponse:
+    log.warning("%s %s: the job store is unreachable (%s)", request.method, request.url.path,
+                str(exc).splitlines()[0][:300])
+    return _respond(request, ApiError(
+        503, "the job store is unreachable; try again in a moment", retryable=True,
+        headers={"Retry-After": str(RETRY_AFTER_SECONDS)}))
+
+
 async def _unhandled(request: Request, exc: Exception) -> JSONResponse:
+    if isinstance(exc, STORE_DOWN):  # raised outside a route (a middleware): the same answer
+        return await _store_down(request, exc)
     log.exception("unhandled error in %s %s", request.method, request.url.path)
     return _respond(request, ApiError(500, "internal error; it is logged on the server",
                                       retryable=True))
@@ -163,4 +182,6 @@ def install_error_handlers(app: FastAPI) -> None:
     app.add_exception_handler(ApiError, _api_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
+    for kind in STORE_DOWN:
+        app.add_exception_handler(kind, _store_down)
     app.add_exception_handler(Exception, _unhandled)

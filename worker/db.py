@@ -70,7 +70,11 @@ def _create(url: str) -> Engine:
         event.listen(engine, "connect", _sqlite_pragmas)
         event.listen(engine, "begin", _sqlite_begin)
         return engine
-    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20)
+    # A job store that does not answer fails a request within seconds (the API answers 503)
+    # instead of holding it until the operating system gives up on the connection.
+    args = {"connect_timeout": 10} if url.startswith("postgresql") else {}
+    return create_engine(url, pool_pre_ping=True, pool_size=10, max_overflow=20,
+                         connect_args=args)
 
 
 @functools.lru_cache(maxsize=16)
