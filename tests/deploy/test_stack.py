@@ -30,6 +30,11 @@ def test_every_service_runs_from_the_images_built_here(stack: Stack):
         "api": 1, "worker": 2, "redis": 1, "postgres": 1, "s3": 1}
     bucket = stack.containers("s3-bucket", all=True)
     assert [(c["State"], c["ExitCode"]) for c in bucket] == [("exited", 0)]
+    # The API is published on loopback only (DGS_API_BIND's default), and healthy.
+    (api,) = running["api"]
+    assert stack.docker("port", api["ID"], "8000").stdout.split() == [f"127.0.0.1:{stack.port}"]
+    assert stack.docker("inspect", "-f", "{{.State.Health.Status}}", api["ID"]).stdout.strip() \
+        == "healthy"
     # The API image has no torch; the worker image has the native extension built in.
     api = stack.exec("api", "python", "-c", "import torch", check=False)
     assert api.returncode != 0 and "No module named 'torch'" in api.stderr

@@ -23,8 +23,8 @@ pytestmark = pytest.mark.timeout(1800)
 
 FRAMES = ("000000", "000001", "000002", "000003")
 SEQUENCE = {"train": {"schedule": {
-    "iterations": 1200, "stage2_start": 360, "stage3_start": 840, "densify_from": 60,
-    "densify_until": 720, "densify_interval": 120, "reset_interval": 480, "sh_interval": 120},
+    "iterations": 600, "stage2_start": 180, "stage3_start": 420, "densify_from": 30,
+    "densify_until": 360, "densify_interval": 60, "reset_interval": 240, "sh_interval": 60},
     "init_points": 300}, "sequence": {"num_nodes": 32}, "mesh": {"enabled": False},
     "checkpoint_every": 50}
 """Two groups of two frames (gop 2): a key frame long enough to be caught between two
