@@ -83,6 +83,7 @@ def test_a_killed_worker_containers_part_resumes_once_on_the_other(
     stack.docker("kill", hosts[lost])  # the whole container, as a machine lost
 
     follower.join(timeout=1600)
+    assert "job" in result, f"job {job['id']} did not end: {client.job(job['id'])}"
     done = result["job"]
     assert done["state"] == "succeeded", "\n".join(client.logs(job["id"]))
     parts = {p["index"]: p for p in done["parts"]}
