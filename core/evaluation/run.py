@@ -40,6 +40,7 @@ from core.mesh import mesh_distance
 from core.metrics import normal_agreement, rgb_scores
 from core.relight.metrics import relight_ground_truth, relit_heldout
 from core.relight.sheet import contact_sheet
+from core.rundir import RunDir
 from core.sequence.metrics import temporal_metrics
 
 __all__ = ["evaluate_run"]
@@ -122,8 +123,10 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     capture = load_capture(capture_dir)
     metrics_path = run / "metrics.json"
     done = json.loads(metrics_path.read_text())["frames"] if metrics_path.is_file() else {}
-    # Every finished frame, also those of an earlier invocation with another --frames.
-    frames = [f for f in capture.frames if f in done]
+    # Every finished frame, also those of an earlier invocation with another --frames; not
+    # those another process finished (their renders stayed there: core.pipeline.carry).
+    carried = RunDir(run).read_carried()
+    frames = [f for f in capture.frames if f in done and f not in carried]
     if not frames:
         raise ValueError(f"run_dir: {run} has no finished frame of {capture_dir} to evaluate")
     split = camera_split(capture, config.get("split", "auto"))
