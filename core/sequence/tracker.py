@@ -318,6 +318,7 @@ class FrameTracker(FrameFitter):
             relabel(self.state, self.model)
             prune_transparent(self.model, self.optimizer, self.state,
                               self.config.densify.transparent)
+            self._moving_rows()  # now, in a step that waits anyway, not in the next one
 
     def current(self) -> tuple[object, StagePlan]:
         model = self.model if self.state is not None else self._posed(self.node_q, self.node_t)
