@@ -116,8 +116,7 @@ class FrameTracker(FrameFitter):
              {"params": [self.node_t], "lr": sequence.lr_translation * self.extent,
               "name": "node_t"}], lr=0.0)
         self.model = previous
-        self._rows: Tensor | None = None
-        self._rows_of: Tensor | None = None
+        self._rows = self._rows_of = None  # `_moving_rows`' and the frozen mask it is of
         self.state: TrackedState | None = None
         self.strategy: DensifyStrategy | None = None
 
