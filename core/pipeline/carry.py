@@ -129,6 +129,11 @@ def pack_resume(run_dir: str | os.PathLike[str], out: str | os.PathLike[str], *,
               "sequence": plan.record(records), "carried": sorted(records),
               "next": dropped[0] if dropped else
               None if index is None else plan.roles[index].frame, "dropped": dropped,
+              # The first frame the next call's capture must hold: a tracked frame reads its
+              # previous frame's views too (the subject hull of a scene).
+              "capture_from": next((f for f, kind in need.items() if kind == "full"), None)
+              or (dropped[0] if dropped else None if index is None
+                  else plan.roles[index].frame),
               "arrays": {f: {"kind": need[f], "files": files[f]} for f in need},
               "lossy": lossy}
     (out / "resume.json").write_text(json.dumps(record))

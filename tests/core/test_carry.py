@@ -63,6 +63,7 @@ def test_a_run_stopped_after_a_frame_resumes_elsewhere_to_the_same_result(
     record = pack_resume(first, pack, part_bytes=100_000)
     # Frame 2 deforms frame 1 (all its Gaussians) and continues frame 0's motion (positions).
     assert record["next"] == "000002" and record["carried"] == ["000000", "000001"]
+    assert record["capture_from"] == "000001"  # its views: the subject hull of a scene
     assert {f: a["kind"] for f, a in record["arrays"].items()} == {"000001": "full",
                                                                    "000000": "tracks"}
     assert len(record["arrays"]["000001"]["files"]) > 1 and record["lossy"] == {}
