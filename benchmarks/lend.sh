@@ -22,7 +22,7 @@
 #             --gop 10 --mesh-voxels 256 --steps $STEPS, default 2000 a key frame); the run
 #             ends by LEND_SECONDS (default 560) from the call's start: frames stop at a
 #             frame boundary with time kept for scoring, the stream and the served job
-#             (SERVE=N workers over SERVE_FRAMES, default 1 over 0:20: two parts; SERVE=0
+#             (SERVE=N workers over SERVE_FRAMES, default 1 over 0:12: two parts; SERVE=0
 #             none), and the files that continue it go to $OUT (resume.json, resume-*.npz);
 #             with .lend/prev it continues the previous call's run;
 #           fox-seeds SYSTEM...: keyframe_gpu.py at 1/4, 7,500 steps, seeds 0 1 2 in turn;
@@ -100,7 +100,7 @@ panoptic() {
   [ -f .lend/prev/resume.json ] && prev=(--resume-from .lend/prev)
   [ $# -gt 0 ] || set -- --gop 10 --mesh-voxels 256 --steps "${STEPS:-2000}"
   $PY benchmarks/panoptic.py .lend/panoptic --out "$R/p" --deadline "$left" --pack-to "$OUT" \
-    --serve "${SERVE:-1}" --serve-frames "${SERVE_FRAMES:-0:20}" "${prev[@]}" "$@" \
+    --serve "${SERVE:-1}" --serve-frames "${SERVE_FRAMES:-0:12}" "${prev[@]}" "$@" \
     > "$R/panoptic.log" 2>&1
   echo "panoptic: rc $? at $((SECONDS - START)) s"; tail -40 "$R/panoptic.log"
 }

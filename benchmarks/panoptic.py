@@ -29,7 +29,7 @@ lays such a pack out as OUT/run and continues it; the earlier call's rows come f
     python benchmarks/panoptic.py [SRC] --out DIR --pack --frames 0:50   (a slice to carry)
     python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
         [--preset fast] [--steps N] [--gop 10] [--max-gaussians N] [--mesh-voxels 256]
-        [--serve N] [--serve-frames 0:20] [--hdri EXR]
+        [--serve N] [--serve-frames 0:12] [--hdri EXR]
         [--deadline S] [--reserve S] [--pack-to DIR] [--resume-from DIR]
         [--device auto] [--threads N]
 """
@@ -309,8 +309,9 @@ def arguments(argv: list[str] | None):
     ap.add_argument("--mesh-voxels", type=int, default=256, help="0: no meshes")
     ap.add_argument("--serve", type=int, default=0, metavar="N",
                     help="also run through dgs serve --workers N")
-    ap.add_argument("--serve-frames", default="0:20",
-                    help="the served job's frames (default two groups: two parts)")
+    ap.add_argument("--serve-frames", default="0:12",
+                    help="the served job's frames (default: a group of 10 and 2 frames, two "
+                         "parts at the fewest frames)")
     ap.add_argument("--hdri", type=Path, default=HDRI / "studio.exr")
     ap.add_argument("--deadline", type=float, default=None, metavar="S",
                     help="seconds from the start by which the script should end")

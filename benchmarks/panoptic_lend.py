@@ -18,7 +18,8 @@ def serve_reserve(args, budget) -> float:
 
     n = len(parse_frames(args.serve_frames, [str(i) for i in range(10 ** 4)]))
     keys = -(-n // args.gop)
-    return 1.15 * (keys * budget.predict("key") + (n - keys) * budget.predict("tracked")) + 60
+    key, tracked = budget.predict("key") or 0.0, budget.predict("tracked") or 0.0
+    return 1.15 * (keys * key + (n - keys) * tracked) + 60
 
 
 def resume_files(args, run: Path) -> list[dict]:

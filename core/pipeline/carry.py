@@ -182,7 +182,9 @@ def unpack_resume(folder: str | os.PathLike[str], run_dir: str | os.PathLike[str
 class FrameBudget:
     """Stops a run at a frame boundary when the next frame would not end before `deadline`
     (time.monotonic()) with `reserve()` seconds left over: each frame's seconds are predicted
-    by the mean of its kind so far (a tracked frame before the first: half a key frame)."""
+    by the mean of its kind so far. Before a frame of the next one's kind has been measured
+    nothing is planned (a guess would stop a run after its first key frame); then only the
+    deadline itself stops it, inside the frame."""
 
     def __init__(self, gop: int, deadline: float | None,
                  reserve: Callable[[FrameBudget], float] = lambda budget: 0.0):
@@ -190,9 +192,10 @@ class FrameBudget:
         self.seconds: dict[str, list[float]] = {"key": [], "tracked": []}
         self.last, self.stop = time.monotonic(), False
 
-    def predict(self, kind: str) -> float:
-        done = self.seconds[kind] or [s / 2 for s in self.seconds["key"]]
-        return sum(done) / len(done) if done else 0.0
+    def predict(self, kind: str) -> float | None:
+        """Mean seconds of the frames of `kind` ("key", "tracked") so far; None before one."""
+        done = self.seconds[kind]
+        return sum(done) / len(done) if done else None
 
     def on_progress(self, event) -> None:
         """Hand it `reconstruct`'s progress events (`core.pipeline.Progress`)."""
@@ -202,9 +205,10 @@ class FrameBudget:
         kind = "key" if event.frame_index % self.gop == 0 else "tracked"
         self.seconds[kind].append(now - self.last)
         self.last = now
-        following = "key" if (event.frame_index + 1) % self.gop == 0 else "tracked"
-        self.stop = self.deadline is not None and \
-            now + self.predict(following) + self.reserve(self) > self.deadline
+        following = self.predict("key" if (event.frame_index + 1) % self.gop == 0
+                                 else "tracked")
+        self.stop = self.deadline is not None and following is not None and \
+            now + following + self.reserve(self) > self.deadline
 
     def should_stop(self) -> bool:
         """Asked after every step: at the planned boundary, or inside a frame that overran."""

@@ -144,7 +144,11 @@ def test_a_frame_budget_stops_where_the_next_frame_would_not_fit():
     budget.seconds["key"] = [950.0]
     budget.on_progress(_Done(9))
     assert not budget.should_stop()
-    budget.on_progress(_Done(3))  # a tracked frame next: half a key frame until one is measured
+    after_key = FrameBudget(10, time.monotonic() + 1000, reserve=lambda b: 100.0)
+    after_key.seconds["key"] = [5000.0]
+    after_key.on_progress(_Done(10))  # a tracked frame next, none measured: no guess stops it
+    assert after_key.predict("tracked") is None and not after_key.should_stop()
+    budget.on_progress(_Done(3))  # measured now (the time between the two events)
     assert budget.predict("tracked") < 1.0 and not budget.should_stop()
     late = FrameBudget(10, time.monotonic() - 1.0)
     assert late.should_stop()  # inside a frame that overran its deadline
