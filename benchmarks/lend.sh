@@ -78,7 +78,10 @@ snap() {  # what the task wrote so far, small files only, into $OUT/r.tgz (at mo
   (cd "$R/.." && find "$(basename "$R")" -type f \( -name '*.json' -o -name '*.log' \
      -o -name '*.txt' -o -name '*.md' -o -name 'contact_sheet.png' -o -name 'sheet.png' \
      -o -path '*/plots/*.png' \) -not -path '*/renders/*' -not -path '*/frames/*' \
-     -not -path '*/data/store/*' -size -4M -print0 | tar czf "$OUT/r.tgz.tmp" --null -T - && mv "$OUT/r.tgz.tmp" "$OUT/r.tgz")
+     -not -path '*/data/store/*' -not -path '*/data/work/*' -size -4M -print0 \
+     | tar czf "$OUT/r.tgz.tmp" --warning=no-file-changed --null -T -
+   # 1: a file changed while it was read (a log being written); the snapshot is still whole.
+   [ "$?" -le 1 ] && mv "$OUT/r.tgz.tmp" "$OUT/r.tgz")
 }
 
 build() {  # wheels, the LPIPS trunk and our extension (and gsplat's for the fox tasks)
