@@ -28,9 +28,8 @@ HERE = Path(__file__).resolve().parent
 ENABLED = os.environ.get("DGS_DEPLOY_TEST") == "1"
 WORKERS = 2
 BUILT = ("redis", "postgres", "s3", "api", "worker")
-"""Built one at a time: Compose's parallel builds on Engine 20.10's BuildKit hung once here
-(the daemon logged "only one connection allowed" as one build ended, and the other never
-went on)."""
+"""Built one at a time, so that each image's build time is reported on its own (the summary at
+the end of the run), and two builds do not share the machine's two cores."""
 
 
 def pytest_collection_modifyitems(config, items):
