@@ -158,6 +158,7 @@ def test_triangulated_points_lie_on_the_surface(textured: Path):
 
 def test_triangulation_seeds_a_capture_without_points(textured: Path):
     cfg = replace(train_config("test"), init_points=300)
+    cfg = replace(cfg, init=replace(cfg.init, source="triangulate"))
     trainer = Trainer.from_capture(load_capture(textured), "000000", cfg)
     assert "triangulated from the known poses" in trainer.notes[0]
     assert "random points in the visual hull" in trainer.notes[0]
