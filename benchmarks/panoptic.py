@@ -14,7 +14,14 @@ Steps, each written under OUT as it ends (a run cut short keeps what it measured
 4. the subject (the Gaussians inside the masks' hull: the players and the ball) exported as the
    relightable stream, its bytes a frame and its decoded renders against the uncompressed
    subject's on the test cameras; the subject's meshes per frame (`mesh.subject`);
-5. the relit MP4 of the first test camera over the frames under an HDRI (`--hdri`).
+5. the relit MP4 of the first test camera over the frames under an HDRI (`--hdri`);
+6. with `--plain`, the honest baseline: a plain 3DGS (`train.method` 3dgs) trained on every
+   frame independently (groups of 1) at the same steps a frame, cap and seeds, into OUT/plain,
+   scored the same way.
+
+Each key frame's seeds (dense points fused from the views' stereo depth where the capture has
+no point cloud, `core.rig`) and normal priors are timed apart from its training: the table
+gives their share of the key frame.
 
 The schedule: `--preset`'s plan scaled to `--steps` a key frame (`Schedule.scaled`), groups of
 `--gop` frames. The CPU twin (docs/benchmarks.md): `--frames 0:10 --downscale 2` with the
@@ -23,7 +30,7 @@ steps that finish in about 30 minutes on two cores; the GPU run: every frame at 
     python benchmarks/panoptic.py [SRC] --out DIR --pack --frames 0:50   (a slice to carry)
     python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
         [--preset fast] [--steps N] [--gop 10] [--max-gaussians N] [--mesh-voxels 256]
-        [--serve N] [--hdri EXR]
+        [--serve N] [--hdri EXR] [--plain]
         [--device auto] [--threads N]
 """
 
@@ -128,7 +135,17 @@ def overrides(args) -> dict:
                      "resolution": max(args.mesh_voxels, 16)}}
 
 
-def reconstruct_here(capture: Path, run: Path, args) -> dict:
+def plain_overrides(args) -> dict:
+    """The per-frame plain 3DGS: the run's settings with `train.method` 3dgs (its defaults
+    under them) and every frame a key frame of its own, at the run's steps a key frame."""
+    over = overrides(args)
+    over["train"]["method"] = "3dgs"
+    over["gop"] = 1
+    over["mesh"] = {"enabled": False}
+    return over
+
+
+def reconstruct_here(capture: Path, run: Path, args, over: dict | None = None) -> dict:
     """`dgs reconstruct` in this process; per frame the peak GPU memory (bytes, CUDA only)."""
     import torch
 
@@ -146,8 +163,8 @@ def reconstruct_here(capture: Path, run: Path, args) -> dict:
             peaks[event.frame] = int(torch.cuda.max_memory_allocated())
 
     start = time.perf_counter()
-    reconstruct(capture, run, preset=args.preset, overrides=overrides(args), resume=True,
-                progress=True, on_progress=on_progress)
+    reconstruct(capture, run, preset=args.preset, overrides=over or overrides(args),
+                resume=True, progress=True, on_progress=on_progress)
     old = json.loads((run / "peaks.json").read_text()) if (run / "peaks.json").is_file() else {}
     peaks = {**old, **peaks}
     (run / "peaks.json").write_text(json.dumps(peaks))
@@ -174,10 +191,28 @@ def frame_rows(run: Path, ev: dict, peaks: dict) -> list[dict]:
         rows.append({"frame": frame, "kind": "key" if m["stages"].startswith("static")
                      else "tracked", "seconds": m["seconds"], "gaussians": m["gaussians"],
                      "ao_bake_seconds": m.get("ao_bake_seconds"),
+                     "seed_seconds": m.get("seed_seconds"),
+                     "prior_seconds": (m.get("rig_seconds") or {}).get("priors"),
                      "mesh_seconds": (mesh.get("seconds") or {}).get("total"),
                      "peak_gb": peaks.get(frame, 0) / 1e9 or None,
                      "psnr": scores[frame]["psnr_full"], "ssim": scores[frame]["ssim"]})
     return rows
+
+
+def plain_baseline(capture: Path, run: Path, args) -> dict:
+    """The per-frame plain 3DGS (`plain_overrides`) trained and scored: PSNR, SSIM (and LPIPS
+    where the evaluation gives it) over the same test cameras and frames, its mean seconds
+    and Gaussians a frame."""
+    from core.evaluation import evaluate_run
+
+    reconstruct_here(capture, run, args, plain_overrides(args))
+    ev = evaluate_run(run)
+    frames = json.loads((run / "metrics.json").read_text())["frames"].values()
+    return {**{k: ev.get(k) for k in ("psnr_full", "ssim", "lpips")},
+            "seconds": sum(f["seconds"] for f in frames) / len(frames),
+            "gaussians": sum(f["gaussians"] for f in frames) / len(frames),
+            "per_frame": [{"frame": f["frame"], "psnr": f["psnr_full"], "ssim": f["ssim"]}
+                          for f in ev["per_frame"]]}
 
 
 def subject_stream(run: Path, out: Path) -> dict:
@@ -222,7 +257,8 @@ def _fmt(v, spec: str) -> str:
     return "-" if v is None else (v if isinstance(v, str) else format(v, spec))
 
 
-def report(rows: list[dict], ev: dict, stream: dict | None, args) -> None:
+def report(rows: list[dict], ev: dict, stream: dict | None, args,
+           plain: dict | None = None) -> None:
     import numpy as np
 
     key = [r for r in rows if r["kind"] == "key"]
@@ -240,12 +276,22 @@ def report(rows: list[dict], ev: dict, stream: dict | None, args) -> None:
         print(f"| {name} (published) | {_fmt(p, '.2f')} | {_fmt(s, '.3f')} | {_fmt(lp, '.2f')} |")
     print(f"| ours, relightable | {ev['psnr_full']:.2f} | {ev['ssim']:.4f} | "
           f"{_fmt(ev.get('lpips'), '.3f')} |")
+    if plain:
+        print(f"| plain 3DGS, every frame independently | {plain['psnr_full']:.2f} | "
+              f"{plain['ssim']:.4f} | {_fmt(plain.get('lpips'), '.3f')} |")
     mean = (lambda xs: float(np.mean(xs)) if xs else None)
     bake = [r["ao_bake_seconds"] / r["seconds"] for r in key if r["ao_bake_seconds"]]
     meshes = [r["mesh_seconds"] for r in rows if r["mesh_seconds"]]
+    seeds = [r["seed_seconds"] / r["seconds"] for r in key if r.get("seed_seconds")]
+    priors = [r["prior_seconds"] / r["seconds"] for r in key if r.get("prior_seconds")]
     print(f"\nkey frame {_fmt(mean([r['seconds'] for r in key]), '.1f')} s (AO bake "
-          f"{_fmt(mean(bake), '.1%')}), tracked frame {_fmt(mean([r['seconds'] for r in tracked]), '.1f')} s"
+          f"{_fmt(mean(bake), '.1%')}, seeds {_fmt(mean(seeds), '.1%')}, priors "
+          f"{_fmt(mean(priors), '.1%')}), tracked frame "
+          f"{_fmt(mean([r['seconds'] for r in tracked]), '.1f')} s"
           f", subject mesh {_fmt(mean(meshes), '.2f')} s a frame")
+    if plain:
+        print(f"plain 3DGS: {_fmt(plain['seconds'], '.1f')} s a frame, "
+              f"{_fmt(plain['gaussians'], '.0f')} Gaussians a frame")
     if stream:
         print(f"subject stream: {stream['bytes_per_frame'] / 1e6:.3f} MB a frame "
               f"({stream['gaussians']:.0f} Gaussians, {stream['share']:.1%} of the scene's), "
@@ -274,6 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--hdri", type=Path, default=HDRI / "studio.exr")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--plain", action="store_true",
+                    help="also a plain 3DGS on every frame independently (OUT/plain)")
     args = ap.parse_args(argv)
     if not (args.src / "train_meta.json").is_file():
         print(f"no Panoptic capture at {args.src} (see ../shared/data/README.md)")
@@ -312,7 +360,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.serve:
         result["service"] = reconstruct_served(capture, args.out, args)
         save()
-    report(result["rows"], ev, result["subject_stream"], args)
+    if args.plain:
+        result["plain"] = plain_baseline(capture, args.out / "plain", args)
+        save()
+    report(result["rows"], ev, result["subject_stream"], args, result.get("plain"))
     return 0
 
 

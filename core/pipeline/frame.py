@@ -77,7 +77,9 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
     rig = getattr(fitter, "rig", None)
     if rig is not None and getattr(fitter, "seed", None) is not None:
         record_seeds(job.run, role.frame, fitter, first=role.frame == job.first)
-    priors = fill_priors(fitter.views, job.estimator, rig if job.cfg.rig_priors else None)
+    # A plain 3DGS has no geometry branch: no prior term to give priors to.
+    use_rig = job.cfg.rig_priors and job.cfg.train.method != "3dgs"
+    priors = fill_priors(fitter.views, job.estimator, rig if use_rig else None)
     if rig is not None and "priors" in rig.seconds:
         fitter.notes.append(rig.note())
     checkpoint = job.run.checkpoint(role.frame)

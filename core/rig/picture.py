@@ -50,13 +50,14 @@ def seeds_picture(path: str | os.PathLike[str], camera: Camera, image: np.ndarra
         _splat(by_source, camera, cloud.points,
                np.tile(np.array(SOURCE_COLOURS.get(name, (255, 255, 255)), np.uint8),
                        (len(cloud), 1)))
-    sheet = Image.fromarray(np.concatenate([base, own, by_source], axis=1))
-    draw = ImageDraw.Draw(sheet)
-    x = 2 * base.shape[1] + 4
     lines = [title] if title else []
     lines += [f"{name}: {len(cloud)}" for name, cloud in parts]
+    panels = np.concatenate([base, own, by_source], axis=1)
+    legend = np.zeros((12 * len(lines) + 4, panels.shape[1], 3), np.uint8)  # below: small views
+    sheet = Image.fromarray(np.concatenate([panels, legend], axis=0))
+    draw = ImageDraw.Draw(sheet)
     for i, line in enumerate(lines):
         colour = SOURCE_COLOURS.get(line.split(":")[0], (255, 255, 255))
-        draw.text((x, 4 + 11 * i), line, fill=colour)
+        draw.text((4, base.shape[0] + 2 + 12 * i), line, fill=colour)
     with atomic_path(path) as tmp:
         sheet.save(tmp, format="PNG")
