@@ -37,8 +37,9 @@ def _project(cam: Camera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def _carve(cameras: Sequence[Camera], masks: Sequence[np.ndarray], lo: np.ndarray,
-           hi: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, float]:
-    """Occupancy (n, n, n) of the grid over the box [lo, hi], its voxel centres and size."""
+           hi: np.ndarray, n: int, min_seen: int = 2) -> tuple[np.ndarray, np.ndarray, float]:
+    """Occupancy (n, n, n) of the grid over the box [lo, hi] (voxels seen by at least
+    `min_seen` views), its voxel centres and size."""
     size = float((hi - lo).max() / n)
     axes = [lo[i] + (np.arange(n) + 0.5) * size for i in range(3)]
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
@@ -53,7 +54,7 @@ def _carve(cameras: Sequence[Camera], masks: Sequence[np.ndarray], lo: np.ndarra
         seen[alive] += inside
         alive = alive[~inside | fg]
     occ = np.zeros(len(centres), bool)
-    occ[alive] = seen[alive] >= 2
+    occ[alive] = seen[alive] >= min_seen
     occ = occ.reshape(n, n, n)
     return occ, centres.reshape(n, n, n, 3), size
 
@@ -61,9 +62,12 @@ def _carve(cameras: Sequence[Camera], masks: Sequence[np.ndarray], lo: np.ndarra
 def _box(cameras: Sequence[Camera], masks: Sequence[np.ndarray], center: np.ndarray,
          radius: float, n: int) -> tuple[np.ndarray, np.ndarray] | None:
     """The hull's bounding box, two voxels wider, from a coarse carve of the cube about
-    `center`; None when nothing survives."""
+    `center` that keeps what three quarters of the views see (a voxel that few views see
+    is carved by few: far from the subject, their cones meet in large phantom volumes);
+    None when nothing survives."""
     lo, hi = center - radius, center + radius
-    occ, centres, size = _carve(cameras, masks, lo, hi, n)
+    occ, centres, size = _carve(cameras, masks, lo, hi, n,
+                                max(2, int(np.ceil(0.75 * len(cameras)))))
     if not occ.any():
         return None
     pts = centres[occ]
@@ -79,7 +83,8 @@ def hull_normals(cameras: Sequence[Camera], masks: Sequence[np.ndarray], center:
     box = _box(cameras, masks, center, radius, max(16, resolution // 4))
     if box is None:
         return None
-    occ, centres, _ = _carve(cameras, masks, *box, resolution)
+    occ, centres, size = _carve(cameras, masks, *box, resolution,
+                                max(2, int(np.ceil(0.75 * len(cameras)))))
     if not occ.any():
         return None
     smooth = ndimage.gaussian_filter(occ.astype(np.float32), SMOOTH)
@@ -87,18 +92,32 @@ def hull_normals(cameras: Sequence[Camera], masks: Sequence[np.ndarray], center:
     surface = occ & ~ndimage.binary_erosion(occ)
     pts, nrm = centres[surface], -grad[surface]
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
-    out = []
-    for cam in cameras:
-        u, v, z = _project(cam, pts)
-        ok = np.flatnonzero((z > 0) & (u >= 0) & (v >= 0) & (u < cam.width) &
-                            (v < cam.height))
-        pixel = v[ok] * cam.width + u[ok]
-        order = np.lexsort((z[ok], pixel))  # by pixel, nearest first
-        first = order[np.r_[True, pixel[order][1:] != pixel[order][:-1]]] if len(ok) else ok
-        normals = np.zeros((cam.height * cam.width, 3), np.float32)
-        normals[pixel[first]] = nrm[ok[first]]
-        normals = normals.reshape(cam.height, cam.width, 3)
-        confidence = np.where(np.linalg.norm(normals, axis=2) > 0.5, HULL_CONFIDENCE,
-                              0.0).astype(np.float32)
-        out.append((normals, confidence))
-    return out
+    return [_draw(cam, pts, nrm, size) for cam in cameras]
+
+
+def _draw(cam: Camera, pts: np.ndarray, nrm: np.ndarray, size: float
+          ) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest surface voxel's normal at each pixel, each voxel covering the pixels of its
+    footprint (a voxel wider than a pixel leaves no gap for the far side to show through)."""
+    u, v, z = _project(cam, pts)
+    ok = np.flatnonzero(z > 0)
+    reach = 0 if not len(ok) else int(np.floor(0.5 * cam.K[0, 0] * size / z[ok].min() + 0.5))
+    us, vs, zs, ids = [], [], [], []
+    for dv in range(-reach, reach + 1):
+        for du in range(-reach, reach + 1):
+            us.append(u[ok] + du)
+            vs.append(v[ok] + dv)
+            zs.append(z[ok])
+            ids.append(ok)
+    u, v, z, ids = (np.concatenate(a) for a in (us, vs, zs, ids))
+    inside = (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
+    u, v, z, ids = u[inside], v[inside], z[inside], ids[inside]
+    pixel = v * cam.width + u
+    order = np.lexsort((z, pixel))  # by pixel, nearest first
+    first = order[np.r_[True, pixel[order][1:] != pixel[order][:-1]]] if len(order) else order
+    normals = np.zeros((cam.height * cam.width, 3), np.float32)
+    normals[pixel[first]] = nrm[ids[first]]
+    normals = normals.reshape(cam.height, cam.width, 3)
+    confidence = np.where(np.linalg.norm(normals, axis=2) > 0.5, HULL_CONFIDENCE,
+                          0.0).astype(np.float32)
+    return normals, confidence
