@@ -56,7 +56,7 @@ def static_seeds(job, train: TrainConfig) -> PointCloud | None:
                            [None if v.mask is None else v.mask.numpy() for v in views],
                            train.init, n_random=train.init_points, seed=train.seed,
                            capture_points=points, max_gaussians=train.densify.max_gaussians,
-                           subjects=subjects)
+                           subjects=subjects, clear_of=job.capture.cameras)
         _write_static(run, seed.static)
     cloud = read_points_ply(run.static_seeds())
     return PointCloud(cloud.points.astype(np.float64), cloud.colors)

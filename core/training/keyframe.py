@@ -49,7 +49,7 @@ class Trainer(FrameFitter):
     def __init__(self, views: Sequence[View], config: TrainConfig = TrainConfig(), *,
                  model: GaussianModel | None = None, callbacks: Sequence[Callback] = (),
                  ao_baker: AOBaker | None = None, points: PointCloud | None = None,
-                 static: PointCloud | None = None):
+                 static: PointCloud | None = None, clear_of: Sequence = ()):
         super().__init__(views, config, callbacks=callbacks)
         if ao_baker is None and config.bake_ao:
             ao_baker = GaussianAOBaker(config.ao)
@@ -64,7 +64,7 @@ class Trainer(FrameFitter):
         """The seeds it started from (None: given a model)."""
         self.seed_seconds: float | None = None
         self.model = (model.to(self.device) if model is not None
-                      else self._initial_model(points, static))
+                      else self._initial_model(points, static, clear_of))
         self.optimizer = self.model.make_optimizer(config.rates, self.extent)
         self.strategy = DensifyStrategy(config.densify, self.extent)
         self.state = self.strategy.initialize_state(len(self.model), device=self.device)
@@ -80,10 +80,11 @@ class Trainer(FrameFitter):
                 and kwargs.get("model") is None:
             kwargs["points"] = read_points_ply(path)
         views = frame_views(capture, frame, downscale, split, config.masks)
+        kwargs.setdefault("clear_of", capture.cameras)  # held-out cameras' lenses too
         return cls(views, config, **kwargs)
 
-    def _initial_model(self, points: PointCloud | None,
-                       static: PointCloud | None) -> GaussianModel:
+    def _initial_model(self, points: PointCloud | None, static: PointCloud | None,
+                       clear_of: Sequence) -> GaussianModel:
         start = time.perf_counter()
         subjects = [None if v.subject is None else v.subject.cpu().numpy() for v in self.views]
         seed = seed_points(
@@ -91,7 +92,7 @@ class Trainer(FrameFitter):
             n_random=self.config.init_points, capture_points=points, seed=self.config.seed,
             rig=self.rig, max_gaussians=self.config.densify.max_gaussians,
             subjects=subjects if any(m is not None for m in subjects) else None, static=static,
-            threads=torch.get_num_threads())
+            threads=torch.get_num_threads(), clear_of=clear_of)
         self.seed, self.seed_seconds = seed, time.perf_counter() - start
         self.notes.append(seed.note)
         return GaussianModel.from_points(seed.points.to(self.device),
