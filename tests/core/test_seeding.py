@@ -258,3 +258,32 @@ def test_rig_priors_fill_views_without_priors(textured: Path):
     # Off (no rig) the views keep no prior.
     fresh = Trainer.from_capture(cap, "000000", cfg)
     assert fill_priors(fresh.views, None, None) == "off" and fresh.views[0].normal is None
+
+
+def test_no_seed_is_left_in_front_of_a_lens(textured: Path):
+    """A seed just in front of a camera (a wall point by a camera mounted on it) would grow
+    into a Gaussian over its whole view: seeds within CLEARANCE of any camera's distance, held-
+    out cameras included (`clear_of`), are dropped."""
+    from core.data.dataset import CaptureDataset
+    from core.seeding import CLEARANCE
+
+    cap = load_capture(textured)
+    ds = CaptureDataset(cap, cameras=[c.id for c in cap.cameras[1:8]])
+    views = [ds[i] for i in range(len(ds))]
+    cams, images = [v.camera for v in views], [v.image.numpy() for v in views]
+    held = cap.cameras[0]
+    near = [c.center + 0.05 * c.R[2] for c in (cams[0], held)]  # 5 cm in front of two lenses
+    cloud = _cloud(100)
+    cloud = PointCloud(np.concatenate([cloud.points, near]),
+                       np.concatenate([cloud.colors, np.full((2, 3), 0.5, np.float32)]))
+    cfg = InitConfig(source="points", background=0)
+    seed = seed_points(cams, images, [None] * len(cams), cfg, n_random=100,
+                       capture_points=cloud, clear_of=[held])
+    assert "(2 within 0.07 of a camera's distance dropped)" in seed.note, seed.note
+    pts = seed.points.double().numpy()
+    for c in [*cams, held]:
+        reach = CLEARANCE * np.linalg.norm(c.center - look_at_center([*cams, held]))
+        assert (np.linalg.norm(pts - c.center, axis=1) > reach).all()
+    kept = seed_points(cams, images, [None] * len(cams), cfg, n_random=100,
+                       capture_points=cloud)
+    assert "(1 within" in kept.note  # without the held-out camera only its own lens is cleared
