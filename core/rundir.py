@@ -13,6 +13,8 @@ listing classifies files with `classify`. Torch-free.
     RUN/plots/*.png                      training curves; seeds-<frame>.png, a key frame's seeds
     RUN/seeds/static.ply                 the static scene's seeds later key frames keep
     RUN/checkpoints/<frame>.pt           training state of an unfinished frame
+    RUN/carried.json                     frames finished by another process (`core.pipeline.carry`)
+    RUN/frames/<frame>/tracks.npz        a carried frame's track ids and positions
 """
 
 from __future__ import annotations
@@ -169,6 +171,12 @@ class RunDir:
     def read_metrics(self) -> dict[str, Any]:
         """RUN/metrics.json ({} before the first frame is finished)."""
         return json.loads(self.metrics.read_text()) if self.metrics.is_file() else {}
+
+    def read_carried(self) -> set[str]:
+        """The frames finished by another process whose outputs did not come along
+        (RUN/carried.json, `core.pipeline.carry`): finished, but not here to score."""
+        path = self.root / "carried.json"
+        return set(json.loads(path.read_text())["frames"]) if path.is_file() else set()
 
     def read_sequence(self) -> dict[str, Any] | None:
         return json.loads(self.sequence.read_text()) if self.sequence.is_file() else None

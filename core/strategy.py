@@ -80,6 +80,7 @@ class DensifyStrategy:
             raise ValueError(f"extent: expected a positive scene extent, got {extent}")
         self.config = config
         self.extent = float(extent)
+        self._ndc_cache: dict[tuple, Tensor] = {}
 
     def initialize_state(self, n: int, device: torch.device | str = "cpu") -> StrategyState:
         """Zero statistics for `n` Gaussians, on `device` (the model's)."""
@@ -93,7 +94,7 @@ class DensifyStrategy:
         if out.radii.shape[0] != n:
             raise ValueError(f"out: rendered {out.radii.shape[0]} Gaussians, state has {n}")
         with torch.no_grad():
-            ndc = torch.tensor([width / 2.0, height / 2.0], device=state.count.device)
+            ndc = self._ndc(width, height, state.count.device)
             seen = out.radii > 0
             if self.config.gradient == "absolute":
                 state.grad_c += torch.where(seen, (out.absgrad_c.detach() * ndc).norm(dim=1), 0)
@@ -103,6 +104,14 @@ class DensifyStrategy:
             state.count += seen.float()
             state.max_radii = torch.maximum(state.max_radii, out.radii.float())
             state.contribution = torch.maximum(state.contribution, out.contribution.detach())
+
+    def _ndc(self, width: int, height: int, device: torch.device) -> Tensor:
+        """(2,) half the image size, made once per camera size and device: a tensor built from
+        host numbers is a host-to-device copy, which on a GPU waits for the queued steps."""
+        key = (width, height, str(device))
+        if key not in self._ndc_cache:
+            self._ndc_cache[key] = torch.tensor([width / 2.0, height / 2.0], device=device)
+        return self._ndc_cache[key]
 
     def _selection(self, model: GaussianModel, state: StrategyState) -> tuple[Tensor, Tensor]:
         """Which Gaussians passed in the appearance / geometry branch (capped growth)."""

@@ -36,8 +36,9 @@ def _eval(args: argparse.Namespace) -> int:
     cos = result["normal_cos"]
     normal = "n/a" if cos is None else f"{cos:.3f} ({result['normal_deg']:.1f} deg, vs " \
                                        f"{result['normal_reference']})"
+    lpips = "n/a" if result["lpips"] is None else f"{result['lpips']:.3f}"
     print(f"{args.run}: {result['views']} held-out view(s): PSNR {_db(result['psnr'])}, "
-          f"SSIM {result['ssim']:.3f}, normal cosine {normal}")
+          f"SSIM {result['ssim']:.3f}, LPIPS {lpips}, normal cosine {normal}")
     if result.get("relight"):
         r = result["relight"]
         print(f"  relit under the capture's second light: PSNR {_db(r['psnr'])}, SSIM "

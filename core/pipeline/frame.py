@@ -9,6 +9,8 @@ import sys
 import time
 from dataclasses import dataclass
 
+import torch
+
 from core.config import RunConfig
 from core.pipeline.events import History, Hooks
 from core.pipeline.outputs import mesh_frame, render_heldout, thin
@@ -88,16 +90,17 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
         history.records = list(fitter.load_checkpoint(checkpoint) or [])
         resumed_at = fitter.step
     fitter.train()
+    _wait(fitter)
+    train_seconds = time.perf_counter() - start
     tracked = inputs is not None
-    save_frame(job.run.ply(role.frame), fitter.model, fitter.ids if tracked else None)
-    render_heldout(job.capture, role.frame, fitter, job.run, job.cfg.downscale, job.cfg.split)
-    mesh = mesh_frame(job.run, job.capture, role.frame, job.cfg.mesh)
+    mesh, extras, train_psnr = _outputs(job, role.frame, fitter, tracked)
     last = history.records[-1] if history.records else {}
     record = FrameRecord(
         iterations=fitter.iterations, renders=fitter.renders,
-        seconds=round(time.perf_counter() - start, 3), resumed_at=resumed_at,
+        seconds=round(time.perf_counter() - start, 3), train_seconds=round(train_seconds, 3),
+        extras_seconds=extras, resumed_at=resumed_at,
         ao_bake_seconds=None if fitter.ao_seconds is None else round(fitter.ao_seconds, 3),
-        gaussians=len(fitter.model), train_psnr=round(fitter.evaluate(), 4),
+        gaussians=len(fitter.model), train_psnr=train_psnr,
         normal_prior=priors, stages="deform + refine" if tracked else "static (key frame)",
         gop=role.gop, position=role.position,
         next_track_id=fitter.group_next_id if tracked else len(fitter.model),
@@ -116,6 +119,36 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
         record.refine_nominal, record.scoring_extra = (fitter.nominal_refine,
                                                        fitter.scoring_extra)
     return record
+
+
+def _wait(fitter: FrameFitter) -> None:
+    """Let the device finish the fitting's queued work, so that its time is the fitting's."""
+    if fitter.device.type == "cuda":
+        torch.cuda.synchronize(fitter.device)
+
+
+def _outputs(job: FrameJob, frame: str, fitter: FrameFitter, tracked: bool
+             ) -> tuple[dict | None, dict[str, float], float]:
+    """The frame's outputs after its fitting, each timed: its PLY, held-out renders, mesh and
+    the training views' PSNR. Returns (mesh statistics, {output: seconds}, that PSNR)."""
+    seconds: dict = {}
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        seconds[name] = round(now - clock, 3)
+        clock = now
+
+    save_frame(job.run.ply(frame), fitter.model, fitter.ids if tracked else None)
+    lap("ply")
+    render_heldout(job.capture, frame, fitter, job.run, job.cfg.downscale, job.cfg.split)
+    lap("renders")
+    mesh = mesh_frame(job.run, job.capture, frame, job.cfg.mesh)
+    lap("mesh")
+    psnr = round(fitter.evaluate(), 4)
+    lap("evaluate")
+    return mesh, seconds, psnr
 
 
 def display_mode(progress: bool) -> str | None:

@@ -20,6 +20,11 @@ class FrameRecord:
     """Images rendered and back-propagated (a tracked frame's cost in key-frame steps)."""
     seconds: float
     """Wall time of the frame, its outputs included."""
+    train_seconds: float | None
+    """Wall time of its fitting alone (steps and AO bake; the device waited for)."""
+    extras_seconds: dict[str, float] | None
+    """Wall time of what it writes after fitting, by output: ply, renders (the held-out views),
+    mesh, evaluate (the training views' PSNR)."""
     ao_bake_seconds: float | None
     """Seconds its AO bake took (None: no bake)."""
     resumed_at: int

@@ -3,7 +3,9 @@
 the group-of-pictures plan (`core.sequence.GopPlan`), a key frame gets the static stages and a
 tracked frame is deformed from its predecessor and refined (`core.pipeline.frame.fit_frame`).
 After each frame metrics.json and sequence.json are rewritten and its checkpoint dropped, so
-an interrupted run resumes at the frame it was in, from that frame's last checkpoint."""
+an interrupted run resumes at the frame it was in, from that frame's last checkpoint. A run
+carried from another machine (`core.pipeline.carry`, RUN/carried.json) keeps the frames
+finished there, and its capture needs only the frames still to do."""
 
 from __future__ import annotations
 
@@ -109,6 +111,10 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     estimator = load_estimator((model_files or {}).get(named, named), cfg.normal_estimator_space)
     capture = check_capture(capture_dir)
     chosen = parse_frames(frames, capture.frames)
+    carried = run.read_carried()  # finished by another process (core.pipeline.carry)
+    if carried:  # the run's frames: those, then the capture's still to do
+        chosen = [f for f in run.read_config()["frames"] if f in carried] + [
+            f for f in chosen if f not in carried]
     camera_split(capture, cfg.split)  # a split the capture cannot follow, before any file
     _start(run, _config_record(capture_name or str(capture_dir.resolve()), preset, chosen, cfg),
            resume)
@@ -119,8 +125,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     plan = GopPlan(chosen, cfg.gop, cfg.sequence, cfg.train.schedule.iterations)
     job = FrameJob(capture, run, cfg, estimator, display_mode(progress), first=chosen[0])
     for i, role in enumerate(plan.roles):
-        if (gops is not None and role.gop not in gops) or (
-                role.frame in records and run.ply(role.frame).is_file()):
+        if (gops is not None and role.gop not in gops) or (role.frame in records and (
+                run.ply(role.frame).is_file() or role.frame in carried)):
             continue
         hooks = Hooks(role.frame, i, len(chosen), on_progress, should_stop)
         label = f"frame {role.frame} ({i + 1}/{len(chosen)})"

@@ -41,10 +41,12 @@ def farthest_point_sampling(points: Tensor, count: int, start: int = 0) -> Tenso
     dist = (pts - pts[start]).square().sum(dim=1)
     dist[start] = -1.0  # never chosen twice, also where points coincide
     for i in range(1, count):
-        nxt = int(dist.argmax())
+        # The index stays a device tensor: no read-back a node (1,024 a tracked frame).
+        nxt = dist.argmax()
         chosen[i] = nxt
+        # A chosen point keeps -1 (its distances are >= 0); the new one is marked.
         dist = torch.minimum(dist, (pts - pts[nxt]).square().sum(dim=1))
-        dist[chosen[:i + 1]] = -1.0
+        dist[nxt] = -1.0
     return chosen
 
 

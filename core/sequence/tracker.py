@@ -105,7 +105,8 @@ class FrameTracker(FrameFitter):
         self.start: str = self.race.order[0]
         """The start the deform stage began from ("rest", "damped a", "second-order c")."""
         self.deform_losses: list[float] = []
-        """Image loss of each deform step."""
+        """Image loss of each deform step (`_read_losses` brings the pending ones over)."""
+        self._pending_losses: list[Tensor] = []
         self.deform_loss: float | None = None
         """End loss of the deform stage (the next frame's reference), once it is over."""
         q, t = self.starts[self.start]
@@ -115,6 +116,7 @@ class FrameTracker(FrameFitter):
              {"params": [self.node_t], "lr": sequence.lr_translation * self.extent,
               "name": "node_t"}], lr=0.0)
         self.model = previous
+        self._rows = self._rows_of = None  # `_moving_rows`' and the frozen mask it is of
         self.state: TrackedState | None = None
         self.strategy: DensifyStrategy | None = None
 
@@ -201,8 +203,11 @@ class FrameTracker(FrameFitter):
                 view_terms["silhouette"] = silhouette
             for name, value in view_terms.items():
                 terms[name] = terms.get(name, 0.0) + value / len(views)
-        self.deform_losses.append(float(terms["photometric"].detach())
-                                  + float(terms.get("silhouette", torch.zeros(())).detach()))
+        # Read in one go at the stage's end (no read-back a step); the two terms are added
+        # on the host, in double precision, as they always were.
+        self._pending_losses.append(torch.stack([
+            terms["photometric"].detach(),
+            terms.get("silhouette", torch.zeros((), device=self.device)).detach()]))
         terms.update(deform_losses(self.graph, self.node_q, self.node_t, arap=s.arap,
                                    quat_norm=s.quat_norm))
         return terms, first
@@ -211,7 +216,7 @@ class FrameTracker(FrameFitter):
         s = self.seq
         r = self.render_view(self.model, index, self.plan, bg)
         terms = self._image_terms(r, index, bg, ao=True)
-        rows = None if self.state.frozen is None else (~self.state.frozen).nonzero()[:, 0]
+        rows = self._moving_rows()
         if s.temporal:
             weights = TemporalWeights(s.temporal_opacity_g, s.temporal_means, s.temporal_quats,
                                       s.temporal_normals)
@@ -221,7 +226,24 @@ class FrameTracker(FrameFitter):
             terms["anisotropy"] = anisotropy_loss(scales, s.anisotropy, s.anisotropy_ratio)
         return terms, r
 
+    def _read_losses(self) -> list[float]:
+        """`deform_losses`, the steps still on the device read back in one transfer."""
+        if self._pending_losses:
+            self.deform_losses += [a + b for a, b in torch.stack(self._pending_losses).tolist()]
+            self._pending_losses = []
+        return self.deform_losses
+
+    def _moving_rows(self) -> Tensor | None:
+        """Indices of the Gaussians the refine stage moves (None: all); recomputed only when
+        densification or pruning changed the model (a `nonzero` waits for the device)."""
+        if self.state.frozen is None:
+            return None
+        if self._rows_of is not self.state.frozen:
+            self._rows, self._rows_of = (~self.state.frozen).nonzero()[:, 0], self.state.frozen
+        return self._rows
+
     def _end_deform(self) -> None:
+        self._read_losses()
         tail = self.deform_losses[-max(1, self.deform_steps // 6):]
         self.deform_loss = sum(tail) / max(len(tail), 1)
 
@@ -279,9 +301,10 @@ class FrameTracker(FrameFitter):
         """The static scene gets no update (its Adam moments stay 0, so it does not move)."""
         if self.state is None or self.state.frozen is None:
             return
+        frozen = self.state.frozen
         for p in self.model.params.values():
-            if p.grad is not None:
-                p.grad[self.state.frozen] = 0
+            if p.grad is not None:  # masked_fill: no boolean indexing, which waits for the device
+                p.grad.masked_fill_(frozen.view(-1, *([1] * (p.grad.dim() - 1))), 0)
 
     def after_step(self, r, index: int, p: StagePlan) -> None:
         if self.state is None:
@@ -294,6 +317,7 @@ class FrameTracker(FrameFitter):
             relabel(self.state, self.model)
             prune_transparent(self.model, self.optimizer, self.state,
                               self.config.densify.transparent)
+            self._moving_rows()  # now, in a step that waits anyway, not in the next one
 
     def current(self) -> tuple[object, StagePlan]:
         model = self.model if self.state is not None else self._posed(self.node_q, self.node_t)
@@ -304,7 +328,7 @@ class FrameTracker(FrameFitter):
         state and AO targets too (the graph is rebuilt from the previous frame,
         deterministically)."""
         blob = {"node_q": self.node_q.detach(), "node_t": self.node_t.detach(),
-                "deform": {"losses": list(self.deform_losses), "loss": self.deform_loss}}
+                "deform": {"losses": list(self._read_losses()), "loss": self.deform_loss}}
         if self.state is not None:
             blob.update(params={k: v.detach() for k, v in self.model.params.items()},
                         state=asdict(self.state), ao_targets=self.ao_targets)
@@ -315,6 +339,7 @@ class FrameTracker(FrameFitter):
             self.node_q.copy_(blob["node_q"])
             self.node_t.copy_(blob["node_t"])
         self.deform_losses = [float(x) for x in blob["deform"]["losses"]]
+        self._pending_losses = []
         self.deform_loss = blob["deform"]["loss"]
         if "params" in blob:
             self._start_refine(bake=False)  # the targets come from the checkpoint

@@ -5,7 +5,6 @@ from (`core.sequence.plan.TrackedInputs`)."""
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -13,7 +12,7 @@ import torch
 from core.config import SequenceConfig, TrainConfig
 from core.files import atomic_path
 from core.model import GaussianModel
-from core.plyio import read_track_ids, write_gaussian_ply
+from core.plyio import read_gaussian_ply, read_track_ids, write_gaussian_ply
 from core.rundir import RunDir
 from core.sequence.motion import align_tracks
 from core.sequence.plan import TrackedInputs
@@ -22,7 +21,7 @@ from core.sequence.hull import inside_hull
 from core.sequence.tracker import FrameTracker
 from core.training import frame_views
 
-__all__ = ["load_frame", "save_frame", "tracker_for"]
+__all__ = ["frame_tracks", "load_frame", "save_frame", "tracker_for"]
 
 
 def save_frame(path: str | os.PathLike[str], model: GaussianModel,
@@ -55,9 +54,9 @@ def tracker_for(capture, frame: str, run: RunDir, inputs: TrackedInputs, train: 
     model, track = load_frame(previous)
     earlier = earliest = None
     if inputs.earlier is not None and (sequence.motion_candidates or sequence.second_order):
-        earlier = _aligned(run.ply(inputs.earlier), track)
+        earlier = _aligned(run, inputs.earlier, track)
         if inputs.earliest is not None and sequence.second_order:
-            earliest = _aligned(run.ply(inputs.earliest), track)
+            earliest = _aligned(run, inputs.earliest, track)
     views = frame_views(capture, frame, downscale, split, train.masks)
     moving = None
     if moves_subject(capture, train, sequence):
@@ -91,7 +90,19 @@ def subject_rows(means: torch.Tensor, frames: list[list], sequence: SequenceConf
     return inside
 
 
-def _aligned(ply: Path, track: torch.Tensor):
-    """`align_tracks` of the frame PLY `ply` to the track ids `track`."""
-    before, before_ids = load_frame(ply)
-    return align_tracks(track, before_ids, before.means.detach())
+def frame_tracks(run: RunDir, frame: str) -> tuple[np.ndarray, np.ndarray]:
+    """(track ids (N,), positions (N, 3)) of a finished frame: from its PLY, or from the
+    tracks a carried run brought (frames/<frame>/tracks.npz, `core.pipeline.carry`)."""
+    ply = run.ply(frame)
+    if ply.is_file():
+        ids = read_track_ids(ply)
+        means = read_gaussian_ply(ply)["means"]
+        return (np.arange(len(means)) if ids is None else ids), means
+    with np.load(run.frame_dir(frame) / "tracks.npz", allow_pickle=False) as z:
+        return z["ids"], z["means"]
+
+
+def _aligned(run: RunDir, frame: str, track: torch.Tensor):
+    """`align_tracks` of finished `frame`'s Gaussians to the track ids `track`."""
+    ids, means = frame_tracks(run, frame)
+    return align_tracks(track, torch.from_numpy(ids).long(), torch.from_numpy(means).float())

@@ -128,7 +128,8 @@ class FrameFitter:
         """A new random colour for a masked view (drawn on the CPU generator whatever the
         device: the same colours everywhere), else the configured background."""
         if self.config.random_background and self.views[index].mask is not None:
-            return torch.rand(3, generator=self.generator).to(self.device)
+            # non_blocking: a small pageable copy that need not wait for the queued steps.
+            return torch.rand(3, generator=self.generator).to(self.device, non_blocking=True)
         return self.background
 
     # -- the loop ----------------------------------------------------------------------------

@@ -234,6 +234,7 @@ def test_cli_reconstruct_and_eval(capture: Path, short_config: Path, tmp_path: P
     rc, out, err = _cli(capsys, "eval", run)
     assert rc == 0, err
     assert "PSNR" in out and "normal cosine" in out and (run / "eval.json").is_file()
+    assert "LPIPS " in out
 
 
 @pytest.mark.parametrize("case, expect", [
