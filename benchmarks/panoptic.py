@@ -14,7 +14,14 @@ Steps, each written under OUT as it ends (a run cut short keeps what it measured
 4. the subject (the Gaussians inside the masks' hull: the players and the ball) exported as the
    relightable stream, its bytes a frame and its decoded renders against the uncompressed
    subject's on the test cameras; the subject's meshes per frame (`mesh.subject`);
-5. the relit MP4 of the first test camera over the frames under an HDRI (`--hdri`).
+5. the relit MP4 of the first test camera over the frames under an HDRI (`--hdri`);
+6. with `--plain`, the honest baseline: a plain 3DGS (`train.method` 3dgs) trained on every
+   frame independently (groups of 1) at the same steps a frame, cap and seeds, into OUT/plain,
+   scored the same way.
+
+Each key frame's seeds (dense points fused from the views' stereo depth where the capture has
+no point cloud, `core.rig`) and normal priors are timed apart: the table gives their share of
+the key frame.
 
 The schedule: `--preset`'s plan scaled to `--steps` a key frame (`Schedule.scaled`), groups of
 `--gop` frames. The CPU twin (docs/benchmarks.md): `--frames 0:10 --downscale 2` with the
@@ -29,7 +36,7 @@ lays such a pack out as OUT/run and continues it; the earlier call's rows come f
     python benchmarks/panoptic.py [SRC] --out DIR --pack --frames 0:50   (a slice to carry)
     python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
         [--preset fast] [--steps N] [--gop 10] [--max-gaussians N] [--mesh-voxels 256]
-        [--serve N] [--serve-frames 0:12] [--hdri EXR]
+        [--serve N] [--serve-frames 0:12] [--hdri EXR] [--plain]
         [--deadline S] [--reserve S] [--pack-to DIR] [--resume-from DIR]
         [--device auto] [--threads N]
 """
@@ -135,9 +142,20 @@ def overrides(args) -> dict:
                      "resolution": max(args.mesh_voxels, 16)}}
 
 
-def reconstruct_here(capture: Path, run: Path, args, budget) -> dict:
-    """`dgs reconstruct` in this process; per frame the peak GPU memory (bytes, CUDA only);
-    stopped by `budget` (the frame it stopped in, if any)."""
+def plain_overrides(args) -> dict:
+    """The per-frame plain 3DGS: the run's settings with `train.method` 3dgs (its defaults
+    under them) and every frame a key frame of its own, at the run's steps a key frame."""
+    over = overrides(args)
+    over["train"]["method"] = "3dgs"
+    over["gop"] = 1
+    over["mesh"] = {"enabled": False}
+    return over
+
+
+def reconstruct_here(capture: Path, run: Path, args, budget, over: dict | None = None) -> dict:
+    """`dgs reconstruct` in this process (`over`: other overrides than the run's); per frame
+    the peak GPU memory (bytes, CUDA only); stopped by `budget` (the frame it stopped in, if
+    any)."""
     import torch
 
     from core.pipeline import Stopped, reconstruct
@@ -156,8 +174,9 @@ def reconstruct_here(capture: Path, run: Path, args, budget) -> dict:
 
     start, stopped = time.perf_counter(), None
     try:
-        reconstruct(capture, run, preset=args.preset, overrides=overrides(args), resume=True,
-                    progress=True, on_progress=on_progress, should_stop=budget.should_stop)
+        reconstruct(capture, run, preset=args.preset, overrides=over or overrides(args),
+                    resume=True, progress=True, on_progress=on_progress,
+                    should_stop=budget.should_stop)
     except Stopped as exc:
         stopped = exc.frame
     old = json.loads((run / "peaks.json").read_text()) if (run / "peaks.json").is_file() else {}
@@ -192,11 +211,30 @@ def frame_rows(run: Path, ev: dict, peaks: dict) -> list[dict]:
                      "extras_seconds": sum((m.get("extras_seconds") or {}).values()) or None,
                      "extras": m.get("extras_seconds"),
                      "ao_bake_seconds": m.get("ao_bake_seconds"),
+                     "seed_seconds": m.get("seed_seconds"),
+                     "prior_seconds": (m.get("rig_seconds") or {}).get("priors"),
                      "mesh_seconds": (mesh.get("seconds") or {}).get("total"),
                      "peak_gb": peaks.get(frame, 0) / 1e9 or None,
                      "psnr": score["psnr_full"], "ssim": score["ssim"],
                      "lpips": score.get("lpips")})
     return rows
+
+
+def plain_baseline(capture: Path, run: Path, args) -> dict:
+    """The per-frame plain 3DGS (`plain_overrides`) trained and scored: PSNR, SSIM and LPIPS
+    over the same test cameras and frames, its mean seconds and Gaussians a frame."""
+    from core.evaluation import evaluate_run
+    from core.pipeline.carry import FrameBudget
+
+    reconstruct_here(capture, run, args, FrameBudget(1, None, lambda b: 0.0),
+                     plain_overrides(args))
+    ev = evaluate_run(run)
+    frames = json.loads((run / "metrics.json").read_text())["frames"].values()
+    return {**{k: ev.get(k) for k in ("psnr_full", "ssim", "lpips")},
+            "seconds": sum(f["seconds"] for f in frames) / len(frames),
+            "gaussians": sum(f["gaussians"] for f in frames) / len(frames),
+            "per_frame": [{"frame": f["frame"], "psnr": f["psnr_full"], "ssim": f["ssim"]}
+                          for f in ev["per_frame"]]}
 
 
 def subject_stream(run: Path, out: Path) -> dict:
@@ -243,7 +281,8 @@ def _fmt(v, spec: str) -> str:
     return "-" if v is None else (v if isinstance(v, str) else format(v, spec))
 
 
-def report(rows: list[dict], ev: dict, stream: dict | None, args) -> None:
+def report(rows: list[dict], ev: dict, stream: dict | None, args,
+           plain: dict | None = None) -> None:
     """The table: per frame seconds (training, extras), peak GPU memory and the scores; then
     the published rows beside ours (the frames of every call), the means and the stream."""
     import numpy as np
@@ -269,6 +308,9 @@ def report(rows: list[dict], ev: dict, stream: dict | None, args) -> None:
           f"{_fmt(mean([r['psnr'] for r in rows]), '.2f')} | "
           f"{_fmt(mean([r['ssim'] for r in rows]), '.4f')} | "
           f"{_fmt(mean([r['lpips'] for r in rows if r.get('lpips') is not None]), '.3f')} |")
+    if plain:
+        print(f"| plain 3DGS, every frame independently | {plain['psnr_full']:.2f} | "
+              f"{plain['ssim']:.4f} | {_fmt(plain.get('lpips'), '.3f')} |")
     bake = [r["ao_bake_seconds"] / r["seconds"] for r in key if r["ao_bake_seconds"]]
     meshes = [r["mesh_seconds"] for r in rows if r["mesh_seconds"]]
     for name, group in (("key frame", key), ("tracked frame", tracked)):
@@ -276,8 +318,14 @@ def report(rows: list[dict], ev: dict, stream: dict | None, args) -> None:
         extras = mean([r["extras_seconds"] for r in group if r.get("extras_seconds")])
         print(f"{name}: {_fmt(train, '.1f')} s training, {_fmt(extras, '.2f')} s extras "
               f"({len(group)} frames)")
-    print(f"AO bake {_fmt(mean(bake), '.1%')} of a key frame, subject mesh "
-          f"{_fmt(mean(meshes), '.2f')} s a frame")
+    seeds = [r["seed_seconds"] / r["seconds"] for r in key if r.get("seed_seconds")]
+    priors = [r["prior_seconds"] / r["seconds"] for r in key if r.get("prior_seconds")]
+    print(f"AO bake {_fmt(mean(bake), '.1%')} of a key frame, seeds {_fmt(mean(seeds), '.1%')}"
+          f", priors {_fmt(mean(priors), '.1%')}, subject mesh {_fmt(mean(meshes), '.2f')} s "
+          "a frame")
+    if plain:
+        print(f"plain 3DGS: {plain['seconds']:.1f} s and {plain['gaussians']:.0f} Gaussians a "
+              "frame")
     if stream:
         print(f"subject stream: {stream['bytes_per_frame'] / 1e6:.3f} MB a frame "
               f"({stream['gaussians']:.0f} Gaussians, {stream['share']:.1%} of the scene's), "
@@ -325,6 +373,8 @@ def arguments(argv: list[str] | None):
                     help="largest resume pack (what the next call can carry beside its data)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--plain", action="store_true",
+                    help="also a plain 3DGS on every frame independently (OUT/plain)")
     return ap.parse_args(argv)
 
 
@@ -385,7 +435,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.serve:
         result["service"] = reconstruct_served(capture, args.out, args)
         save()
-    report(result["rows"], ev, result["subject_stream"], args)
+    if args.plain:
+        result["plain"] = plain_baseline(capture, args.out / "plain", args)
+        save()
+    report(result["rows"], ev, result["subject_stream"], args, result.get("plain"))
     if args.serve:
         report_service(result["service"])
     return 0

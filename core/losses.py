@@ -130,11 +130,13 @@ def _dy(t: Tensor) -> Tensor:
 
 
 def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
-                      weights: LossWeights = LossWeights()) -> Tensor:
+                      weights: LossWeights = LossWeights(),
+                      confidence: Tensor | None = None) -> Tensor:
     """0.2 L1(N, N_prior) + 0.05 mean(|grad N| exp(-|grad N_prior|)) on (H, W, 3) maps.
 
     Only pixels with a prior (non-zero vector) and inside `mask` (H, W, 1) count for the L1; the
     smoothness uses forward differences with both pixels valid, |.| the channel mean of |diff|.
+    `confidence` (H, W, 1) in 0..1 weighs each pixel (a prior from fused stereo depth).
     """
     if normal.shape != prior.shape or normal.shape[-1] != 3:
         raise ValueError(f"normal, prior: expected equal (H, W, 3) shapes, got "
@@ -142,6 +144,8 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
     valid = (prior.abs().sum(dim=-1, keepdim=True) > 0).float()
     if mask is not None:
         valid = valid * (mask > 0.5).float()
+    if confidence is not None:
+        valid = valid * confidence
     count = valid.sum().clamp_min(1.0)
     l1 = ((normal - prior).abs().mean(dim=-1, keepdim=True) * valid).sum() / count
     smooth = normal.new_zeros(())

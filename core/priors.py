@@ -2,8 +2,10 @@
 
 A view's prior comes from the capture's normals/ folder (the dataset serves it, in world space),
 or else from a pluggable estimator named in configuration: a model file that maps an image to
-normals. With neither, the prior term stays off (the trainer skips it for views without a prior)
-and the depth-normal consistency term still runs.
+normals, or else from the calibrated rig: the key frame's stereo depth fused across its views
+gives each view the normals of planes fitted to it, with a confidence (`core.rig`,
+`RunConfig.rig_priors`). With none, the prior term stays off (the trainer skips it for views
+without a prior) and the depth-normal consistency term still runs.
 """
 
 from __future__ import annotations
@@ -111,12 +113,18 @@ def load_estimator(path: str | os.PathLike[str] | None,
     return TorchScriptNormalEstimator(path, space)
 
 
-def fill_priors(views: Sequence, estimator: NormalEstimator | None) -> str:
+def fill_priors(views: Sequence, estimator: NormalEstimator | None, rig=None) -> str:
     """Give every `core.training.View` without a prior one from `estimator` (rotated to world
-    space when it estimates camera-space normals), on the device of the view's image (the
-    estimator itself runs on the CPU). Returns where the priors came from: 'capture',
-    'estimator', 'mixed' or 'off'."""
+    space when it estimates camera-space normals), else from `rig` (a `core.rig.RigGeometry`
+    of these views: normals and confidences from their fused depth), on the device of the
+    view's image (both run on the CPU). Returns where the priors came from: 'capture',
+    'estimator', 'rig', 'mixed' or 'off'."""
     have = sum(v.normal is not None for v in views)
+    if estimator is None and rig is not None and have == 0 and views:
+        for v, (n, c) in zip(views, rig.priors()):
+            v.normal = torch.from_numpy(n).to(v.image.device)
+            v.normal_weight = torch.from_numpy(c).to(v.image.device)
+        return "rig"
     if estimator is None or have == len(views):
         return "capture" if have == len(views) and views else ("mixed" if have else "off")
     for v in views:

@@ -10,7 +10,8 @@ listing classifies files with `classify`. Torch-free.
     RUN/frames/<frame>/gaussians.ply     the frame's Gaussians (3DGS PLY + geometry branch)
     RUN/renders/<frame>/<camera>_{rgb,normal,ao,relit}.png, <camera>_depth.npy
     RUN/meshes/<frame>.{ply,obj,glb}
-    RUN/plots/*.png
+    RUN/plots/*.png                      training curves; seeds-<frame>.png, a key frame's seeds
+    RUN/seeds/static.ply                 the static scene's seeds later key frames keep
     RUN/checkpoints/<frame>.pt           training state of an unfinished frame
     RUN/carried.json                     frames finished by another process (`core.pipeline.carry`)
     RUN/frames/<frame>/tracks.npz        a carried frame's track ids and positions
@@ -147,6 +148,10 @@ class RunDir:
 
     def mesh(self, frame: str, fmt: str = "ply") -> Path:
         return self.meshes / f"{frame}.{fmt}"
+
+    def static_seeds(self) -> Path:
+        """The static scene's seeds of the run's first key frame (`core.seeding`)."""
+        return self.root / "seeds" / "static.ply"
 
     def checkpoint(self, frame: str) -> Path:
         return self.checkpoints / f"{frame}.pt"

@@ -1,12 +1,16 @@
 """Initial points of a key frame (`seed_points`), in order of preference:
 
 1. the capture's own point cloud (``points.ply``: COLMAP points3D, a nerfstudio PLY, ...);
-2. sparse points triangulated from the known poses (`core.triangulation`);
-3. random points in the cameras' common view, only when neither gives any (with a warning).
-Where the views have masks, every seed must land on the foreground of every view it projects
+2. dense points: every view's stereo depth fused across the calibrated views (`core.rig`),
+   sampled to the seed budget with their colours;
+3. sparse points triangulated from the known poses (`core.triangulation`);
+4. random points in the cameras' common view, only when none gives any (with a warning).
+Where the views have mattes, every seed must land on the foreground of every view it projects
 into (a visual hull), and the hull is topped up with random points inside it up to
-`TrainConfig.init_points`, as before points were triangulated. Where they have none, a far
-shell of points along the cameras' pixel rays stands for the background no feature reaches.
+`TrainConfig.init_points`. Where they have none, a far shell of points along the cameras' pixel
+rays stands for the background no feature reaches. Where masks mark a subject inside a scene
+(`subjects`), the seeds outside the subject's hull are the static scene: a later key frame keeps
+them (`static`) and seeds only the subject from its own frame.
 Also the scene extent that scales the position learning rate and densification.
 """
 
@@ -14,24 +18,37 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 import torch
 
 from core.config import InitConfig
 from core.data.capture import Camera
 from core.data.points import PointCloud
-from core.triangulation import in_visual_hull, pixel_indices, triangulate_views
+from core.rig.geometry import RigGeometry
+from core.triangulation import in_visual_hull, pixel_indices
 
-__all__ = ["ENCLOSURE_DEPTH", "ENCLOSURE_SPREAD", "Seed", "encloses", "look_at_center",
-           "sample_points", "scene_extent",
-           "seed_points", "shell_points"]
+__all__ = ["ENCLOSURE_DEPTH", "ENCLOSURE_SPREAD", "SUBJECT_DILATE", "Seed", "encloses",
+           "look_at_center", "sample_points", "scene_extent", "seed_budget", "seed_points",
+           "shell_points", "subject_hull"]
 
 log = logging.getLogger("dgs.seeding")
 
 # Fewer seeds than this from a capture or triangulation are no scene: fall back.
 MIN_POINTS = 32
+
+
+CLEARANCE = 0.07
+"""Seeds closer to a camera centre than this fraction of its distance to the cameras' look-at
+centre are dropped: a camera's lens is there, and on a dome whose wall holds the cameras a
+fused point of the wall just in front of a held-out camera grows into a Gaussian over its whole
+view (the Panoptic twin's test camera 0: 15.3 dB with two such seeds)."""
+
+SUBJECT_DILATE = 4
+"""Pixels the subject masks grow by before they restrict a later key frame's depth (its
+outline is matched too)."""
 
 
 @dataclass
@@ -42,6 +59,12 @@ class Seed:
     colors: torch.Tensor
     note: str
     """One line for the run's notes: the source and the counts."""
+    parts: list[tuple[str, PointCloud]] = field(default_factory=list)
+    """The seeds by source, in order (fused, triangulated, capture, random, background,
+    static, subject): what the seeds picture colours them by."""
+    static: PointCloud | None = None
+    """With subject masks: the seeds outside the subject's hull (the static scene a later key
+    frame keeps); None without."""
 
 
 ENCLOSURE_SPREAD = 0.5
@@ -153,28 +176,88 @@ def shell_points(cameras: Sequence[Camera], images: Sequence[np.ndarray], n: int
     return PointCloud(pts, np.clip(cols, 0, 1).astype(np.float32))
 
 
-def _source_cloud(cameras: Sequence[Camera], images: Sequence[np.ndarray],
-                  masks: Sequence[np.ndarray | None], config: InitConfig,
-                  capture_points: PointCloud | None) -> tuple[PointCloud | None, str]:
-    """The capture's points (carved by the masks) or triangulated ones, and a note; None when
-    neither gives MIN_POINTS (ValueError when the source asked for gives none)."""
-    cloud, what = None, ""
+def seed_budget(n_random: int, max_gaussians: int | None) -> int:
+    """Dense seeds to sample: `init_points`, at most half the densification cap (the other half
+    is densification's room)."""
+    return n_random if max_gaussians is None else max(1, min(n_random, max_gaussians // 2))
+
+
+def _sample(cloud: PointCloud, n: int, seed: int) -> PointCloud:
+    """`n` of the cloud's points drawn without replacement (all when it has no more)."""
+    if len(cloud) <= n:
+        return cloud
+    keep = np.random.default_rng(seed).choice(len(cloud), size=n, replace=False)
+    return cloud.subset(np.sort(keep))
+
+
+HULL_SHARE = 0.5
+"""With mattes, the share of the seed budget left to random points in the visual hull: stereo
+misses thin or flat parts (a limb at 64 pixels) that the masks still show, and a part no seed
+reaches is not grown in a short schedule."""
+
+
+def _dense(rig: RigGeometry, masks: Sequence[np.ndarray | None], budget: int,
+           seed: int) -> tuple[PointCloud, str]:
+    fused = rig.fused()
+    inside = fused.cloud.subset(in_visual_hull(fused.cloud.points, rig.cameras, masks))
+    if any(m is not None for m in masks):
+        budget = max(1, round(budget * (1 - HULL_SHARE)))
+    cloud = _sample(inside, budget, seed)
+    return cloud, (f"{len(cloud)} of {len(inside)} points fused from the views' stereo depth "
+                   f"({len(fused.cameras)} views, {fused.cameras[0].width}x"
+                   f"{fused.cameras[0].height})")
+
+
+def _source_cloud(rig: RigGeometry, config: InitConfig, capture_points: PointCloud | None,
+                  budget: int, seed: int) -> tuple[PointCloud | None, str, str]:
+    """The capture's points (carved by the mattes), dense fused points or triangulated ones,
+    with a note and the source's name; None when none gives MIN_POINTS (ValueError when the
+    source asked for gives none)."""
+    cameras, masks = rig.cameras, rig.masks
+    cloud, what, name = None, "", ""
     if config.source in ("auto", "points") and capture_points is not None:
         cloud = capture_points.subset(in_visual_hull(capture_points.points, cameras, masks))
-        what = f"{len(cloud)} of the capture's {len(capture_points)} points"
+        what, name = f"{len(cloud)} of the capture's {len(capture_points)} points", "capture"
     elif config.source == "points":
         raise ValueError("init.source: 'points' needs a points.ply in the capture; use auto")
+    if config.source in ("auto", "stereo") and (cloud is None or len(cloud) < MIN_POINTS):
+        cloud, what = _dense(rig, masks, budget, seed)
+        name = "fused"
     if config.source in ("auto", "triangulate") and (cloud is None or len(cloud) < MIN_POINTS):
-        cloud, stats = triangulate_views(cameras, images, masks)
+        cloud, stats = rig.sparse()
         what = (f"{stats.points} points triangulated from the known poses ({stats.features} "
                 f"features, {stats.matches} matches in {stats.pairs} camera pairs)")
+        name = "triangulated"
     found = 0 if cloud is None else len(cloud)
     if config.source == "random" or found >= MIN_POINTS:
-        return cloud, what
+        return cloud, what, name
     if config.source != "auto":
         raise ValueError(f"init.source: {config.source!r} gave {found} points; use auto "
                          "(random points as the last resort)")
-    return None, what
+    return None, what, name
+
+
+def subject_hull(points: np.ndarray, cameras: Sequence[Camera],
+                 subjects: Sequence[np.ndarray | None], share: float = 0.5) -> np.ndarray:
+    """(N,) whether each point is the subject's: it lands on the subject mask (H, W, 1) > 0.5
+    in at least `share` of the views with a mask that it projects into."""
+    hits = np.zeros(len(points))
+    seen = np.zeros(len(points))
+    for cam, mask in zip(cameras, subjects):
+        if mask is None:
+            continue
+        uv, z = cam.project(points)
+        u, v, inside = pixel_indices(uv, cam.width, cam.height, z)
+        seen += inside
+        hits += inside & (mask[v, u, 0] > 0.5)
+    return (seen > 0) & (hits >= share * np.maximum(seen, 1))
+
+
+def _grown(masks: Sequence[np.ndarray | None], pixels: int) -> list[np.ndarray | None]:
+    kernel = np.ones((2 * pixels + 1, 2 * pixels + 1), np.uint8)
+    return [None if m is None else cv2.dilate((m[..., 0] > 0.5).astype(np.uint8),
+                                              kernel)[..., None].astype(np.float32)
+            for m in masks]
 
 
 def encloses(cameras: Sequence[Camera], center: np.ndarray) -> bool:
@@ -216,14 +299,58 @@ def _background(cameras: Sequence[Camera], images: Sequence[np.ndarray],
 
 def seed_points(cameras: Sequence[Camera], images: Sequence[np.ndarray],
                 masks: Sequence[np.ndarray | None], config: InitConfig, *, n_random: int,
-                capture_points: PointCloud | None = None, seed: int = 0) -> Seed:
+                capture_points: PointCloud | None = None, seed: int = 0,
+                rig: RigGeometry | None = None, max_gaussians: int | None = None,
+                subjects: Sequence[np.ndarray | None] | None = None,
+                static: PointCloud | None = None, threads: int = 0,
+                clear_of: Sequence[Camera] = ()) -> Seed:
     """The initial points of a key frame from its training views (cameras served at the
-    images' resolution, images (H, W, 3) and masks (H, W, 1) or None), following the module's
-    order; `n_random` is TrainConfig.init_points. ValueError when the source asked for
-    explicitly has nothing to give."""
-    cloud, what = _source_cloud(cameras, images, masks, config, capture_points)
+    images' resolution, images (H, W, 3) and mattes (H, W, 1) or None), following the module's
+    order; `n_random` is TrainConfig.init_points, `max_gaussians` the densification cap (dense
+    seeds: `seed_budget`). `rig` is the views' `RigGeometry` (made here when None);
+    `subjects` (H, W, 1) or None mark a subject inside a scene; `static` is the static scene
+    kept from the run's first key frame (then only the subject is seeded from these views);
+    no seed is left within `CLEARANCE` of these cameras or of `clear_of` (the capture's other
+    cameras: their lenses are there too). ValueError when the source asked for explicitly has
+    nothing to give."""
+    out = _seed(cameras, images, masks, config, n_random, capture_points, seed, rig,
+                max_gaussians, subjects, static, threads)
+    return _cleared(out, [*cameras, *clear_of])
+
+
+def _cleared(out: Seed, cameras: Sequence[Camera]) -> Seed:
+    """`out` without the seeds within `CLEARANCE` of a camera (module constant)."""
+    centers = np.stack([c.center for c in cameras])
+    reach = CLEARANCE * np.linalg.norm(centers - look_at_center(cameras), axis=1)
+
+    def keep(points: np.ndarray) -> np.ndarray:
+        ok = np.ones(len(points), bool)
+        for c, r in zip(centers, reach):
+            ok &= np.linalg.norm(points - c, axis=1) > r
+        return ok
+
+    parts = [(name, cloud.subset(keep(cloud.points))) for name, cloud in out.parts]
+    cleared = _joined(parts, out.note) if parts else out
+    dropped = len(out.points) - len(cleared.points)
+    if dropped:
+        cleared.note = f"{out.note} ({dropped} within {CLEARANCE:g} of a camera's distance " \
+            "dropped)"
+    if out.static is not None:
+        cleared.static = out.static.subset(keep(out.static.points))
+    return cleared
+
+
+def _seed(cameras, images, masks, config, n_random, capture_points, seed, rig, max_gaussians,
+          subjects, static, threads) -> Seed:
+    budget = seed_budget(n_random, max_gaussians)
+    if static is not None and subjects is not None and any(m is not None for m in subjects):
+        return _subject_seed(cameras, images, masks, config, subjects, static, budget, seed,
+                             threads)
+    if rig is None:
+        rig = RigGeometry(cameras, images, masks, config.stereo, threads=threads)
+    cloud, what, name = _source_cloud(rig, config, capture_points, budget, seed)
     masked = any(m is not None for m in masks)
-    parts, notes = ([cloud], [what]) if cloud is not None else ([], [])
+    parts, notes = ([(name, cloud)], [what]) if cloud is not None else ([], [])
     if cloud is None or masked:  # random points, carved by the masks: all, or the hull's fill
         n = n_random if cloud is None else max(0, n_random - len(cloud))
         try:
@@ -234,7 +361,7 @@ def seed_points(cameras: Sequence[Camera], images: Sequence[np.ndarray],
                 raise
             pts, cols = torch.zeros(0, 3), torch.zeros(0, 3)  # the hull is too thin to sample
         if len(pts):
-            parts.append(PointCloud(pts.double().numpy(), cols.numpy()))
+            parts.append(("random", PointCloud(pts.double().numpy(), cols.numpy())))
             where = "in the visual hull" if masked else "in the cameras' common view"
             fallback = ""
             if cloud is None and config.source != "random":
@@ -245,10 +372,36 @@ def seed_points(cameras: Sequence[Camera], images: Sequence[np.ndarray],
     if not all(m is not None for m in masks) and config.background > 0 and cloud is not None:
         shell, note = _background(cameras, images, masks, cloud, config.background, seed,
                                   n_random)
-        parts.append(shell)
+        parts.append(("background", shell))
         notes.append(note)
-    pts = np.concatenate([p.points for p in parts])
+    out = _joined(parts, "seeded with " + " + ".join(notes))
+    if subjects is not None and any(m is not None for m in subjects):
+        pts = out.points.double().numpy()
+        out.static = PointCloud(pts, out.colors.numpy()).subset(
+            ~subject_hull(pts, cameras, subjects))
+    return out
+
+
+def _subject_seed(cameras: Sequence[Camera], images: Sequence[np.ndarray],
+                  masks: Sequence[np.ndarray | None], config: InitConfig,
+                  subjects: Sequence[np.ndarray | None], static: PointCloud, budget: int,
+                  seed: int, threads: int) -> Seed:
+    """A later key frame of a scene: the static seeds kept, the subject fused from its own
+    views' depth inside the grown subject masks (its room: the budget the static part leaves,
+    at least a tenth of it)."""
+    rig = RigGeometry(cameras, images, masks, config.stereo,
+                      depth_masks=_grown(subjects, SUBJECT_DILATE), threads=threads)
+    fused = rig.fused().cloud
+    subject = fused.subset(subject_hull(fused.points, cameras, subjects))
+    room = max(budget - len(static), budget // 10)
+    subject = _sample(subject, room, seed)
+    return _joined([("static", static), ("subject", subject)],
+                   f"seeded with {len(static)} static-scene points kept from the first key "
+                   f"frame + {len(subject)} subject points fused from this frame's stereo depth")
+
+
+def _joined(parts: list[tuple[str, PointCloud]], note: str) -> Seed:
+    pts = np.concatenate([p.points for _, p in parts])
     cols = np.concatenate([p.colors if p.colors is not None else np.full((len(p), 3), 0.5)
-                           for p in parts])
-    return Seed(torch.from_numpy(pts).float(), torch.from_numpy(cols).float(),
-                "seeded with " + " + ".join(notes))
+                           for _, p in parts])
+    return Seed(torch.from_numpy(pts).float(), torch.from_numpy(cols).float(), note, parts)

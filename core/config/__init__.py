@@ -16,6 +16,7 @@ from core.config.run import (
     parse_frames,
     preset_config,
 )
+from core.config.rig import StereoConfig
 from core.config.sequence import SequenceConfig
 from core.config.train import (
     DEVICE_PATTERN,
@@ -52,6 +53,7 @@ __all__ = [
     "RunConfig",
     "Schedule",
     "SequenceConfig",
+    "StereoConfig",
     "TrainConfig",
     "apply_overrides",
     "load_config",

@@ -77,6 +77,10 @@ class RunConfig:
     operator allows."""
     normal_estimator_space: Literal["camera", "world"] = "camera"
     """The space the estimator's normals are in."""
+    rig_priors: bool = True
+    """Views with neither a normals/ prior nor an estimator get one from their key frame's
+    fused stereo depth, with a confidence (`core.rig`); off: no prior there (the
+    depth-normal consistency term alone shapes their normals)."""
     split: Split = "auto"
     """Which cameras are held out (`core.data.split`): `auto` the capture's declared
     test_cameras, else every 8th; `capture` the declared ones; `every8`; `none` (every camera

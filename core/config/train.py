@@ -10,6 +10,7 @@ from typing import Annotated, Literal
 from pydantic import Field
 
 from core.config.base import DEVICE_PATTERN, MAX_STEPS, Device, Fraction, Positive, Steps, Weight, section
+from core.config.rig import StereoConfig
 
 __all__ = ["AOConfig", "DEVICE_PATTERN", "DensifyConfig", "InitConfig", "LearningRates", "LossWeights",
            "METHODS", "Method", "PRESETS", "Preset", "Schedule", "TrainConfig", "method_defaults",
@@ -213,12 +214,15 @@ class AOConfig:
 class InitConfig:
     """Where a key frame's initial Gaussians come from (`core.seeding.seed_points`)."""
 
-    source: Literal["auto", "points", "triangulate", "random"] = "auto"
-    """auto: the capture's points.ply, else points triangulated from the known poses, else
-    (with a warning) random points; `points`, `triangulate` or `random` ask for one alone."""
+    source: Literal["auto", "points", "stereo", "triangulate", "random"] = "auto"
+    """auto: the capture's points.ply, else dense points fused from the views' stereo depth,
+    else points triangulated from the known poses, else (with a warning) random points;
+    `points`, `stereo`, `triangulate` or `random` ask for one alone."""
     background: Annotated[float, Field(ge=0, le=10)] = 0.1
     """Views without masks: points on a far shell along the cameras' pixel rays, this fraction
     of the other seeds (0: none), for the distant background that triangulation misses."""
+    stereo: StereoConfig = field(default_factory=StereoConfig)
+    """How the views' depth is matched and fused (dense seeds and the rig's normal priors)."""
 
 
 Color = Annotated[float, Field(ge=0, le=1)]

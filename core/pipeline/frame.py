@@ -15,6 +15,7 @@ from core.config import RunConfig
 from core.pipeline.events import History, Hooks
 from core.pipeline.outputs import mesh_frame, render_heldout, thin
 from core.pipeline.record import FrameRecord
+from core.pipeline.seeds import record_seeds, static_seeds
 from core.priors import NormalEstimator, fill_priors
 from core.progress import LogLines, TerminalBar
 from core.rundir import RunDir
@@ -35,6 +36,9 @@ class FrameJob:
     estimator: NormalEstimator | None
     display: str | None
     """'bar' (a terminal), 'lines' (a log) or None (quiet)."""
+    first: str | None = None
+    """The run's first frame: its key frame's static-scene seeds are kept by later key
+    frames (`core.seeding`)."""
 
 
 def _callbacks(job: FrameJob, frame: str, label: str, history: History,
@@ -57,8 +61,11 @@ def _fitter(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None,
         # (sequence.key_steps); a frame alone, or every frame a key frame, does not.
         grouped = cfg.sequence.enabled and role.size > 1
         train = cfg.train.stretched(cfg.sequence.key_steps) if grouped else cfg.train
+        static = None
+        if job.first is not None and role.frame != job.first:
+            static = static_seeds(job, train)
         return Trainer.from_capture(job.capture, role.frame, train, callbacks=callbacks,
-                                    downscale=cfg.downscale, split=cfg.split)
+                                    downscale=cfg.downscale, split=cfg.split, static=static)
     return tracker_for(job.capture, role.frame, job.run, inputs, cfg.train, cfg.sequence,
                        downscale=cfg.downscale, split=cfg.split, callbacks=callbacks)
 
@@ -69,7 +76,14 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
     start = time.perf_counter()
     history = History()
     fitter = _fitter(job, role, inputs, _callbacks(job, role.frame, label, history, hooks))
-    priors = fill_priors(fitter.views, job.estimator)
+    rig = getattr(fitter, "rig", None)
+    if rig is not None and getattr(fitter, "seed", None) is not None:
+        record_seeds(job.run, role.frame, fitter, first=role.frame == job.first)
+    # A plain 3DGS has no geometry branch: no prior term to give priors to.
+    use_rig = job.cfg.rig_priors and job.cfg.train.method != "3dgs"
+    priors = fill_priors(fitter.views, job.estimator, rig if use_rig else None)
+    if rig is not None and "priors" in rig.seconds:
+        fitter.notes.append(rig.note())
     checkpoint = job.run.checkpoint(role.frame)
     resumed_at = 0
     if checkpoint.is_file():
@@ -92,7 +106,11 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
         next_track_id=fitter.group_next_id if tracked else len(fitter.model),
         final_losses={k: v for k, v in last.items()
                       if k not in ("step", "stage", "gaussians", "psnr", "seconds")},
-        notes=fitter.notes, history=thin(history.records), mesh=mesh)
+        notes=fitter.notes, history=thin(history.records), mesh=mesh,
+        seed_seconds=None if getattr(fitter, "seed_seconds", None) is None
+        else round(fitter.seed_seconds, 3),
+        rig_seconds={k: round(v, 3) for k, v in rig.seconds.items()} if rig is not None
+        and rig.seconds else None)
     if tracked:
         record.previous, record.new_tracks = role.previous, fitter.state.born
         record.start = {"from": fitter.start, "scores": dict(fitter.race.scores),

@@ -48,6 +48,11 @@ class FrameRecord:
     """Per-step records (step, stage, Gaussians, PSNR, seconds, losses), thinned."""
     mesh: dict[str, Any] | None = None
     """The frame's mesh statistics (None: meshing off), or {"error": ...}."""
+    seed_seconds: float | None = None
+    """A key frame's: seconds its seeds took (the rig's depth included when they used it)."""
+    rig_seconds: dict[str, float] | None = None
+    """A key frame's: seconds of each part of its rig geometry (`core.rig.RigGeometry`:
+    triangulation, stereo, priors) that it computed."""
     # A tracked frame's (None for a key frame):
     previous: str | None = None
     """The frame it was deformed from."""

@@ -123,7 +123,7 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
                     "note": SEQUENCE_NOTE if cfg.sequence.enabled else INDEPENDENT_NOTE})
     records = metrics.setdefault("frames", {})
     plan = GopPlan(chosen, cfg.gop, cfg.sequence, cfg.train.schedule.iterations)
-    job = FrameJob(capture, run, cfg, estimator, display_mode(progress))
+    job = FrameJob(capture, run, cfg, estimator, display_mode(progress), first=chosen[0])
     for i, role in enumerate(plan.roles):
         if (gops is not None and role.gop not in gops) or (role.frame in records and (
                 run.ply(role.frame).is_file() or role.frame in carried)):

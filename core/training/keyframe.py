@@ -20,7 +20,8 @@ from core.device import to_device
 from core.data.points import PointCloud, read_points_ply
 from core.model import GaussianModel, means_lr
 from core.render import RenderCamera, seen_directions
-from core.seeding import seed_points
+from core.rig.geometry import RigGeometry
+from core.seeding import Seed, seed_points
 from core.stages import StagePlan, plan
 from core.strategy import DensifyStrategy, StrategyState
 from core.training.callbacks import Callback
@@ -47,13 +48,23 @@ class Trainer(FrameFitter):
 
     def __init__(self, views: Sequence[View], config: TrainConfig = TrainConfig(), *,
                  model: GaussianModel | None = None, callbacks: Sequence[Callback] = (),
-                 ao_baker: AOBaker | None = None, points: PointCloud | None = None):
+                 ao_baker: AOBaker | None = None, points: PointCloud | None = None,
+                 static: PointCloud | None = None, clear_of: Sequence = ()):
         super().__init__(views, config, callbacks=callbacks)
         if ao_baker is None and config.bake_ao:
             ao_baker = GaussianAOBaker(config.ao)
         self.ao_baker = ao_baker if config.bake_ao else None
+        self.rig = RigGeometry([v.camera for v in self.views],
+                               [v.image.cpu().numpy() for v in self.views],
+                               [None if v.mask is None else v.mask.cpu().numpy()
+                                for v in self.views], config.init.stereo,
+                               threads=torch.get_num_threads())
+        """The views' sparse points, fused depth and normal priors, each made on first use."""
+        self.seed: Seed | None = None
+        """The seeds it started from (None: given a model)."""
+        self.seed_seconds: float | None = None
         self.model = (model.to(self.device) if model is not None
-                      else self._initial_model(points))
+                      else self._initial_model(points, static, clear_of))
         self.optimizer = self.model.make_optimizer(config.rates, self.extent)
         self.strategy = DensifyStrategy(config.densify, self.extent)
         self.state = self.strategy.initialize_state(len(self.model), device=self.device)
@@ -63,20 +74,26 @@ class Trainer(FrameFitter):
                      downscale: float = 1.0, split: str = "auto", **kwargs) -> Trainer:
         """A trainer on the training cameras (under `split`, `core.data.split`) of one frame of
         a `core.data.Capture`, seeded from its points.ply when it has one; `kwargs` go to the
-        constructor (model, callbacks, ao_baker)."""
+        constructor (model, callbacks, ao_baker, static)."""
         path = capture.points_path()
         if path is not None and config.init.source in ("auto", "points") \
                 and kwargs.get("model") is None:
             kwargs["points"] = read_points_ply(path)
         views = frame_views(capture, frame, downscale, split, config.masks)
+        kwargs.setdefault("clear_of", capture.cameras)  # held-out cameras' lenses too
         return cls(views, config, **kwargs)
 
-    def _initial_model(self, points: PointCloud | None) -> GaussianModel:
+    def _initial_model(self, points: PointCloud | None, static: PointCloud | None,
+                       clear_of: Sequence) -> GaussianModel:
+        start = time.perf_counter()
+        subjects = [None if v.subject is None else v.subject.cpu().numpy() for v in self.views]
         seed = seed_points(
-            [v.camera for v in self.views], [v.image.cpu().numpy() for v in self.views],
-            [None if v.mask is None else v.mask.cpu().numpy() for v in self.views],
-            self.config.init, n_random=self.config.init_points, capture_points=points,
-            seed=self.config.seed)
+            self.rig.cameras, self.rig.images, self.rig.masks, self.config.init,
+            n_random=self.config.init_points, capture_points=points, seed=self.config.seed,
+            rig=self.rig, max_gaussians=self.config.densify.max_gaussians,
+            subjects=subjects if any(m is not None for m in subjects) else None, static=static,
+            threads=torch.get_num_threads(), clear_of=clear_of)
+        self.seed, self.seed_seconds = seed, time.perf_counter() - start
         self.notes.append(seed.note)
         return GaussianModel.from_points(seed.points.to(self.device),
                                          seed.colors.to(self.device))

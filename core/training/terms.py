@@ -36,7 +36,8 @@ def image_terms(r, view, camera, target: Tensor, plan: StagePlan, weights: LossW
     terms = {"photometric": photometric_loss(blur(r.rgb, blur_sigma), blur(target, blur_sigma),
                                              weights)}
     if plan.normal_prior and view.normal is not None:
-        terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, weights)
+        terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, weights,
+                                            view.normal_weight)
     if mask_term and plan.geometry_branch and not plan.tie_opacity and view.mask is not None \
             and weights.geometry_mask > 0:
         terms["mask"] = geometry_mask_loss(r.alpha_g, view.mask, weights)

@@ -25,6 +25,8 @@ class View:
     normal: Tensor | None = None
     subject: Tensor | None = None
     """(H, W, 1) where the subject is, in a picture reconstructed whole (masks `subject`)."""
+    normal_weight: Tensor | None = None
+    """(H, W, 1) the normal prior's confidence in 0..1 (None: 1 wherever there is a prior)."""
 
     @classmethod
     def from_sample(cls, sample, masks: str = "matte") -> View:
@@ -42,7 +44,7 @@ class View:
     def to(self, device: torch.device | str) -> View:
         """This view with its tensors on `device` (itself when they are there already): a
         fitter moves each view once, not every step."""
-        fields = (self.image, self.mask, self.normal, self.subject)
+        fields = (self.image, self.mask, self.normal, self.subject, self.normal_weight)
         moved = [None if t is None else t.to(device) for t in fields]
         if all(a is b for a, b in zip(moved, fields)):
             return self

@@ -99,6 +99,18 @@ def test_normal_prior_loss_known_values():
     holes = prior.clone()
     holes[:, :5] = 0
     assert normal_prior_loss(pred, holes).item() == pytest.approx(0.2 * 0.5)
+    # A confidence weighs each pixel (the rig's priors): a weighted mean of the L1.
+    off = torch.tensor([0.0, 1.0, 0.0]).expand(10, 10, 3).clone()
+    off[:, :5] = torch.tensor([0.0, 0.0, 1.0])  # the left half agrees with the prior
+    sure = torch.ones(10, 10, 1)
+    sure[:, 5:] = 0.25
+    l1 = (0.25 * 50 * 2 / 3) / (50 + 0.25 * 50)
+    # smoothness: the jump between the halves (2/3 a channel) weighs 1 x 0.25 of a row's
+    # 4 + 0.25 + 4 x 0.0625 = 4.5 pair weights
+    expected = 0.2 * l1 + 0.05 * (10 * 2 / 3 * 0.25) / 45
+    assert normal_prior_loss(off, prior, confidence=sure).item() == pytest.approx(expected)
+    sure[:, 5:] = 0.0
+    assert normal_prior_loss(off, prior, confidence=sure).item() == pytest.approx(0.0, abs=1e-7)
     # Edge-aware: the same jump in N costs less where the prior has an edge there too.
     jump = torch.zeros(10, 10, 3)
     jump[:, 5:] = 1.0

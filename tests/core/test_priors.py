@@ -129,8 +129,17 @@ def _run(capture: Path, tmp_path: Path, extra: dict) -> dict:
                        progress=False)["frames"]["000000"]
 
 
-def test_without_priors_training_still_runs(capture: Path, tmp_path: Path):
+def test_without_priors_the_rig_gives_them(capture: Path, tmp_path: Path):
+    """No normals/ and no estimator: the key frame's fused depth and hull give the priors
+    (the default), timed in its record."""
     f = _run(capture, tmp_path, {})
+    assert f["normal_prior"] == "rig" and "normal" in f["final_losses"]
+    assert f["rig_seconds"]["priors"] > 0 and any(n.startswith("rig geometry") for n in
+                                                  f["notes"])
+
+
+def test_without_priors_training_still_runs(capture: Path, tmp_path: Path):
+    f = _run(capture, tmp_path, {"rig_priors": False})
     assert f["normal_prior"] == "off"
     assert "normal" not in f["final_losses"]
     # The depth-normal consistency and visibility terms still ran.

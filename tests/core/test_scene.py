@@ -138,3 +138,39 @@ def test_the_subject_export_keeps_the_hull(scene: Path, tmp_path: Path, one_thre
     key = read_frame_ply(run / "frames" / "000000" / "gaussians.ply")
     assert 0 < len(a) < len(key) or subject["subject"]["share"] == 1
     assert set(b.ids.tolist()) & set(key.ids.tolist()) <= set(a.ids.tolist())
+
+
+def test_a_later_key_frame_keeps_the_static_seeds(tmp_path: Path, one_thread) -> None:
+    """Every frame a key frame (groups of 1): the second seeds its subject from its own views'
+    depth and keeps the first key frame's static scene (RUN/seeds/static.ply); a part of the
+    job that runs the second group alone makes the same static seeds and the same frame."""
+    from core.data.points import read_points_ply
+    from core.pipeline import reconstruct
+    from core.synth import SynthConfig, synthesize
+
+    scene = tmp_path / "capture"  # 64 pixels: enough for stereo (32 gives it nothing)
+    synthesize(scene, SynthConfig(frames=2, views=10, width=64, height=64, seed=4,
+                                  ao_directions=8))
+    data = json.loads((scene / "capture.json").read_text())
+    data["masks"] = "subject"
+    (scene / "capture.json").write_text(json.dumps(data))
+
+    over = {**TINY, "gop": 1}
+    whole = tmp_path / "whole"
+    metrics = reconstruct(scene, whole, preset="test", overrides=over, progress=False,
+                          frames="0:2")
+    first, second = (metrics["frames"][f]["notes"][0] for f in ("000000", "000001"))
+    assert "points fused from the views' stereo depth" in first and "background" in first
+    static = read_points_ply(whole / "seeds" / "static.ply")
+    assert f"seeded with {len(static)} static-scene points kept from the first key frame" \
+        in second and "subject points fused from this frame's stereo depth" in second
+    assert (whole / "plots" / "seeds-000001.png").is_file()
+    assert metrics["frames"]["000001"]["seed_seconds"] > 0
+    part = tmp_path / "part"
+    reconstruct(scene, part, preset="test", overrides=over, progress=False, frames="0:2",
+                gops={1})
+    assert not (part / "frames" / "000000").exists()
+    assert (part / "seeds" / "static.ply").read_bytes() == \
+        (whole / "seeds" / "static.ply").read_bytes()
+    assert (part / "frames" / "000001" / "gaussians.ply").read_bytes() == \
+        (whole / "frames" / "000001" / "gaussians.ply").read_bytes()

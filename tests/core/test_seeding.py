@@ -158,6 +158,7 @@ def test_triangulated_points_lie_on_the_surface(textured: Path):
 
 def test_triangulation_seeds_a_capture_without_points(textured: Path):
     cfg = replace(train_config("test"), init_points=300)
+    cfg = replace(cfg, init=replace(cfg.init, source="triangulate"))
     trainer = Trainer.from_capture(load_capture(textured), "000000", cfg)
     assert "triangulated from the known poses" in trainer.notes[0]
     assert "random points in the visual hull" in trainer.notes[0]
@@ -201,3 +202,88 @@ def test_unmasked_views_get_a_background_shell_and_random_is_the_last_resort(tex
     rand = seed_points(cams, images, [None] * len(cams), InitConfig(source="random"),
                        n_random=64)
     assert len(rand.points) == 64 and torch.isfinite(rand.points).all()
+
+
+def test_dense_seeds_from_the_rig_lie_on_the_surface(textured: Path):
+    """Without a point cloud the seeds are the views' stereo depth fused across views: many
+    more than triangulation finds, on the figure's true surface, inside the mattes' hull, and
+    half the budget is left to random points in the hull (stereo misses thin parts)."""
+    from scipy.spatial import cKDTree
+
+    import trimesh
+
+    from core.triangulation import in_visual_hull
+
+    cfg = replace(train_config("test"), init_points=2000)
+    trainer = Trainer.from_capture(load_capture(textured), "000000", cfg)
+    note = trainer.notes[0]
+    assert "points fused from the views' stereo depth" in note and \
+        "1000 random points in the visual hull" in note, note
+    fused = dict(trainer.seed.parts)["fused"]
+    assert len(fused) == 1000 and trainer.seed.static is None
+    available = int(note.split(" of ")[1].split(" ")[0])
+    stats = trainer.rig.sparse()[1]
+    assert available > 10 * stats.points, (available, stats.points)
+    mesh = trimesh.load(textured / "gt" / "meshes" / "000000.ply")
+    surface = trimesh.sample.sample_surface(mesh, 200_000, seed=0)[0]
+    dist, _ = cKDTree(surface).query(fused.points)
+    size = float(np.linalg.norm(mesh.bounds[1] - mesh.bounds[0]))
+    assert np.median(dist) < 0.01 * size and np.percentile(dist, 90) < 0.03 * size, \
+        np.median(dist) / size
+    assert in_visual_hull(fused.points, trainer.rig.cameras, trainer.rig.masks).all()
+    assert trainer.seed_seconds > 0 and {"triangulation", "stereo"} <= set(trainer.rig.seconds)
+
+
+def test_rig_priors_fill_views_without_priors(textured: Path):
+    """The rig's priors go to views with none, with their confidence; a capture's own priors
+    or an estimator come first."""
+    from core.priors import fill_priors
+
+    cfg = train_config("test")
+    cap = load_capture(textured)
+    trainer = Trainer.from_capture(cap, "000000", cfg)
+    assert all(v.normal is None for v in trainer.views)
+    assert fill_priors(trainer.views, None, trainer.rig) == "rig"
+    gt = [np.load(textured / "gt" / "normals" / "000000" / f"{v.camera.id}.npy")
+          for v in trainer.views]
+    cos, cover = [], []
+    for v, truth in zip(trainer.views, gt):
+        n, w = v.normal.numpy(), v.normal_weight.numpy()[..., 0]
+        on = (np.linalg.norm(truth, axis=-1) > 0.5) & (w > 0)
+        cover.append(on.sum() / (np.linalg.norm(truth, axis=-1) > 0.5).sum())
+        cos.append(float((n * truth).sum(-1)[on].mean()))
+        assert ((w > 0) <= (np.linalg.norm(n, axis=-1) > 0.5)).all()  # weight only on priors
+    assert np.mean(cover) > 0.8 and np.mean(cos) > 0.8, (np.mean(cover), np.mean(cos))
+    assert "priors" in trainer.rig.seconds
+    # Off (no rig) the views keep no prior.
+    fresh = Trainer.from_capture(cap, "000000", cfg)
+    assert fill_priors(fresh.views, None, None) == "off" and fresh.views[0].normal is None
+
+
+def test_no_seed_is_left_in_front_of_a_lens(textured: Path):
+    """A seed just in front of a camera (a wall point by a camera mounted on it) would grow
+    into a Gaussian over its whole view: seeds within CLEARANCE of any camera's distance, held-
+    out cameras included (`clear_of`), are dropped."""
+    from core.data.dataset import CaptureDataset
+    from core.seeding import CLEARANCE
+
+    cap = load_capture(textured)
+    ds = CaptureDataset(cap, cameras=[c.id for c in cap.cameras[1:8]])
+    views = [ds[i] for i in range(len(ds))]
+    cams, images = [v.camera for v in views], [v.image.numpy() for v in views]
+    held = cap.cameras[0]
+    near = [c.center + 0.05 * c.R[2] for c in (cams[0], held)]  # 5 cm in front of two lenses
+    cloud = _cloud(100)
+    cloud = PointCloud(np.concatenate([cloud.points, near]),
+                       np.concatenate([cloud.colors, np.full((2, 3), 0.5, np.float32)]))
+    cfg = InitConfig(source="points", background=0)
+    seed = seed_points(cams, images, [None] * len(cams), cfg, n_random=100,
+                       capture_points=cloud, clear_of=[held])
+    assert "(2 within 0.07 of a camera's distance dropped)" in seed.note, seed.note
+    pts = seed.points.double().numpy()
+    for c in [*cams, held]:
+        reach = CLEARANCE * np.linalg.norm(c.center - look_at_center([*cams, held]))
+        assert (np.linalg.norm(pts - c.center, axis=1) > reach).all()
+    kept = seed_points(cams, images, [None] * len(cams), cfg, n_random=100,
+                       capture_points=cloud)
+    assert "(1 within" in kept.note  # without the held-out camera only its own lens is cleared
