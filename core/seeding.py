@@ -28,6 +28,7 @@ from core.config import InitConfig
 from core.data.capture import Camera
 from core.data.points import PointCloud
 from core.rig.geometry import RigGeometry
+from core.rig.layout import common_radius, look_at_center
 from core.triangulation import in_visual_hull, pixel_indices
 
 __all__ = ["ENCLOSURE_DEPTH", "ENCLOSURE_SPREAD", "SUBJECT_DILATE", "Seed", "encloses",
@@ -82,30 +83,6 @@ def scene_extent(cameras: Sequence[Camera]) -> float:
     return 1.1 * radius if radius > 0 else 1.0
 
 
-def look_at_center(cameras: Sequence[Camera]) -> np.ndarray:
-    """The point closest (least squares) to every camera's optical axis."""
-    A, b = np.zeros((3, 3)), np.zeros(3)
-    for cam in cameras:
-        d = cam.R[2] / np.linalg.norm(cam.R[2])  # optical axis (camera +z) in world
-        P = np.eye(3) - np.outer(d, d)
-        A += P
-        b += P @ cam.center
-    if np.linalg.matrix_rank(A) < 3:  # parallel axes: fall back to a point in front of them
-        return np.mean([c.center + c.R[2] for c in cameras], axis=0)
-    return np.linalg.solve(A, b)
-
-
-def _common_radius(cameras: Sequence[Camera], center: np.ndarray) -> float:
-    """Radius of a ball about `center` that every camera sees (half its narrower view at the
-    centre's depth)."""
-    radii = []
-    for cam in cameras:
-        depth = float((cam.world_to_camera[:3, :3] @ center + cam.t)[2])
-        half = min(cam.width / cam.K[0, 0], cam.height / cam.K[1, 1]) / 2
-        radii.append(max(depth, 1e-6) * half)
-    return float(min(radii))
-
-
 def sample_points(cameras: Sequence[Camera], n: int, *, images: Sequence[np.ndarray] | None = None,
                   masks: Sequence[np.ndarray | None] | None = None, seed: int = 0,
                   max_rounds: int = 50) -> tuple[torch.Tensor, torch.Tensor]:
@@ -120,7 +97,7 @@ def sample_points(cameras: Sequence[Camera], n: int, *, images: Sequence[np.ndar
         raise ValueError(f"masks: expected {len(cameras)} masks, got {len(masks)}")
     rng = np.random.default_rng(seed)
     center = look_at_center(cameras)
-    r = _common_radius(cameras, center)
+    r = common_radius(cameras, center)
     kept: list[np.ndarray] = []
     total = 0
     for _ in range(max_rounds):

@@ -30,7 +30,7 @@ from core.mesh.surface import clean_mesh, extract_surface
 from core.mesh.tsdf import TSDFVolume
 from core.model import SH_C0, GaussianModel
 from core.render import RenderCamera, render, safe_divide
-from core.seeding import _common_radius, look_at_center
+from core.rig.layout import common_radius, look_at_center
 
 __all__ = ["appearance_model", "mesh_model", "scene_box"]
 
@@ -50,7 +50,7 @@ def scene_box(model, cameras, mode: str = "gaussians") -> tuple[np.ndarray, np.n
     """(lo, hi) of the scene, unpadded (see MeshConfig.box)."""
     if mode == "cameras":
         c = look_at_center(cameras)
-        r = _common_radius(cameras, c)
+        r = common_radius(cameras, c)
         return c - r, c + r
     with torch.no_grad():
         opaque = torch.maximum(model.opacity_c, model.opacity_g) > 0.5

@@ -16,6 +16,7 @@ from core.data.capture import Camera
 from core.data.points import PointCloud
 from core.rig.depth import rig_depth
 from core.rig.fusion import Fused
+from core.rig.layout import look_at_center
 from core.rig.hull import hull_normals
 from core.rig.normals import depth_normals, resize_prior
 from core.triangulation import TriangulationStats, triangulate_views
@@ -93,8 +94,6 @@ class RigGeometry:
     def _hull(self) -> list[tuple[np.ndarray, np.ndarray]] | None:
         if not self.masks or any(m is None for m in self.masks):
             return None
-        from core.seeding import look_at_center  # lazy: core.seeding builds on this module
-
         center = look_at_center(self.cameras)
         reach = max(float(np.linalg.norm(c.center - center)) for c in self.cameras)
         return hull_normals(self.cameras, self.masks, center, reach)
