@@ -21,7 +21,7 @@ from live_server import LiveServer, create_key
 pytestmark = pytest.mark.timeout(600)
 
 test_web = pytest.importorskip("test_web", reason="the browser tests need selenium + chromium")
-from test_web import CANONICAL, TINY, browser, shot, text  # noqa: E402,F401
+from test_web import CANONICAL, TINY, browser, click, shot, text  # noqa: E402,F401
 from test_web import wait_for as _wait_for  # noqa: E402
 
 
@@ -101,7 +101,7 @@ def sign_in(d, live, key) -> None:
     d.get(live.url + "/")
     wait_for(d, "the sign-in form", lambda d: d.find_element("id", "signin").is_displayed())
     d.find_element("id", "api-key").send_keys(key)
-    d.find_element("id", "signin-button").click()
+    click(d, "signin-button")
     wait_for(d, "the workspace", lambda d: d.find_element("id", "workspace").is_displayed())
 
 
@@ -114,7 +114,7 @@ def test_the_page_plays_a_relit_stream_matching_the_servers_relight(sequence_job
     wait_for(d, "the job list", lambda d: job_id in d.find_element("id", "job-select")
              .get_attribute("innerHTML"))
     Select(d.find_element("id", "job-select")).select_by_value(job_id)
-    d.find_element("id", "player-open").click()
+    click(d, "player-open")
     wait_for(d, "the stream", lambda d: "groups loaded" in text(d, "player-status")
              or d.find_element("id", "player-status").get_attribute("data-state") == "error", 240)
     wait_for(d, "every group", lambda d: "3 of 3 groups loaded" in text(d, "player-status"), 60)
@@ -123,8 +123,8 @@ def test_the_page_plays_a_relit_stream_matching_the_servers_relight(sequence_job
     assert header["fps"] > 0 and len(header["cameras"]) == 8
 
     # Play it through once (loop off): every frame shown, the last one last.
-    d.find_element("id", "player-loop").click()
-    d.find_element("id", "player-play").click()
+    click(d, "player-loop")
+    click(d, "player-play")
     wait_for(d, "the end of the sequence", lambda d: text(d, "player-play") == "Play"
              and d.find_element("id", "player-canvas").get_attribute("data-frame") == "4", 120)
     shown = d.execute_script("return window.dgsPlayer.player.stats.shown;")
@@ -136,7 +136,7 @@ def test_the_page_plays_a_relit_stream_matching_the_servers_relight(sequence_job
     Select(d.find_element("id", "envmap-select")).select_by_value("builtin:sunset")
     d.execute_script("const r = document.getElementById('envmap-rotation'); r.value = '90';"
                      "r.dispatchEvent(new Event('input'));")
-    d.find_element("id", "light-add").click()
+    click(d, "light-add")
     Select(d.find_element("id", "player-camera")).select_by_value("cam00")
     Select(d.find_element("id", "player-view")).select_by_value("relit")
     d.execute_script("const s = document.getElementById('player-scrub'); s.value = '3';"
@@ -186,12 +186,12 @@ def test_the_page_refuses_a_damaged_stream_and_says_why(sequence_job, browser):
     wait_for(d, "the job list", lambda d: job_id in d.find_element("id", "job-select")
              .get_attribute("innerHTML"))
     Select(d.find_element("id", "job-select")).select_by_value(job_id)
-    d.find_element("id", "player-open").click()
+    click(d, "player-open")
     wait_for(d, "the refusal", lambda d: d.find_element("id", "player-status")
              .get_attribute("data-state") == "error", 60)
     assert "group 1: corrupted (CRC-32 mismatch)" in text(d, "player-status")
     assert d.find_element("id", "player-canvas").get_attribute("data-frame") == "0"
-    d.find_element("id", "player-play").click()  # playing on stays refused, without a crash
+    click(d, "player-play")  # playing on stays refused, without a crash
     assert "corrupted" in text(d, "player-status")
     d.execute_script("document.getElementById('player').scrollIntoView()")
     shot(d, "09-player-refused")

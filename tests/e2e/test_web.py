@@ -113,6 +113,25 @@ def wait_for(driver, what: str, predicate, timeout: float = 60):
                              f"console: {driver.get_log('browser')}") from None
 
 
+def click(driver, element_id: str, timeout: float = 60) -> None:
+    """Click the element once nothing lies over it. The page lays out what it loads after a
+    selection (a job's maps, plots, metrics), so an element Selenium scrolled to can move under
+    another before the click lands; Chrome then refuses the click (it reaches nothing), and it is
+    tried again from the element's new place."""
+    from selenium.common.exceptions import ElementClickInterceptedException
+
+    def attempt(d) -> bool:
+        element = d.find_element(By.ID, element_id)
+        d.execute_script("arguments[0].scrollIntoView({block: 'center'});", element)
+        try:
+            element.click()
+        except ElementClickInterceptedException:
+            return False
+        return True
+
+    wait_for(driver, f"{element_id} to take a click", attempt, timeout)
+
+
 def text(driver, element_id: str) -> str:
     return driver.find_element(By.ID, element_id).text
 
@@ -142,7 +161,7 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     wait_for(d, "the sign-in form", lambda d: d.find_element(By.ID, "signin").is_displayed())
     d.find_element(By.ID, "api-key").send_keys(server.key)
     shot(d, "01-sign-in")
-    d.find_element(By.ID, "signin-button").click()
+    click(d, "signin-button")
     wait_for(d, "the workspace", lambda d: d.find_element(By.ID, "workspace").is_displayed())
     assert "tenant studio" in text(d, "whoami")
     assert server.key not in d.current_url
@@ -163,7 +182,7 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     Select(d.find_element(By.ID, "capture-format")).select_by_visible_text("canonical")
     d.find_element(By.ID, "capture-folder").send_keys(str(capture_folder))
     wait_for(d, "the picked files", lambda d: d.find_element(By.ID, "upload-start").is_enabled())
-    d.find_element(By.ID, "upload-start").click()
+    click(d, "upload-start")
     wait_for(d, "the capture to be ready", lambda d: "is ready" in text(d, "upload-status"), 90)
     assert d.find_element(By.ID, "upload-progress").get_attribute("value") == "1"
     shot(d, "02-uploaded")
@@ -174,7 +193,7 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     Select(d.find_element(By.ID, "job-split")).select_by_value("every8")
     d.execute_script("document.getElementById('job-config').value = arguments[0];",
                      json.dumps(TINY))
-    d.find_element(By.ID, "job-start").click()
+    click(d, "job-start")
     wait_for(d, "the job to run", lambda d: "running" in text(d, "job-status")
              or "succeeded" in text(d, "job-status"), 120)
     shot(d, "03-job-running")
@@ -193,7 +212,7 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     pictures = [i.get_attribute("data-path")
                 for i in d.find_elements(By.CSS_SELECTOR, "#plots img")]
     assert "contact_sheet.png" in pictures and "plots/loss.png" in pictures, pictures
-    d.find_element(By.ID, "viewer-load").click()
+    click(d, "viewer-load")
     wait_for(d, "the splat viewer", lambda d: d.find_element(By.ID, "viewer-status")
              .get_attribute("data-state") in ("succeeded", "error"), 30)
     assert "Gaussians" in text(d, "viewer-status"), text(d, "viewer-status")
@@ -207,8 +226,8 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     d.execute_script("const r = document.getElementById('envmap-rotation'); r.value = '90';"
                      "r.dispatchEvent(new Event('input'));")
     assert text(d, "rotation-label") == "90°"
-    d.find_element(By.ID, "light-add").click()
-    d.find_element(By.ID, "relight-render").click()
+    click(d, "light-add")
+    click(d, "relight-render")
     wait_for(d, "the render", lambda d: d.find_element(By.ID, "relight-status")
              .get_attribute("data-state") in ("succeeded", "error"), 180)
     d.execute_script("document.getElementById('relight').scrollIntoView()")
@@ -221,7 +240,7 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     orbit = d.find_element(By.ID, "relight-orbit")
     orbit.clear()
     orbit.send_keys("4")
-    d.find_element(By.ID, "relight-render").click()
+    click(d, "relight-render")
     wait_for(d, "the orbit video", lambda d: d.execute_script(
         "const v = document.querySelector('#relight-result video');"
         "return v !== null && v.readyState >= 1 && v.duration > 0;"), 180)
