@@ -39,7 +39,7 @@ def build_services(settings: ServiceSettings) -> Services:
                          region=settings.s3_region),
         celery=make_celery(settings), staging=Staging(settings.data_dir / "uploads"),
         manifests=ManifestCache(store), hashes=HashCache(),
-        limits=Limits(settings, store.url))
+        limits=Limits(settings, store))
     services.committer = Committer(services)
     return services
 

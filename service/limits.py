@@ -25,7 +25,8 @@ from starlette.types import Receive, Scope, Send
 
 from service.errors import ApiError
 from service.settings import ServiceSettings
-from worker.quota import CapReached, Rate, take
+from worker.quota import CapReached, Rate, peek, take
+from worker.store import JobStore
 
 __all__ = ["CAP_RETRY_AFTER_SECONDS", "STREAM_RETRY_AFTER_SECONDS", "HeldStream", "Limits",
            "StreamSlot", "cap_refused"]
@@ -65,12 +66,12 @@ class StreamSlot:
 
 
 class Limits:
-    """The process's limits on `settings`; `clock` (seconds since the epoch) is what the rate
-    limit counts time with (tests drive it)."""
+    """The process's limits on `settings` and the job store `store`; `clock` (seconds since
+    the epoch) is what the rate limit counts time with (tests drive it)."""
 
-    def __init__(self, settings: ServiceSettings, url: str,
+    def __init__(self, settings: ServiceSettings, store: JobStore,
                  clock: Callable[[], float] = time.time):
-        self.settings, self.url, self.clock = settings, url, clock
+        self.settings, self.store, self.clock = settings, store, clock
         self.changes = Rate(settings.job_changes_per_minute / 60.0, settings.job_changes_burst)
         self.lock = threading.Lock()
         self.streams: dict[str, int] = {}
@@ -79,7 +80,19 @@ class Limits:
     def change(self, tenant: str) -> None:
         """Count one state change of `tenant` (a submit, cancel, retry or delete); 429
         rate_limited with Retry-After when its bucket is empty."""
-        wait = take(self.url, f"changes:{tenant}", self.changes, self.clock())
+        self._refuse(take(self.store.url, f"changes:{tenant}", self.changes, self.clock()))
+
+    def admit(self, tenant: str) -> None:
+        """Before a submit is checked (its parameters, its capture: reads of the artifact
+        store), the cheap refusals: 429 when the tenant's bucket is empty or its active jobs
+        are at the cap, taking nothing (the job store decides again when the job is added)."""
+        self._refuse(peek(self.store.url, f"changes:{tenant}", self.changes, self.clock()))
+        with self.store.session(write=False) as s:
+            active = JobStore.active_jobs(s, tenant)
+        if active >= self.settings.max_active_jobs:
+            raise cap_refused(CapReached(active, self.settings.max_active_jobs))
+
+    def _refuse(self, wait: float) -> None:
         if wait:
             s = self.settings
             retry_after = max(1, math.ceil(wait))

@@ -23,7 +23,7 @@ from sqlalchemy.orm import Session
 from worker.db import session_scope
 from worker.models import RateBucket
 
-__all__ = ["CapReached", "Rate", "lock_tenant", "take"]
+__all__ = ["CapReached", "Rate", "lock_tenant", "peek", "take"]
 
 
 class CapReached(Exception):
@@ -66,13 +66,19 @@ def lock_tenant(s: Session, tenant: str) -> None:
                   {"name": f"dgs-active-jobs:{tenant}"})
 
 
+def peek(url: str, key: str, rate: Rate, now: float) -> float:
+    """The seconds until bucket `key` has a token (0.0: it has one now), taking none: one read,
+    no lock."""
+    with session_scope(url, write=False) as s:
+        row = s.get(RateBucket, key)
+        return 0.0 if row is None else rate.wait(rate.refill(row.tokens, row.stamp, now))
+
+
 def take(url: str, key: str, rate: Rate, now: float) -> float:
     """Take a token from bucket `key` of the job store at `url`: 0.0 when taken, else the
     seconds until one will be there (nothing taken)."""
-    with session_scope(url, write=False) as s:
-        row = s.get(RateBucket, key)
-        if row is not None and (wait := rate.wait(rate.refill(row.tokens, row.stamp, now))):
-            return wait
+    if wait := peek(url, key, rate, now):
+        return wait
     for _ in range(3):  # two processes adding a tenant's first row: the loser reads it
         try:
             with session_scope(url) as s:

@@ -37,6 +37,7 @@ def request_export(body: ExportIn, services: ServicesDep, tenant: TenantDep,
     submit = Submit(services, tenant, idempotency_key, "POST /v1/exports", body)
     if (first := submit.first()) is not None:
         return accepted(services, first, replayed=True)
+    services.limits.admit(tenant)
     source = get_job(services.store, body.job_id, tenant)
     if source.pipeline == "reconstruct" and source.state == "succeeded":
         check_export(services, source, body)

@@ -144,6 +144,7 @@ def create_job(body: JobIn, services: ServicesDep, tenant: TenantDep,
     submit = Submit(services, tenant, idempotency_key, "POST /v1/jobs", body)
     if (first := submit.first()) is not None:
         return accepted(services, first, replayed=True)
+    services.limits.admit(tenant)
     params = _params(body.pipeline, body.params)
     capture = get_capture(services.store, body.capture_id, tenant)
     if capture.state != "ready":

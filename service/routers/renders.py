@@ -38,6 +38,7 @@ def request_render(body: RenderIn, services: ServicesDep, tenant: TenantDep,
     submit = Submit(services, tenant, idempotency_key, "POST /v1/renders", body)
     if (first := submit.first()) is not None:
         return accepted(services, first, replayed=True)
+    services.limits.admit(tenant)
     source = get_job(services.store, body.job_id, tenant)
     if body.envmap_asset is not None:
         asset = get_asset(services.store, body.envmap_asset, tenant)

@@ -94,7 +94,7 @@ def test_submits_share_the_bucket_and_a_replay_is_never_refused(client, services
 
 @BOTH
 def test_a_submit_past_the_active_jobs_cap_says_the_cap(client, services, tenants,
-                                                        ready_capture, clock):
+                                                        ready_capture, clock, monkeypatch):
     a, b = tenants["a"], tenants["b"]
     body = {"capture_id": ready_capture(a), "params": TEST}
     made = []
@@ -121,6 +121,11 @@ def test_a_submit_past_the_active_jobs_cap_says_the_cap(client, services, tenant
     message = _refused(client.post(f"/v1/jobs/{made[0]}/retry", headers=a), "too_many_jobs",
                        "30")
     assert "2 of yours" in message and services.store.get(made[0]).state == "cancelled"
+    # Past the early check (a submit racing others), the job store refuses it when adding it.
+    monkeypatch.setattr(services.limits, "admit", lambda tenant: None)
+    clock[0] += 60.0
+    message = _refused(client.post("/v1/jobs", json=body, headers=a), "too_many_jobs", "30")
+    assert "2 of yours are queued or running and the cap is 2" in message
     with services.store.session(write=False) as s:
         assert JobStore.active_jobs(s, "a") == 2
 
@@ -169,7 +174,7 @@ def test_streams_past_the_cap_are_refused_and_slots_come_back(live_api, tenants)
 def test_a_slot_comes_back_when_the_client_goes_away_under_asgi_2_4(tmp_path):
     """Under an ASGI 2.4 server Starlette stops listening for the disconnect (it waits for a
     write to fail); HeldStream still listens, so an idle stream ends at once."""
-    limits = Limits(make_settings(tmp_path / "data"), "sqlite://")
+    limits = Limits(make_settings(tmp_path / "data"), JobStore("sqlite://"))
     written, sent = anyio.Event(), []
 
     async def idle_stream():
