@@ -155,8 +155,8 @@ def test_streams_past_the_cap_are_refused_and_slots_come_back(live_api, tenants)
         message = _refused(http.get(f"/v1/jobs/{job}/events", headers=a), "too_many_streams",
                            "10")
         assert "2 of yours are open and the cap is 2" in message
-        with http.stream("GET", f"/v1/jobs/{other}/events", headers=b) as theirs:
-            assert _first_event(theirs.iter_lines()) == "event: state"  # another tenant's streams: its own
+        with http.stream("GET", f"/v1/jobs/{other}/events", headers=b) as theirs:  # its own cap
+            assert _first_event(theirs.iter_lines()) == "event: state"
         # The client goes away: its slot comes back although the stream never writes again.
         first.close()
         wait_for(lambda: services.limits.streams.get("a") == 1, 60, "the closed stream's slot")
