@@ -8,6 +8,7 @@ from fastapi.middleware.cors import CORSMiddleware
 
 from service.deps import Services
 from service.errors import install_error_handlers
+from service.limits import Limits
 from service.middleware import EXPOSED, strict_query
 from service.routers import artifacts, assets, captures, exports, info, jobs, renders, uploads
 from service.routers.info import package_version
@@ -37,7 +38,8 @@ def build_services(settings: ServiceSettings) -> Services:
         blobs=open_store(settings.storage, endpoint_url=settings.s3_endpoint_url,
                          region=settings.s3_region),
         celery=make_celery(settings), staging=Staging(settings.data_dir / "uploads"),
-        manifests=ManifestCache(store), hashes=HashCache())
+        manifests=ManifestCache(store), hashes=HashCache(),
+        limits=Limits(settings, store))
     services.committer = Committer(services)
     return services
 

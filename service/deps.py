@@ -11,6 +11,7 @@ from celery import Celery
 from fastapi import Depends, Request
 
 from service.errors import ApiError
+from service.limits import Limits
 from service.settings import ServiceSettings
 from service.upload.staging import ManifestCache, Staging
 from service.upload.tus import HashCache
@@ -31,6 +32,8 @@ class Services:
     manifests: ManifestCache
     hashes: HashCache
     """SHA-256 state of uploads in progress (service.upload.tus)."""
+    limits: Limits
+    """What one tenant may do at once (service.limits): 429s."""
     committer: Any = None
     """service.upload.commit.Committer: this process's background commits."""
 

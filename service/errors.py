@@ -34,7 +34,8 @@ log = logging.getLogger("dgs.service")
 CODES = {400: "invalid_request", 401: "unauthorized", 403: "forbidden", 404: "not_found",
          405: "method_not_allowed", 409: "conflict", 411: "length_required",
          412: "precondition_failed", 413: "payload_too_large", 415: "unsupported_media_type",
-         416: "range_not_satisfiable", 422: "invalid_request", 460: "checksum_mismatch",
+         416: "range_not_satisfiable", 422: "invalid_request", 429: "too_many_requests",
+         460: "checksum_mismatch",
          500: "internal", 501: "not_implemented", 503: "unavailable",
          507: "insufficient_storage"}
 TUS_PREFIX = "/v1/uploads"
@@ -79,9 +80,15 @@ class ApiError(Exception):
                           "retryable": self.retryable, "details": self.details}}
 
 
+RETRY_AFTER = {"Retry-After": {"description": "Seconds to wait before sending it again.",
+                               "schema": {"type": "integer", "minimum": 1}}}
+
+
 def error_responses(*statuses: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses` entries for these error statuses (all share ErrorOut)."""
-    return {status: {"model": ErrorOut, "description": CODES.get(status, "error")}
+    """OpenAPI `responses` entries for these error statuses (all share ErrorOut; a 429 says
+    that it comes with Retry-After)."""
+    return {status: {"model": ErrorOut, "description": CODES.get(status, "error"),
+                     **({"headers": RETRY_AFTER} if status == 429 else {})}
             for status in statuses}
 
 

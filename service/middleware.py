@@ -12,7 +12,8 @@ __all__ = ["EXPOSED", "strict_query"]
 # Response headers browsers may read on another origin (tus clients need the tus ones).
 EXPOSED = ["Location", "Upload-Offset", "Upload-Length", "Upload-Metadata", "Tus-Version",
            "Tus-Resumable", "Tus-Max-Size", "Tus-Extension", "Tus-Checksum-Algorithm", "ETag",
-           "Content-Range", "Accept-Ranges", "Content-Disposition", "Idempotent-Replayed"]
+           "Content-Range", "Accept-Ranges", "Content-Disposition", "Idempotent-Replayed",
+           "Retry-After"]
 
 
 _QUERY_NAMES: dict[int, frozenset[str]] = {}

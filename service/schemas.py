@@ -352,6 +352,13 @@ class LimitsOut(BaseModel):
     max_json_file_bytes: int = Field(description="Largest .json file in a capture.")
     max_image_pixels: int = Field(description="Largest image (width x height) accepted in a "
                                               "capture or as an environment map.")
+    max_active_jobs: int = Field(description="Most queued or running jobs of one tenant.")
+    max_event_streams: int = Field(description="Most open event streams of one tenant on one "
+                                               "API process.")
+    job_changes_per_minute: float = Field(description="Job submits, cancels, retries and "
+                                                      "deletes of one tenant a minute, once "
+                                                      "job_changes_burst are spent.")
+    job_changes_burst: int
 
 
 class TusOut(BaseModel):

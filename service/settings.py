@@ -66,6 +66,20 @@ class ServiceSettings(WorkerSettings):
     idempotency_key_hours: float = Field(24.0, gt=0, le=24 * 30)
     """How long a submit's Idempotency-Key answers the job it made (POST /v1/jobs, /v1/renders,
     /v1/exports); after that the key may make a new job."""
+    max_active_jobs: int = Field(50, ge=1)
+    """Most jobs one tenant may have queued or running at once (a job run as parts counts
+    once; renders and exports count): a submit or retry past it answers 429 too_many_jobs.
+    It bounds one tenant's share of the queue."""
+    max_event_streams: int = Field(20, ge=1)
+    """Most event streams (GET /v1/jobs/{id}/events) one tenant may hold open at once on one
+    API process; one more answers 429 too_many_streams. Each open stream polls the job store."""
+    job_changes_per_minute: float = Field(60.0, gt=0)
+    """Job state changes (submits of jobs, renders and exports; cancel; retry; delete) one
+    tenant may make a minute on average, across every API process (the buckets live in the
+    job store); past it, 429 rate_limited with Retry-After. A request refused for another
+    reason (404, 409, 422) or an idempotent replay changes nothing and counts nothing."""
+    job_changes_burst: int = Field(20, ge=1)
+    """How many job state changes one tenant may make at once before the rate applies."""
     upload_sync_bytes: int = Field(64 * MiB, ge=MiB)
     """A long tus PATCH makes its progress durable (fsync, then the offset in the job store)
     every this many bytes, so a crash of the API process loses at most this much."""

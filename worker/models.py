@@ -36,6 +36,7 @@ __all__ = [
     "Job",
     "JobEvent",
     "JobLog",
+    "RateBucket",
     "Upload",
     "utcnow",
 ]
@@ -271,3 +272,14 @@ class IdempotencyKey(Base):
     expires_at: Mapped[dt.datetime] = mapped_column(index=True)
 
     __table_args__ = (UniqueConstraint("tenant", "key", name="uq_idempotency_keys_tenant_key"),)
+
+
+class RateBucket(Base):
+    """A token bucket of the API's rate limits (`worker.quota`), shared by every API process
+    through the job store: `tokens` left at `stamp` (seconds since the epoch), refilled at the
+    limit's rate. One row per tenant and limit, e.g. "changes:<tenant>"."""
+
+    __tablename__ = "rate_buckets"
+    key: Mapped[str] = mapped_column(String(128), primary_key=True)
+    tokens: Mapped[float] = mapped_column(Float)
+    stamp: Mapped[float] = mapped_column(Float)

@@ -29,10 +29,12 @@ from worker.jobrows import JobState, new_id, progress_of
 from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
 from worker.owner import Owner, run_ended, run_started
 from worker.parts import active_parts, part_event, parts_of
+from worker.quota import CapReached, lock_tenant
 
 __all__ = [
     "ACTIVE",
     "TERMINAL",
+    "CapReached",
     "Claim",
     "JobStore",
     "Owner",
@@ -78,13 +80,29 @@ class JobStore(Housekeeping):
                 if asset_id in ((params or {}).get("envmap"),
                                 ((params or {}).get("config") or {}).get("normal_estimator"))]
 
+    @staticmethod
+    def active_jobs(s: Session, tenant: str, cap: int | None = None) -> int:
+        """How many jobs of `tenant` are queued or running (a job run as parts counts once),
+        in session `s`. With `cap`: the count is taken under the tenant's lock
+        (`worker.quota.lock_tenant`, held until `s` ends) and CapReached is raised when it is
+        `cap` or more, so a job added in `s` cannot pass the cap with a concurrent one."""
+        if cap is not None:
+            lock_tenant(s, tenant)
+        active = s.scalar(select(func.count()).select_from(Job).where(
+            Job.tenant == tenant, Job.parent_id.is_(None), Job.state.in_(ACTIVE)))
+        if cap is not None and active >= cap:
+            raise CapReached(active, cap)
+        return active
+
     # -- created and changed by the API -------------------------------------------------------
     def create(self, tenant: str, pipeline: str, params: dict[str, Any], *,
                capture_id: str | None, name: str = "", expires_at: dt.datetime | None = None,
-               idempotency: Idempotency | None = None) -> Job:
+               idempotency: Idempotency | None = None, cap: int | None = None) -> Job:
         """A queued job; with `idempotency`, its key is kept with it in the same transaction
-        (IntegrityError, and no job, when a live row has the key: `worker.idempotency`)."""
+        (IntegrityError, and no job, when a live row has the key: `worker.idempotency`).
+        `cap`: CapReached, and no job, when the tenant has that many active (`active_jobs`)."""
         with self.session() as s:
+            self.active_jobs(s, tenant, cap)
             job = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
                       params=params, name=name, state="queued", stage="queued",
                       expires_at=expires_at)
@@ -97,11 +115,13 @@ class JobStore(Housekeeping):
     def create_parted(self, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
                       capture_id: str | None, name: str = "",
                       expires_at: dt.datetime | None = None,
-                      idempotency: Idempotency | None = None) -> tuple[Job, list[Job]]:
+                      idempotency: Idempotency | None = None,
+                      cap: int | None = None) -> tuple[Job, list[Job]]:
         """A sequence job and its parts (one per group of `groups`), all queued; the caller
         dispatches the parts (the parent itself is dispatched when they have succeeded).
-        `idempotency`: as `create` (the key names the parent)."""
+        `idempotency`, `cap`: as `create` (the key names the parent; the job counts once)."""
         with self.session() as s:
+            self.active_jobs(s, tenant, cap)
             return jobrows.create_parted(s, tenant, params, groups, capture_id=capture_id,
                                          name=name, expires_at=expires_at,
                                          idempotency=idempotency)
@@ -109,13 +129,15 @@ class JobStore(Housekeeping):
     def create_render(self, tenant: str, source_job_id: str, pipeline: str,
                       params: dict[str, Any], *, name: str = "",
                       expires_at: dt.datetime | None = None,
-                      idempotency: Idempotency | None = None) -> Job | None:
+                      idempotency: Idempotency | None = None,
+                      cap: int | None = None) -> Job | None:
         """A job on the results of `source_job_id`, a succeeded job of `tenant` (on its
         capture); None when the source is not that (any more). The source row is locked
         while the job is added, so a concurrent delete of the source either happens first
-        (None here) or waits and then sees this job (and refuses). `idempotency`: as
+        (None here) or waits and then sees this job (and refuses). `idempotency`, `cap`: as
         `create`."""
         with self.session() as s:
+            self.active_jobs(s, tenant, cap)
             source = s.get(Job, source_job_id, with_for_update=True)
             if source is None or source.tenant != tenant or source.state != "succeeded":
                 return None
@@ -173,13 +195,17 @@ class JobStore(Housekeeping):
                 jobrows.event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
             return job
 
-    def retry(self, job_id: str, tenant: str) -> Job | None:
+    def retry(self, job_id: str, tenant: str, cap: int | None = None) -> Job | None:
         """Put a failed or cancelled job back in the queue; the caller dispatches it. Returns the
-        job (unchanged when it was not failed or cancelled)."""
+        job (unchanged when it was not failed or cancelled). `cap`: as `create`."""
         with self.session() as s:
+            if cap is not None:  # the tenant's lock before the row's, as `create` takes them
+                lock_tenant(s, tenant)
             job = s.get(Job, job_id, with_for_update=True)
             if job is None or job.tenant != tenant:
                 return None
+            if cap is not None and job.state in ("failed", "cancelled"):
+                self.active_jobs(s, tenant, cap)
             if job.parts and job.state in ("failed", "cancelled"):
                 jobrows.retry_parts(s, job)
                 jobrows.state_event(s, job)

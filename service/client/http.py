@@ -7,14 +7,14 @@ import json
 import os
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
 import httpx
 
-__all__ = ["ApiError", "Event", "Http", "RETRIED", "TERMINAL"]
+__all__ = ["ApiError", "Event", "Http", "RETRIED", "TERMINAL", "retry_after"]
 
 TERMINAL = ("succeeded", "failed", "cancelled")
 RETRIED = (429, 500, 502, 503, 504)
@@ -22,13 +22,20 @@ RETRIED = (429, 500, 502, 503, 504)
 
 
 class ApiError(RuntimeError):
-    """An error answer of the API: status, code, message, retryable, details."""
+    """An error answer of the API: status, code, message, retryable, details, and the
+    seconds its Retry-After asked to wait (None without one)."""
 
     def __init__(self, status: int, code: str, message: str, retryable: bool = False,
-                 details: list[dict] | None = None):
+                 details: list[dict] | None = None, retry_after: float | None = None):
         super().__init__(f"{status} {code}: {message}")
         self.status, self.code, self.message = status, code, message
-        self.retryable, self.details = retryable, details or []
+        self.retryable, self.details, self.retry_after = retryable, details or [], retry_after
+
+
+def retry_after(r: httpx.Response) -> float | None:
+    """The answer's Retry-After in seconds (the delay form; None when absent or a date)."""
+    value = r.headers.get("retry-after", "").strip()
+    return float(value) if value.isascii() and value.isdigit() and len(value) <= 9 else None
 
 
 @dataclass(frozen=True)
@@ -54,19 +61,23 @@ class Http:
     `submit_attempts`: how many times a submit (a job, render or export) is sent when the
     connection fails, times out or the server answers 429 or 5xx, `retry_delay` seconds apart
     (doubling); every submit carries an Idempotency-Key, so the server makes one job however
-    many times it arrives."""
+    many times it arrives. After a 429 (a limit of the server, which then did nothing) the
+    wait is the answer's Retry-After, at most `max_wait` seconds, and every JSON request is
+    sent again so, as many times; `sleep` is how the client waits (tests pass their own)."""
 
     def __init__(self, base_url: str, api_key: str | None = None, *, timeout: float = 60.0,
                  transport: httpx.BaseTransport | None = None,
                  url_store: str | os.PathLike[str] | None = None,
                  chunk_checksum: Literal["sha1", "sha256", "md5"] | None = None,
-                 submit_attempts: int = 5, retry_delay: float = 0.5):
+                 submit_attempts: int = 5, retry_delay: float = 0.5, max_wait: float = 60.0,
+                 sleep: Callable[[float], None] = time.sleep):
         headers = {"Authorization": f"Bearer {api_key}"} if api_key else {}
         self.http = httpx.Client(base_url=base_url.rstrip("/"), headers=headers,
                                  timeout=timeout, transport=transport)
         self.url_store = Path(url_store) if url_store is not None else None
         self.chunk_checksum = chunk_checksum
         self.submit_attempts, self.retry_delay = max(1, submit_attempts), retry_delay
+        self.max_wait, self.sleep = max_wait, sleep
         self._uploads: dict[str, str] = (
             json.loads(self.url_store.read_text()) if self.url_store is not None
             and self.url_store.is_file() else {})
@@ -91,18 +102,32 @@ class Http:
         except (ValueError, KeyError, TypeError):
             err = {"code": "http_error", "message": r.text[:500]}
         raise ApiError(r.status_code, err.get("code", "?"), err.get("message", ""),
-                       bool(err.get("retryable")), err.get("details"))
+                       bool(err.get("retryable")), err.get("details"), retry_after(r))
+
+    def _wait(self, attempt: int, r: httpx.Response | None = None) -> float:
+        """How long to wait before attempt `attempt + 1`: a 429's Retry-After (at most
+        `max_wait`), else `retry_delay` doubling."""
+        after = retry_after(r) if r is not None and r.status_code == 429 else None
+        return min(after, self.max_wait) if after is not None else \
+            self.retry_delay * 2 ** attempt
 
     def _json(self, method: str, url: str, **kw) -> Any:
-        r = self._check(self.http.request(method, url, **kw))
+        """A JSON request, sent again after a 429 (`_wait`), `submit_attempts` times at most."""
+        for attempt in range(self.submit_attempts):
+            r = self.http.request(method, url, **kw)
+            if r.status_code != 429 or attempt + 1 == self.submit_attempts:
+                break
+            self.sleep(self._wait(attempt, r))
+        r = self._check(r)
         return r.json() if r.content else None
 
     def _submit(self, url: str, body: dict, key: str | None = None) -> dict:
         """POST a submit with an Idempotency-Key (`key`, else a new UUID), sent again with the
-        same key after a lost connection, a timeout, 429 or a 5xx (see the class docstring)."""
+        same key after a lost connection, a timeout, 429 (once its Retry-After has passed) or
+        a 5xx (see the class docstring)."""
         headers = {"Idempotency-Key": key or str(uuid.uuid4())}
         for attempt in range(self.submit_attempts):
-            last = attempt + 1 == self.submit_attempts
+            last, r = attempt + 1 == self.submit_attempts, None
             try:
                 r = self.http.post(url, json=body, headers=headers)
             except httpx.TransportError:
@@ -111,7 +136,7 @@ class Http:
             else:
                 if last or r.status_code not in RETRIED:
                     return self._check(r).json()
-            time.sleep(self.retry_delay * 2 ** attempt)
+            self.sleep(self._wait(attempt, r))
         raise AssertionError("unreachable")  # the last attempt returns or raises
 
     def _pages(self, url: str, params: dict) -> Iterator[dict]:

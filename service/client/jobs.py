@@ -26,8 +26,9 @@ class Jobs(Http):
                pipeline: str = "reconstruct", name: str = "",
                idempotency_key: str | None = None) -> dict:
         """Queue a job (202); returns it (state queued). Sent again on a lost connection, a
-        timeout or a 5xx with one Idempotency-Key (`idempotency_key`, else a new UUID), so it
-        makes one job; give your own key to make a submit safe across processes too."""
+        timeout, a 5xx or a 429 (after its Retry-After) with one Idempotency-Key
+        (`idempotency_key`, else a new UUID), so it makes one job; give your own key to make
+        a submit safe across processes too."""
         return self._submit("/v1/jobs", {"capture_id": capture_id, "pipeline": pipeline,
                                          "params": params or {}, "name": name}, idempotency_key)
 
@@ -72,7 +73,8 @@ class Jobs(Http):
     def wait(self, job_id: str, on_event: Callable[[Event], None] | None = None, *,
              timeout: float | None = None) -> dict:
         """Follow the job's events until it ends, reconnecting with Last-Event-ID when the
-        connection drops (no event is seen twice); returns the job."""
+        connection drops (no event is seen twice); returns the job. While the server refuses
+        another stream (429: the tenant's cap), the job is polled instead."""
         last = None
         deadline = None if timeout is None else time.monotonic() + timeout
         failures = 0
@@ -88,13 +90,17 @@ class Jobs(Http):
             except httpx.TransportError:
                 # Reconnect (after the last event seen) so the events missed meanwhile,
                 # the final state included, still reach `on_event`.
-                time.sleep(min(0.1 * 2 ** failures, 5.0))
+                self.sleep(min(0.1 * 2 ** failures, 5.0))
                 failures += 1
                 continue
+            except ApiError as exc:  # too many streams open: poll, and reconnect when one
+                if exc.status != 429:  # may have been freed (Retry-After)
+                    raise
+                self.sleep(min(exc.retry_after or 1.0, self.max_wait))
             job = self.job(job_id)
             if job["state"] in TERMINAL:
                 return job
-            time.sleep(1.0)
+            self.sleep(1.0)
         raise TimeoutError(f"job {job_id} did not end within {timeout:.0f} s")
 
     # -- relighting ---------------------------------------------------------------------------

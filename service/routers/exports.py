@@ -27,16 +27,17 @@ router = APIRouter(prefix="/v1/exports", tags=["exports"], route_class=JsonRoute
                    responses=error_responses(*COMMON))
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413),
-             response_description=REPLAYED)
+@router.post("", status_code=202, response_model=JobOut,
+             responses=error_responses(409, 413, 429), response_description=REPLAYED)
 def request_export(body: ExportIn, services: ServicesDep, tenant: TenantDep,
                    idempotency_key: IdempotencyKey = None) -> JSONResponse:
     """Queue an export of a succeeded reconstruction (404 for a job that is not yours; 409 when
     it is not a succeeded reconstruction). With an Idempotency-Key, sending it again answers
-    the same job."""
+    the same job. 429 as POST /v1/jobs."""
     submit = Submit(services, tenant, idempotency_key, "POST /v1/exports", body)
     if (first := submit.first()) is not None:
         return accepted(services, first, replayed=True)
+    services.limits.admit(tenant)
     source = get_job(services.store, body.job_id, tenant)
     if source.pipeline == "reconstruct" and source.state == "succeeded":
         check_export(services, source, body)

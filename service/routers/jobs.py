@@ -21,6 +21,7 @@ from service.deps import Services, ServicesDep, default_expiry, location
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.events import job_events
 from service.idempotency import IdempotencyKey, Submit
+from service.limits import HeldStream, cap_refused
 from service.pagination import newest_page
 from service.parts import job_parts, split_job
 from service.records import get_capture, get_job
@@ -29,7 +30,7 @@ from worker.celery_app import dispatch
 from worker.models import Job
 from worker.parts import delete_parts, worker_of
 from worker.pipelines import get_pipeline
-from worker.store import ACTIVE, TERMINAL, JobStore, progress_of
+from worker.store import ACTIVE, TERMINAL, CapReached, JobStore, progress_of
 
 __all__ = ["REPLAYED", "accepted", "job_out", "queue_on_source", "router", "send"]
 
@@ -86,7 +87,8 @@ def queue_on_source(services: Services, tenant: str, source: Job, pipeline: str,
                     what: str, body, submit: Submit) -> JSONResponse:
     """Queue a `pipeline` job on the results of `source`, a succeeded reconstruction of
     `tenant` (409 otherwise, retryable while it runs; 404 when it is deleted meanwhile):
-    renders and exports (`what`: "renders", "exports"), kept with `submit`'s key."""
+    renders and exports (`what`: "renders", "exports"), kept with `submit`'s key; 429 past
+    the tenant's active-jobs cap."""
     if source.pipeline != "reconstruct":
         raise ApiError(409, f"job {source.id} is a {source.pipeline} job; {what} are made from "
                             "a reconstruct job")
@@ -95,13 +97,17 @@ def queue_on_source(services: Services, tenant: str, source: Job, pipeline: str,
         raise ApiError(409, f"job {source.id} is {source.state}; {what} are made from a "
                             "succeeded reconstruction" + (" (wait for it to end)" if running
                                                           else ""), retryable=running)
+    services.limits.change(tenant)
     try:
         job = services.store.create_render(tenant, source.id, pipeline, params, name=body.name,
                                            expires_at=default_expiry(services, body.expires_at),
-                                           idempotency=submit.idempotency)
-    except IntegrityError:  # a submit with the same key made its job first
+                                           idempotency=submit.idempotency,
+                                           cap=services.settings.max_active_jobs)
+    except (IntegrityError, CapReached) as exc:  # a submit with the same key made its job first
         if (first := submit.first()) is not None:
             return accepted(services, first, replayed=True)
+        if isinstance(exc, CapReached):
+            raise cap_refused(exc) from None
         raise
     if job is None:  # deleted meanwhile
         raise ApiError(404, f"no job {body.job_id!r}")
@@ -126,17 +132,19 @@ def _params(pipeline_name: str, params: dict) -> BaseModel:
     return model
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413),
-             response_description=REPLAYED)
+@router.post("", status_code=202, response_model=JobOut,
+             responses=error_responses(409, 413, 429), response_description=REPLAYED)
 def create_job(body: JobIn, services: ServicesDep, tenant: TenantDep,
                idempotency_key: IdempotencyKey = None) -> JSONResponse:
     """Queue a pipeline run on a ready capture (202; Location is the job). Every parameter is
     checked first, against the capture too (its frames), the devices this deployment offers
     and the models the tenant may use: 422 naming each bad one, and no job is made. With an
-    Idempotency-Key, sending it again answers the same job."""
+    Idempotency-Key, sending it again answers the same job (never refused by the limits).
+    429 with Retry-After past the tenant's rate of job changes or its active-jobs cap."""
     submit = Submit(services, tenant, idempotency_key, "POST /v1/jobs", body)
     if (first := submit.first()) is not None:
         return accepted(services, first, replayed=True)
+    services.limits.admit(tenant)
     params = _params(body.pipeline, body.params)
     capture = get_capture(services.store, body.capture_id, tenant)
     if capture.state != "ready":
@@ -146,20 +154,24 @@ def create_job(body: JobIn, services: ServicesDep, tenant: TenantDep,
     # A sequence of several groups of pictures runs as parts, one per group, on any idle
     # workers (docs/design.md 4.4); the parent is sent once they have all succeeded.
     groups = split_job(services, capture, params) if body.pipeline == "reconstruct" else None
-    expires_at = default_expiry(services, body.expires_at)
+    expires_at, cap = default_expiry(services, body.expires_at), services.settings.max_active_jobs
+    services.limits.change(tenant)
     try:
         if groups:
             job, sent = services.store.create_parted(
                 tenant, params.model_dump(mode="json"), groups, capture_id=capture.id,
-                name=body.name, expires_at=expires_at, idempotency=submit.idempotency)
+                name=body.name, expires_at=expires_at, idempotency=submit.idempotency, cap=cap)
         else:
             job = services.store.create(tenant, body.pipeline, params.model_dump(mode="json"),
                                         capture_id=capture.id, name=body.name,
-                                        expires_at=expires_at, idempotency=submit.idempotency)
+                                        expires_at=expires_at, idempotency=submit.idempotency,
+                                        cap=cap)
             sent = [job]
-    except IntegrityError:  # a submit with the same key won, or the capture was deleted
-        if (first := submit.first()) is not None:
+    except (IntegrityError, CapReached) as exc:  # a submit with the same key won, the cap
+        if (first := submit.first()) is not None:  # was reached or the capture was deleted
             return accepted(services, first, replayed=True)
+        if isinstance(exc, CapReached):
+            raise cap_refused(exc) from None
         raise ApiError(404, f"no capture {body.capture_id!r}") from None
     for each in sent:
         send(services, each)
@@ -187,10 +199,11 @@ def read_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JobOut:
 @router.get("/{job_id}/events", response_class=StreamingResponse,
             responses={200: {"description": "Server-sent events: state, progress, artifact",
                              "content": {"text/event-stream": {"schema": {"type": "string"}}}},
-                       **error_responses(400)})
+                       **error_responses(400, 429)})
 def job_event_stream(job_id: str, services: ServicesDep, tenant: TenantDep,
                      last_event_id: Annotated[str | None, Header()] = None) -> StreamingResponse:
-    """Progress as server-sent events; reconnect with Last-Event-ID to resume."""
+    """Progress as server-sent events; reconnect with Last-Event-ID to resume. 429 with
+    Retry-After past the tenant's cap of open streams."""
     get_job(services.store, job_id, tenant)
     after = None
     if last_event_id is not None and last_event_id.strip():
@@ -199,9 +212,10 @@ def job_event_stream(job_id: str, services: ServicesDep, tenant: TenantDep,
             raise ApiError(400, f"Last-Event-ID: expected an event id, got {value[:40]!r}")
         after = int(value)
     s = services.settings
-    stream = job_events(services.store, job_id, after, poll=s.sse_poll_seconds,
+    slot = services.limits.open_stream(tenant)  # last: nothing may fail between it and
+    stream = job_events(services.store, job_id, after, poll=s.sse_poll_seconds,  # its stream
                         keepalive=s.sse_keepalive_seconds)
-    return StreamingResponse(stream, media_type="text/event-stream", headers={
+    return HeldStream(stream, slot, media_type="text/event-stream", headers={
         "Cache-Control": "no-store", "X-Accel-Buffering": "no"})
 
 
@@ -220,14 +234,15 @@ def job_logs(job_id: str, services: ServicesDep, tenant: TenantDep,
 
 
 @router.post("/{job_id}/cancel", status_code=202, response_model=JobOut,
-             responses=error_responses(409))
+             responses=error_responses(409, 429))
 def cancel_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JSONResponse:
     """Cancel: a queued job at once, a running one at its next step (its worker process is
     ended if it does not stop within seconds); a job run as parts: every part likewise, none
-    left queued. 409 when it has already ended."""
+    left queued. 409 when it has already ended; 429 past the rate of job changes."""
     job = get_job(services.store, job_id, tenant)
     if job.state in TERMINAL:
         raise ApiError(409, f"job {job_id} already {job.state}")
+    services.limits.change(tenant)
     job = services.store.request_cancel(job_id, tenant)
     if job is None:
         raise ApiError(404, f"no job {job_id!r}")
@@ -235,11 +250,12 @@ def cancel_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JSONRes
 
 
 @router.post("/{job_id}/retry", status_code=202, response_model=JobOut,
-             responses=error_responses(409))
+             responses=error_responses(409, 429))
 def retry_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JSONResponse:
     """Queue a failed or cancelled job again: a reconstruction resumes from its last
     checkpoint (run as parts: only its failed and cancelled parts run again, each from its
-    own checkpoint), a render starts over."""
+    own checkpoint), a render starts over. 429 past the rate of job changes or the
+    active-jobs cap (the job counts again once queued)."""
     job = get_job(services.store, job_id, tenant)
     if job.state not in ("failed", "cancelled"):
         raise ApiError(409, f"job {job_id} is {job.state}; only failed or cancelled jobs are "
@@ -249,7 +265,11 @@ def retry_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JSONResp
                             "again")
     if job.capture_id is None:
         raise ApiError(409, f"job {job_id}'s capture was deleted; it cannot run again")
-    job = services.store.retry(job_id, tenant)
+    services.limits.change(tenant)
+    try:
+        job = services.store.retry(job_id, tenant, services.settings.max_active_jobs)
+    except CapReached as exc:
+        raise cap_refused(exc) from None
     if job is None:
         raise ApiError(404, f"no job {job_id!r}")
     if job.state not in ACTIVE:
@@ -261,10 +281,15 @@ def retry_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> JSONResp
 
 
 @router.delete("/{job_id}", status_code=204, responses={204: {"description": "Deleted"},
-                                                        **error_responses(409)})
+                                                        **error_responses(409, 429)})
 def delete_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
     """Delete a finished job with its artifacts, logs and events (409 while queued or
-    running: cancel it first; 409 while a queued or running render needs its results)."""
+    running: cancel it first; 409 while a queued or running render needs its results; 429
+    past the rate of job changes)."""
+    state = get_job(services.store, job_id, tenant).state  # refused here: no token taken
+    if state in ACTIVE:
+        raise ApiError(409, f"job {job_id} is {state}; cancel it first")
+    services.limits.change(tenant)
     with services.store.session() as s:
         job = s.scalar(select(Job).where(Job.id == job_id, Job.tenant == tenant)
                        .with_for_update())

@@ -27,17 +27,18 @@ router = APIRouter(prefix="/v1/renders", tags=["renders"], route_class=JsonRoute
                    responses=error_responses(*COMMON))
 
 
-@router.post("", status_code=202, response_model=JobOut, responses=error_responses(409, 413),
-             response_description=REPLAYED)
+@router.post("", status_code=202, response_model=JobOut,
+             responses=error_responses(409, 413, 429), response_description=REPLAYED)
 def request_render(body: RenderIn, services: ServicesDep, tenant: TenantDep,
                    idempotency_key: IdempotencyKey = None) -> JSONResponse:
     """Queue a relight job on a succeeded reconstruction under an envmap asset, a built-in map
     (builtin:NAME) or lights alone (404 for a job or envmap asset that is not yours; 409 when
     the job is not a succeeded reconstruction). With an Idempotency-Key, sending it again
-    answers the same job."""
+    answers the same job. 429 as POST /v1/jobs."""
     submit = Submit(services, tenant, idempotency_key, "POST /v1/renders", body)
     if (first := submit.first()) is not None:
         return accepted(services, first, replayed=True)
+    services.limits.admit(tenant)
     source = get_job(services.store, body.job_id, tenant)
     if body.envmap_asset is not None:
         asset = get_asset(services.store, body.envmap_asset, tenant)

@@ -165,13 +165,27 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
     wait_for(d, "the workspace", lambda d: d.find_element(By.ID, "workspace").is_displayed())
     assert "tenant studio" in text(d, "whoami")
     assert server.key not in d.current_url
-    # A spy on the page's fetch: which submits it sends, with which Idempotency-Key.
+    # A spy on the page's fetch: which submits it sends, with which Idempotency-Key. The first
+    # job submit is answered as a server at its limit would (429, Retry-After: 2), and every
+    # line the job's status shows is kept.
     d.execute_script("""
         window.submits = [];
+        window.jobStatus = [];
+        new MutationObserver(() => window.jobStatus.push(
+          document.getElementById('job-status').textContent)).observe(
+          document.getElementById('job-status'), { childList: true, characterData: true,
+                                                   subtree: true });
         const send = window.fetch;
         window.fetch = (url, init = {}) => {
-          if (init.method === 'POST' && /^\\/v1\\/(jobs|renders|exports)$/.test(String(url)))
+          if (init.method === 'POST' && /^\\/v1\\/(jobs|renders|exports)$/.test(String(url))) {
             window.submits.push([String(url), (init.headers || {})['Idempotency-Key'] || null]);
+            if (window.submits.length === 1) {
+              const error = { code: 'rate_limited', retryable: true, details: [],
+                              message: 'too many job changes; try again in 2 s' };
+              return Promise.resolve(new Response(JSON.stringify({ error }), {
+                status: 429, headers: { 'Retry-After': '2', 'Content-Type': 'application/json' } }));
+            }
+          }
           return send(url, init);
         };""")
 
@@ -246,11 +260,14 @@ def test_page_takes_a_capture_to_a_relit_image(server, browser, capture_folder, 
         "return v !== null && v.readyState >= 1 && v.duration > 0;"), 180)
     assert "relit" in text(d, "relight-status"), text(d, "relight-status")
     shot(d, "06-relight-orbit")
-    # Every submit carried an Idempotency-Key of its own (a retry of one would reuse it).
+    # Every submit carried an Idempotency-Key of its own, and the job's, refused with 429, was
+    # sent again with its key once the page had shown the wait (issue 42).
     submits = d.execute_script("return window.submits")
-    assert [url for url, _ in submits] == ["/v1/jobs", "/v1/renders", "/v1/renders"], submits
+    assert [url for url, _ in submits] == ["/v1/jobs"] * 2 + ["/v1/renders"] * 2, submits
     keys = [key for _, key in submits]
-    assert all(keys) and len(set(keys)) == len(keys), submits
+    assert all(keys) and keys[0] == keys[1] and len(set(keys)) == 3, submits
+    shown = d.execute_script("return window.jobStatus")
+    assert any("sending it again in 2 s" in line for line in shown), shown
     severe = [e for e in d.get_log("browser") if e["level"] == "SEVERE"]
     assert not severe, severe
     print(f"browser test: {time.monotonic() - started:.1f} s")

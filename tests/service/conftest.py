@@ -56,7 +56,7 @@ def database_url(request, tmp_path: Path) -> str | None:
     migrate(url)
     with engine_for(url).begin() as c:  # one database per session: start each test empty
         c.execute(text("TRUNCATE api_keys, captures, uploads, jobs, job_events, job_logs, "
-                       "idempotency_keys, artifacts, assets"))
+                       "idempotency_keys, artifacts, assets, rate_buckets"))
     return url
 
 

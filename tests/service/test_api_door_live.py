@@ -329,3 +329,56 @@ def test_concurrent_submits_with_one_key_make_one_job(live, made):
     assert [a.status_code for a in answers] == [202] * 8, [a.text for a in answers]
     assert len({a.json()["id"] for a in answers}) == 1 and _jobs(http) == before + 1
     http.post(f"/v1/jobs/{answers[0].json()['id']}/cancel")
+
+
+# -- issue 42: one tenant cannot starve the others -----------------------------------------------
+def test_a_flood_of_changes_and_streams_is_refused_with_retry_after(live, made):
+    """The review's flood replayed on the defaults: retry/cancel pairs on one job answer 429
+    rate_limited with a Retry-After once the tenant's burst is spent (reads still answer), and
+    event streams past the tenant's cap answer 429 too_many_streams until one is closed. A long
+    reconstruction holds the worker meanwhile, so the flooded export is never claimed and every
+    pair changes it."""
+    server, http = live
+    info = http.get("/v1/info").json()["limits"]
+    burst, cap = info["job_changes_burst"], info["max_event_streams"]
+    long = http.post("/v1/jobs", json={"capture_id": made["capture"], "params": {
+        "preset": "test", "config": {"sequence": {"enabled": False},
+                                     "train": {"schedule": {"iterations": 5000}}}}})
+    export = http.post("/v1/exports", json={"job_id": made["job"]["id"], "formats": ["ply"]})
+    assert long.status_code == export.status_code == 202, (long.text, export.text)
+    long, export = long.json()["id"], export.json()["id"]
+    answers = []
+    for i in range(4 * burst):  # the bucket also refills meanwhile (a token a second)
+        r = http.post(f"/v1/jobs/{export}/{('cancel', 'retry')[i % 2]}")
+        answers.append(r.status_code)
+        if r.status_code == 429:
+            break
+    error = _refused(r, server, 429)
+    assert error["code"] == "rate_limited" and int(r.headers["Retry-After"]) >= 1, error
+    assert set(answers) <= {202, 429} and answers.count(429) == 1, answers
+    assert http.get(f"/v1/jobs/{export}").status_code == 200  # reads are not limited
+    with httpx.Client(base_url=server.url, timeout=60,
+                      limits=httpx.Limits(max_connections=cap + 2)) as streams:
+        held = [streams.send(streams.build_request("GET", f"/v1/jobs/{long}/events"),
+                             stream=True) for _ in range(cap)]
+        assert [h.status_code for h in held] == [200] * cap
+        over = streams.get(f"/v1/jobs/{long}/events")
+        assert _refused(over, server, 429)["code"] == "too_many_streams"
+        assert over.headers["Retry-After"].isdigit()
+        held.pop().close()  # the client goes away: its slot comes back
+
+        def reopened():
+            r = streams.send(streams.build_request("GET", f"/v1/jobs/{long}/events"),
+                             stream=True)
+            if r.status_code == 200:
+                return r
+            r.close()
+            return None
+
+        held.append(wait_for(reopened, 60, "a stream after one was closed"))
+        client = Client(server.url)  # waits out the rate limit
+        for job in (long, export):
+            if client.job(job)["state"] in ("queued", "running"):
+                client.cancel(job)
+        for h in held:
+            h.close()

@@ -34,7 +34,19 @@ pytestmark = pytest.mark.timeout(180)
 
 @pytest.fixture
 def server(tmp_path: Path):
-    app = create_app(make_settings(tmp_path / "data", sse_keepalive_seconds=0.2))
+    yield from _serve(make_settings(tmp_path / "data", sse_keepalive_seconds=0.2))
+
+
+@pytest.fixture
+def limited(tmp_path: Path):
+    """A server that allows one job change at once, then one a minute; its limits' clock
+    is `clock[0]` (seconds), which the client's `sleep` moves on."""
+    yield from _serve(make_settings(tmp_path / "data", job_changes_burst=1,
+                                    job_changes_per_minute=1))
+
+
+def _serve(settings):
+    app = create_app(settings)
     sock = socket.socket()
     sock.bind(("127.0.0.1", 0))
     srv = uvicorn.Server(uvicorn.Config(app, log_level="warning"))
@@ -361,3 +373,46 @@ def test_a_submit_whose_answer_was_lost_is_sent_again_and_makes_one_job(server, 
     with services.store.session(write=False) as s:
         made = set(s.scalars(select(Job.id).where(Job.id != source.id)))
     assert made == {job["id"], render["id"], export["id"]} and job["name"] == "once"
+
+
+def test_a_429_is_waited_out_for_its_retry_after_then_sent_again(limited, folder):
+    """Issue 42: the client sleeps a 429's Retry-After (at most max_wait) and sends the
+    request again; a submit keeps its Idempotency-Key. Its sleep drives the server's clock,
+    so nothing really waits."""
+    base, services = limited
+    now, slept = [1_000_000.0], []
+    services.limits.clock = lambda: now[0]
+
+    def sleep(seconds: float) -> None:
+        slept.append(seconds)
+        now[0] += seconds
+
+    transport = Flaky()
+    with Client(base, transport=transport, sleep=sleep, max_wait=45) as c:
+        cap = c.create_capture(folder)
+        c.upload_capture(cap["id"], folder)
+        c.commit(cap["id"])
+        job = c.submit(cap["id"], {"preset": "test"})  # the one change allowed at once
+        assert slept == []
+        cancelled = c.cancel(job["id"])  # a token in 60 s: max_wait, then the 15 s left
+        again = c.submit(cap["id"], {"preset": "test"})  # the same again
+    assert cancelled["state"] == "cancelled" and again["id"] != job["id"]
+    assert slept == [45, 15, 45, 15]
+    posts = [r for r in transport.requests if r.method == "POST" and r.url.path == "/v1/jobs"]
+    keys = [r.headers["Idempotency-Key"] for r in posts]
+    assert len(keys) == 4 and keys[0] != keys[1] == keys[2] == keys[3]
+    with pytest.raises(ApiError) as refused:  # the attempts spent: the 429 is raised
+        with Client(base, sleep=lambda s: None, submit_attempts=2) as c:
+            c.cancel(again["id"])
+    assert refused.value.status == 429 and refused.value.code == "rate_limited"
+    assert refused.value.retry_after == 60
+
+
+@pytest.mark.parametrize("value, seconds", [("7", 7.0), ("0", 0.0), ("", None), ("soon", None),
+                                            ("Wed, 21 Oct 2026 07:28:00 GMT", None),
+                                            ("9" * 12, None)])
+def test_retry_after_is_read_in_seconds(value, seconds):
+    from service.client.http import retry_after
+
+    r = httpx.Response(429, headers={"Retry-After": value} if value else {})
+    assert retry_after(r) == seconds

@@ -5,9 +5,9 @@
 const KEY_NAME = 'dgs.apiKey';
 
 export class ApiError extends Error {
-  constructor(status, code, message, retryable = false, details = []) {
+  constructor(status, code, message, retryable = false, details = [], retryAfter = null) {
     super(`${status} ${code}: ${message}`);
-    Object.assign(this, { status, code, detail: message, retryable, details });
+    Object.assign(this, { status, code, detail: message, retryable, details, retryAfter });
   }
 }
 
@@ -28,13 +28,16 @@ export const auth = {
   },
 };
 
-/** The API's error body of a failed response as an ApiError. */
+/** The API's error body of a failed response as an ApiError (with its Retry-After, seconds). */
 export async function errorOf(response) {
   let body = null;
   try { body = await response.json(); } catch { /* not JSON: a proxy's page */ }
   const e = body && body.error;
-  if (e) return new ApiError(response.status, e.code, e.message, e.retryable, e.details || []);
-  return new ApiError(response.status, 'http_error', response.statusText || 'request failed');
+  const after = /^\d{1,9}$/.test(response.headers.get('Retry-After') || '')
+    ? Number(response.headers.get('Retry-After')) : null;
+  if (e) return new ApiError(response.status, e.code, e.message, e.retryable, e.details || [], after);
+  return new ApiError(response.status, 'http_error', response.statusText || 'request failed', false,
+    [], after);
 }
 
 /** fetch with the key; throws ApiError for a 4xx/5xx answer. */
@@ -55,9 +58,40 @@ export async function getJson(path, opts) {
   return (await request('GET', path, opts)).json();
 }
 
-export async function sendJson(method, path, json) {
-  const r = await request(method, path, { json });
-  return r.status === 204 ? null : r.json();
+/** Statuses a submit is sent again after, as the client library (service/client/http.py). */
+const RETRIED = [429, 500, 502, 503, 504];
+const SUBMIT_ATTEMPTS = 5;
+/** Longest wait after a 429, whatever its Retry-After says (as the client library's max_wait). */
+const MAX_WAIT_S = 60;
+const sleep = (ms) => new Promise((done) => { setTimeout(done, ms); });
+
+/** The seconds a 429 (a limit of the server, which did nothing) asks to wait; null otherwise. */
+function limitWait(err) {
+  if (!(err instanceof ApiError) || err.status !== 429) return null;
+  return Math.min(err.retryAfter ?? 1, MAX_WAIT_S);
+}
+
+/** Wait `seconds`, telling `onWait(seconds left, err)` each second so the page can show it. */
+async function waitOut(seconds, err, onWait) {
+  for (let left = Math.ceil(seconds); left > 0; left--) {
+    if (onWait) onWait(left, err);
+    await sleep(1000);
+  }
+}
+
+/** A request that changes something (cancel, retry, delete), sent again after a 429 once its
+ * Retry-After has passed (`onWait` shows the wait), as many times as a submit. */
+export async function sendJson(method, path, json, { onWait } = {}) {
+  for (let attempt = 0; ; attempt++) {
+    try {
+      const r = await request(method, path, { json });
+      return r.status === 204 ? null : r.json();
+    } catch (err) {
+      const wait = limitWait(err);
+      if (wait === null || attempt + 1 >= SUBMIT_ATTEMPTS) throw err;
+      await waitOut(wait, err, onWait);
+    }
+  }
 }
 
 /** A new Idempotency-Key: a UUID (crypto.randomUUID needs a secure context; over plain http
@@ -71,14 +105,11 @@ export function newKey() {
   return `${h.slice(0, 8)}-${h.slice(8, 12)}-${h.slice(12, 16)}-${h.slice(16, 20)}-${h.slice(20)}`;
 }
 
-/** Statuses a submit is sent again after, as the client library (service/client/http.py). */
-const RETRIED = [429, 500, 502, 503, 504];
-const SUBMIT_ATTEMPTS = 5;
-
 /** POST a submit (a job, a render, an export) with one Idempotency-Key for every attempt: sent
- * again after a lost connection or a retryable answer, 0.5 s apart doubling, so however many of
- * the attempts arrive the server makes one job. Returns the answer's JSON. */
-export async function submitJson(path, json) {
+ * again after a lost connection or a retryable answer, 0.5 s apart doubling (after a 429, once
+ * its Retry-After has passed, shown by `onWait(seconds left, err)`), so however many of the
+ * attempts arrive the server makes one job. Returns the answer's JSON. */
+export async function submitJson(path, json, { onWait } = {}) {
   const headers = { 'Idempotency-Key': newKey() };
   for (let attempt = 0; ; attempt++) {
     try {
@@ -87,9 +118,16 @@ export async function submitJson(path, json) {
       const lost = err instanceof TypeError; // fetch's network failure
       const retried = err instanceof ApiError && RETRIED.includes(err.status);
       if (!(lost || retried) || attempt + 1 >= SUBMIT_ATTEMPTS) throw err;
-      await new Promise((done) => { setTimeout(done, 500 * 2 ** attempt); });
+      const wait = limitWait(err);
+      if (wait !== null) await waitOut(wait, err, onWait);
+      else await sleep(500 * 2 ** attempt);
     }
   }
+}
+
+/** The line a page shows while a 429 is waited out. */
+export function waitText(left, err) {
+  return `${err.detail} — sending it again in ${left} s`;
 }
 
 /** Every item of a paginated listing (`items`, `next_cursor`). */
@@ -157,11 +195,13 @@ async function* eventStream(path, lastEventId, signal) {
 const TERMINAL = new Set(['succeeded', 'failed', 'cancelled']);
 
 /** Follow a job's events until it ends, reconnecting with Last-Event-ID when the connection
- *  drops; `onEvent(event)` for each. Resolves with the final job. */
+ *  drops (or, while the server refuses another stream with 429, polling the job until its
+ *  Retry-After has passed); `onEvent(event)` for each. Resolves with the final job. */
 export async function followJob(jobId, onEvent, signal) {
   let last = null;
   let delay = 500;
   for (;;) {
+    let wait = null;
     try {
       for await (const event of eventStream(`/v1/jobs/${jobId}/events`, last, signal)) {
         if (event.id != null) last = event.id;
@@ -174,11 +214,12 @@ export async function followJob(jobId, onEvent, signal) {
     } catch (err) {
       if (signal && signal.aborted) throw err;
       if (err instanceof ApiError && !err.retryable && err.status < 500) throw err;
+      wait = limitWait(err);
     }
     const job = await getJson(`/v1/jobs/${jobId}`);
     if (TERMINAL.has(job.state)) return job;
-    await new Promise((resolve) => setTimeout(resolve, delay));
-    delay = Math.min(delay * 2, 10000);
+    await sleep(wait !== null ? wait * 1000 : delay);
+    if (wait === null) delay = Math.min(delay * 2, 10000);
   }
 }
 

@@ -1,7 +1,7 @@
 // Panel 2: start a reconstruction on a ready capture with a preset, and follow a job live
 // (server-sent events, read with fetch so the key stays in a header), with its log.
 
-import { followJob, getJson, listAll, sendJson, submitJson } from './api.js';
+import { followJob, getJson, listAll, sendJson, submitJson, waitText } from './api.js';
 import { $, el, emit, on, showError, showStatus } from './ui.js';
 
 const TERMINAL = new Set(['succeeded', 'failed', 'cancelled']);
@@ -167,7 +167,8 @@ async function start() {
   $('job-start').disabled = true;
   try {
     const job = await submitJson('/v1/jobs', { capture_id: $('job-capture').value,
-      pipeline: 'reconstruct', params, name: $('job-capture').selectedOptions[0].textContent.split(' (')[0] });
+      pipeline: 'reconstruct', params, name: $('job-capture').selectedOptions[0].textContent.split(' (')[0] },
+    { onWait: (left, err) => showStatus(status, waitText(left, err), 'waiting') });
     state.job = job;
     await loadJobs();
     watch(job.id);
@@ -180,7 +181,8 @@ async function start() {
 
 async function act(action) {
   try {
-    await sendJson('POST', `/v1/jobs/${state.job.id}/${action}`);
+    await sendJson('POST', `/v1/jobs/${state.job.id}/${action}`, undefined,
+      { onWait: (left, err) => showStatus($('job-status'), waitText(left, err), 'waiting') });
     if (action === 'retry') watch(state.job.id);
   } catch (err) {
     showError($('job-status'), err, `${action}: `);

@@ -4,7 +4,7 @@
 // and loop at the capture's frame rate; orbit or a capture camera; relit live under the relight
 // panel's environment map, rotation and lights (views: relit, appearance, normals, AO).
 
-import { auth, followJob, getJson, listAll, submitJson } from './api.js';
+import { auth, followJob, getJson, listAll, submitJson, waitText } from './api.js';
 import { DeferredSplats, upFrame } from './deferred.js';
 import { GroupDecoder, StreamSource } from './stream.js';
 import { $, el, on, showError, showStatus } from './ui.js';
@@ -250,7 +250,8 @@ async function streamJob(job, status, subject = false) {
     && (j.params.formats || ['stream']).includes('stream') && Boolean(j.params.subject) === subject);
   if (done) return done;
   showStatus(status, `making the ${subject ? "subject's " : ''}stream (an export job)…`, 'busy');
-  const queued = await submitJson('/v1/exports', { job_id: job.id, formats: ['stream'], subject });
+  const queued = await submitJson('/v1/exports', { job_id: job.id, formats: ['stream'], subject },
+    { onWait: (left, err) => showStatus(status, waitText(left, err), 'waiting') });
   const out = await followJob(queued.id, (e) => {
     if (e.data.fraction != null) showStatus(status, `exporting: ${Math.round(100 * e.data.fraction)}%`, 'busy');
   });

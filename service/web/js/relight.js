@@ -2,7 +2,7 @@
 // map (rotated about the up axis) plus added lights: POST /v1/renders, then show the relit
 // images (or the API's error, as it says it).
 
-import { blobUrl, followJob, getJson, listAll, request, submitJson } from './api.js';
+import { blobUrl, followJob, getJson, listAll, request, submitJson, waitText } from './api.js';
 import { $, el, on, showError, showStatus } from './ui.js';
 
 const state = { job: null, frame: null, index: 0, schema: null };
@@ -106,7 +106,8 @@ async function render() {
     const degrees = Number($('envmap-rotation').value);
     if (rotation) body[rotation] = degrees;
     else if (degrees) showStatus(status, 'this server takes no environment rotation; rendering unrotated');
-    const out = await submitJson('/v1/renders', body);
+    const out = await submitJson('/v1/renders', body,
+      { onWait: (left, err) => showStatus(status, waitText(left, err), 'waiting') });
     let items = out.items || out.artifacts || null;
     if (!items && out.id) {
       const job = await followJob(out.id, (event) => {

@@ -1,0 +1,326 @@
+"""One tenant cannot starve the others (issue 42), measured against a real `dgs serve` with its
+embedded worker (SQLite job store and broker, one worker): tenant A floods while tenant B
+submits a tiny job. Reported for B, idle and under the flood, interleaved in one run: the job's
+start (submit to running: the job store's created_at to started_at) and its reads
+(`GET /v1/jobs/{id}` every 0.1 s from submit to end).
+
+A's flood, every second until B's job has ended: `--pairs` retry/cancel pairs on A's own
+cancelled job (2 x pairs requests at once), `--submits` tiny submits at once (past the
+active-jobs cap), and `--streams` event streams held on A's active jobs (a refused one tries
+again after its Retry-After). Between phases A's jobs are cancelled and a probe job of B runs
+to its end, so every message the flood left in the queue is gone before the next phase.
+
+    python benchmarks/fairness.py [--rounds 2] [--pairs 15] [--submits 10] [--streams 200]
+                                  [--max-active-jobs 2] [--lead 3]
+
+The server runs the default limits but DGS_MAX_ACTIVE_JOBS (`--max-active-jobs`, small so
+that the flood reaches it). Nothing here depends on how the worker treats the messages of
+cancelled jobs: re-run it unchanged after a worker change. Prints the table of
+docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import datetime as dt
+import os
+import random
+import sqlite3
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import httpx
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from service.client import Client  # noqa: E402
+from worker.models import utcnow  # noqa: E402
+
+TINY = {"preset": "test", "config": {
+    "train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3_start": 28,
+                           "densify_from": 2, "densify_until": 24, "densify_interval": 4,
+                           "reset_interval": 16, "sh_interval": 4}, "init_points": 300},
+    "sequence": {"enabled": False}}}
+ACTIVE = ("queued", "running")
+
+
+def dgs(data: Path, *args: str, **env: str) -> subprocess.Popen | str:
+    """`dgs ARGS` on `data`: a server (serve) left running, else the command's output."""
+    full = {**{k: v for k, v in os.environ.items() if not k.startswith("DGS_")},
+            "DGS_DATA_DIR": str(data), "OMP_NUM_THREADS": "1", **env}
+    cmd = [sys.executable, "-m", "core.cli", *args]
+    if args[0] == "serve":
+        log = open(data.parent / "serve.log", "ab")
+        return subprocess.Popen(cmd, cwd=ROOT, env=full, stdout=log, stderr=subprocess.STDOUT)
+    return subprocess.run(cmd, cwd=ROOT, env=full, capture_output=True, text=True,
+                          check=True).stdout
+
+
+def wait_until(condition, timeout: float, what: str, every: float = 0.2):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if value := condition():
+            return value
+        time.sleep(every)
+    raise TimeoutError(f"{what}: not within {timeout:.0f} s")
+
+
+class Tenant:
+    """A tenant's key, its httpx client (answers as they come) and its client library."""
+
+    def __init__(self, url: str, key: str):
+        self.headers = {"Authorization": f"Bearer {key}"}
+        self.http = httpx.Client(base_url=url, headers=self.headers, timeout=120,
+                                 limits=httpx.Limits(max_connections=400))
+        self.client = Client(url, key, timeout=120)
+
+    def job(self, job_id: str) -> dict:
+        return self.http.get(f"/v1/jobs/{job_id}").json()
+
+    def submit(self, capture: str) -> httpx.Response:
+        return self.http.post("/v1/jobs", json={"capture_id": capture, "params": TINY})
+
+    def active(self) -> list[str]:
+        return [j["id"] for state in ACTIVE for j in self.http.get(
+            "/v1/jobs", params={"state": state, "limit": 200}).json()["items"]]
+
+
+class Flood:
+    """Tenant A's attack, started by `start()` and ended by `stop()` (see the module)."""
+
+    def __init__(self, a: Tenant, url: str, capture: str, target: str, args):
+        self.a, self.url, self.capture, self.target, self.args = a, url, capture, target, args
+        self.stopped, self.lock = threading.Event(), threading.Lock()
+        self.counts: collections.Counter = collections.Counter()
+        self.jobs: list[str] = []  # A's accepted jobs: what the streams follow
+        self.open = self.most_open = 0
+        self.pool = ThreadPoolExecutor(max_workers=2 * args.pairs + args.submits)
+        self.threads = [threading.Thread(target=self._bursts, daemon=True)] + [
+            threading.Thread(target=self._stream, daemon=True) for _ in range(args.streams)]
+
+    def count(self, what: str, r: httpx.Response) -> httpx.Response:
+        code = r.json()["error"]["code"] if r.status_code >= 400 else ""
+        with self.lock:
+            self.counts[f"{what} {r.status_code} {code}".strip()] += 1
+        return r
+
+    def start(self) -> Flood:
+        for t in self.threads:
+            t.start()
+        return self
+
+    def _bursts(self) -> None:
+        while not self.stopped.is_set():
+            path = f"/v1/jobs/{self.target}"
+            calls = [lambda a=action: self.count(a, self.a.http.post(f"{path}/{a}"))
+                     for _ in range(self.args.pairs) for action in ("retry", "cancel")]
+            calls += [self._submit] * self.args.submits
+            list(self.pool.map(lambda call: call(), calls))
+            self.stopped.wait(1.0)
+
+    def _submit(self) -> None:
+        r = self.count("submit", self.a.submit(self.capture))
+        if r.status_code == 202:
+            with self.lock:
+                self.jobs.append(r.json()["id"])
+
+    def _stream(self) -> None:
+        with httpx.Client(base_url=self.url, headers=self.a.headers,
+                          timeout=httpx.Timeout(30, read=None)) as http:
+            while not self.stopped.is_set():
+                with self.lock:
+                    job = random.choice(self.jobs) if self.jobs else None
+                if job is None:
+                    self.stopped.wait(0.2)
+                    continue
+                try:
+                    self._follow(http, job)
+                except httpx.HTTPError:
+                    with self.lock:
+                        self.counts["stream error"] += 1
+
+    def _follow(self, http: httpx.Client, job: str) -> None:
+        with http.stream("GET", f"/v1/jobs/{job}/events") as r:
+            if r.status_code != 200:
+                r.read()
+                self.count("stream", r)
+                self.stopped.wait(min(float(r.headers.get("Retry-After", "1")), 10.0))
+                return
+            with self.lock:
+                self.counts["stream 200"] += 1
+                self.open += 1
+                self.most_open = max(self.most_open, self.open)
+            try:
+                text = "".join(r.iter_lines())
+            finally:
+                with self.lock:
+                    self.open -= 1
+        if any(f'"state":"{s}"' in text for s in ("succeeded", "failed", "cancelled")):
+            with self.lock:  # ended: follow another
+                self.jobs = [j for j in self.jobs if j != job]
+
+    def stop(self) -> None:
+        """End the attack: no new requests, A's jobs cancelled (which ends its streams)."""
+        self.stopped.set()
+        self.threads[0].join()
+        for job in self.a.active():
+            try:
+                self.a.client.cancel(job)  # waits out A's own rate limit
+            except Exception:  # it ended meanwhile
+                pass
+        for t in self.threads[1:]:
+            t.join(120)
+        self.pool.shutdown()
+
+
+def reads(b: Tenant, job: str, done: threading.Event, out: list[float]) -> None:
+    """B's reads of its job every 0.1 s until `done`: each one's latency in ms."""
+    while not done.is_set():
+        t = time.perf_counter()
+        r = b.http.get(f"/v1/jobs/{job}")
+        out.append((time.perf_counter() - t) * 1000)
+        if r.status_code != 200 or r.json()["state"] not in ACTIVE:
+            return
+        done.wait(0.1)
+
+
+def cpu(pid: int) -> float:
+    """CPU seconds (user + system) process `pid` has used so far."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def run_b(b: Tenant, capture: str, api_pid: int) -> dict:
+    """B submits a tiny job, reads it until it ends: its start, the reads' latencies and the
+    share of a core the API process used meanwhile (`dgs serve` itself: the worker is its
+    child process)."""
+    cpu0, t0 = cpu(api_pid), time.monotonic()
+    t = time.perf_counter()
+    r = b.submit(capture)
+    submit_ms = (time.perf_counter() - t) * 1000
+    assert r.status_code == 202, r.text
+    job, latencies, done = r.json()["id"], [], threading.Event()
+    reader = threading.Thread(target=reads, args=(b, job, done, latencies))
+    reader.start()
+    final = wait_until(lambda: (j := b.job(job))["state"] not in ACTIVE and j, 1800,
+                       f"B's job {job} to end", every=0.5)
+    done.set()
+    reader.join()
+    assert final["state"] == "succeeded", final
+    start = (dt.datetime.fromisoformat(final["started_at"])
+             - dt.datetime.fromisoformat(final["created_at"])).total_seconds()
+    return {"start": start, "reads": latencies, "submit_ms": submit_ms,
+            "api_cpu": (cpu(api_pid) - cpu0) / (time.monotonic() - t0)}
+
+
+def drained(b: Tenant, a: Tenant, capture: str, broker: Path, api_pid: int) -> None:
+    """Until nothing of A is active, the broker holds no waiting message, and a probe job of
+    B (last in the queue) has run: every message before it was taken."""
+    wait_until(lambda: not a.active(), 600, "A's jobs to end")
+    wait_until(lambda: _waiting(broker) == 0, 1800, "the queue to empty", every=1.0)
+    run_b(b, capture, api_pid)
+
+
+def _waiting(broker: Path) -> int:
+    with sqlite3.connect(broker, timeout=30) as db:
+        return db.execute("SELECT count(*) FROM kombu_message WHERE visible = 1").fetchone()[0]
+
+
+def ms(values: list[float], q: float) -> float:
+    return statistics.quantiles(values, n=100)[int(q) - 1] if len(values) > 1 else values[0]
+
+
+def row(phase: str, out: dict, flood: Flood | None) -> str:
+    r = out["reads"]
+    attack = "" if flood is None else "; ".join(
+        f"{k}: {v}" for k, v in sorted(flood.counts.items())) + \
+        f"; streams open at once, most: {flood.most_open}"
+    return (f"| {phase} | {out['start']:.1f} | {out['submit_ms']:.0f} | {len(r)} | "
+            f"{ms(r, 50):.1f} | {ms(r, 95):.1f} | {max(r):.1f} | {100 * out['api_cpu']:.0f} | "
+            f"{attack} |")
+
+
+def setup(args, data: Path) -> tuple[subprocess.Popen, str, Tenant, Tenant, str, str, str]:
+    """The server, its URL, tenants A and B, their captures and A's cancelled job."""
+    keys = {t: dgs(data, "keys", "create", "--tenant", t).strip().splitlines()[-1]
+            for t in ("flooder", "victim")}
+    port = 8400 + random.randrange(500)
+    server = dgs(data, "serve", "--port", str(port),
+                 DGS_MAX_ACTIVE_JOBS=str(args.max_active_jobs), DGS_QUEUE=f"fair-{port}")
+    url = f"http://127.0.0.1:{port}"
+    wait_until(lambda: _ready(url), 120, "dgs serve")
+    wait_until(lambda: " ready." in _text(data / "logs" / "worker.log"), 300, "the worker")
+    a, b = Tenant(url, keys["flooder"]), Tenant(url, keys["victim"])
+    folder = data.parent / "capture"
+    dgs(data, "synth", str(folder), "--frames", "1", "--views", "8", "--size", "32", "32")
+    captures = []
+    for t in (a, b):
+        cap = t.client.create_capture(folder)
+        t.client.upload_capture(cap["id"], folder)
+        t.client.commit(cap["id"])
+        captures.append(cap["id"])
+    target = a.submit(captures[0]).json()["id"]  # A's job to retry and cancel
+    a.client.cancel(target)
+    return server, url, a, b, captures[0], captures[1], target
+
+
+def _ready(url: str) -> bool:
+    try:
+        return httpx.get(f"{url}/readyz", timeout=5).status_code == 200
+    except httpx.TransportError:
+        return False
+
+
+def _text(path: Path) -> str:
+    return path.read_text(errors="replace") if path.is_file() else ""
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--rounds", type=int, default=2)
+    p.add_argument("--pairs", type=int, default=15)
+    p.add_argument("--submits", type=int, default=10)
+    p.add_argument("--streams", type=int, default=200)
+    p.add_argument("--max-active-jobs", type=int, default=2)
+    p.add_argument("--lead", type=float, default=3.0,
+                   help="seconds of flood (or idle) before B submits")
+    args = p.parse_args()
+    data = Path(tempfile.mkdtemp(prefix="dgs-fairness-")) / "data"
+    data.mkdir(parents=True)
+    print(f"load before: {os.getloadavg()}; {utcnow():%Y-%m-%d %H:%M} UTC; data {data}")
+    server, url, a, b, cap_a, cap_b, target = setup(args, data)
+    broker = data / "broker.sqlite3"
+    try:
+        pid = server.pid
+        drained(b, a, cap_b, broker, pid)  # warms the worker (its native build, the imports)
+        rows = []
+        for i in range(args.rounds):
+            time.sleep(args.lead)
+            rows.append(row(f"idle, round {i + 1}", run_b(b, cap_b, pid), None))
+            drained(b, a, cap_b, broker, pid)
+            flood = Flood(a, url, cap_a, target, args).start()
+            time.sleep(args.lead)
+            out = run_b(b, cap_b, pid)
+            flood.stop()
+            rows.append(row(f"flood, round {i + 1}", out, flood))
+            drained(b, a, cap_b, broker, pid)
+        print("| B's job | start s | submit ms | reads | p50 ms | p95 ms | max ms | API CPU % "
+              "| A's answers |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        print("\n".join(rows))
+    finally:
+        server.terminate()
+        server.wait(60)
+        print(f"load after: {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    main()
