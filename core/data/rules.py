@@ -18,6 +18,7 @@ Messages never contain a server path: callers name the file the way their user k
 
 from __future__ import annotations
 
+import functools
 import re
 from pathlib import Path
 
@@ -50,6 +51,7 @@ MAX_PART_BYTES = 255  # a file name on every common file system
 _ID_CHARS = r"A-Za-z0-9_.\-"
 _NAME_RE = re.compile(rf"^[A-Za-z0-9_][{_ID_CHARS}]*$")
 _NOT_ID_CHAR = re.compile(rf"[^{_ID_CHARS}]")
+_GOOD_NAME = re.compile(r"[ -~]*[A-Za-z0-9][ -~]*")
 _CONTROL = re.compile(r"[\x00-\x1f\x7f]")
 _DRIVE = re.compile(r"^[A-Za-z]:")
 
@@ -70,6 +72,8 @@ def name_problem(text: object) -> str | None:
     """Why `text`, a name in a source file, cannot become a frame or camera id (None when it
     can): it must be printable ASCII, 1 to `MAX_NAME_CHARS` characters, and hold a letter or
     a digit. Other printable ASCII (a space, '/') becomes '_' in the id (`safe_name`)."""
+    if isinstance(text, str) and len(text) <= MAX_NAME_CHARS and _GOOD_NAME.fullmatch(text):
+        return None  # the common case, at regex speed (a source names every view)
     if not isinstance(text, str):
         return f"must be text, got {type(text).__name__}"
     if not text:
@@ -88,6 +92,7 @@ def name_problem(text: object) -> str | None:
     return None
 
 
+@functools.lru_cache(maxsize=1 << 16)  # a source names each camera and frame once a view
 def safe_name(text: str) -> str:
     """The frame or camera id of a source name that `name_problem` accepts: each character
     that an id cannot hold becomes '_', leading '_', '.', '-' and trailing '.' are dropped.

@@ -19,6 +19,7 @@ whose dome is reconstructed too: capture.json says ``"masks": "subject"`` (docs/
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 from typing import Annotated, Any
@@ -116,8 +117,8 @@ def _shape_problems(meta: PanopticMeta, path: Path) -> list[Problem]:
 def _frames(meta: PanopticMeta, path: Path, problems: list[Problem]) -> list[str]:
     """The frame name of each t, every entry of a frame naming it, each camera folder once a
     frame and every frame the cameras of frame 0."""
-    names: list[str] = []
-    rig = [fn.split("/")[0] for fn in meta.fn[0]]
+    names: dict[str, int] = {}  # frame name -> t (a dict: a list's `in` is quadratic)
+    rig = {fn.split("/")[0] for fn in meta.fn[0]}
     for t, fns in enumerate(meta.fn):
         folders = [fn.split("/")[0] for fn in fns]
         frame = stem(fns[0].split("/")[1])
@@ -132,42 +133,42 @@ def _frames(meta: PanopticMeta, path: Path, problems: list[Problem]) -> list[str
             problems.append(Problem(str(path), f"fn[{t}]: camera folder {twice!r} appears "
                                     "twice in one frame"))
             return []
-        if set(folders) != set(rig):
+        if set(folders) != rig:
             problems.append(Problem(str(path), f"fn[{t}]: frame {t} has cameras "
-                                    f"{sorted(set(folders) ^ set(rig))[:5]} that frame 0 has "
+                                    f"{sorted(set(folders) ^ rig)[:5]} that frame 0 has "
                                     "not, or lacks some of its cameras; a capture has one rig"))
             return []
         if frame in names:
             problems.append(Problem(str(path), f"fn[{t}]: frame {frame!r} is also frame "
-                                    f"{names.index(frame)}"))
+                                    f"{names[frame]}"))
             return []
-        names.append(frame)
-    return names
+        names[frame] = t
+    return list(names)
 
 
 def _rig(meta: PanopticMeta, path: Path, problems: list[Problem]) -> dict[str, tuple]:
     """{camera folder: (K, w2c, cam id)} of frame 0, every later frame checked against it (one
-    rig)."""
-    rig: dict[str, tuple] = {}
-    for i, fn in enumerate(meta.fn[0]):
-        rig[fn.split("/")[0]] = (np.asarray(meta.k[0][i], np.float64),
-                                 np.asarray(meta.w2c[0][i], np.float64), meta.cam_id[0][i])
-    for t in range(1, len(meta.fn)):
-        for i, fn in enumerate(meta.fn[t]):
-            K0, E0, cid = rig[fn.split("/")[0]]
-            for what, value, first in (("k", meta.k[t][i], K0), ("w2c", meta.w2c[t][i], E0)):
-                if not _same(np.asarray(value, np.float64), first):
-                    problems.append(Problem(str(path), f"{what}[{t}][{i}]: frame {t} "
-                                            f"({stem(fn)}), camera {cid}: {what} differs from "
-                                            "frame 0; a capture has one rig (calibration that "
-                                            "moves between frames is not supported)"))
-                    return {}
-    return rig
-
-
-def _same(a: np.ndarray, b: np.ndarray) -> bool:
-    scale = max(1.0, float(np.abs(b).max()))
-    return float(np.abs(a - b).max()) <= CALIBRATION_TOLERANCE * scale
+    rig), all frames at once (a source may have tens of thousands)."""
+    first = {fn.split("/")[0]: i for i, fn in enumerate(meta.fn[0])}
+    # order[t, i]: which of frame 0's entries is the camera of entry i of frame t
+    order = np.array([[first[fn.split("/")[0]] for fn in fns] for fns in meta.fn])
+    for what in ("k", "w2c"):
+        arr = np.asarray(getattr(meta, what), np.float64)  # (frames, cameras, rows, cols)
+        ref = arr[0][order]
+        with np.errstate(all="ignore"):  # huge entries overflow: they differ, then
+            scale = np.maximum(1.0, np.abs(ref).max(axis=(2, 3)))
+            same = np.abs(arr - ref).max(axis=(2, 3)) <= CALIBRATION_TOLERANCE * scale
+        if not same.all():
+            t, i = (int(x) for x in np.argwhere(~same)[0])
+            problems.append(Problem(str(path), f"{what}[{t}][{i}]: frame {t} "
+                                    f"({stem(meta.fn[t][i])}), camera {meta.cam_id[t][i]}: "
+                                    f"{what} differs from frame 0; a capture has one rig "
+                                    "(calibration that moves between frames is not "
+                                    "supported)"))
+            return {}
+    return {folder: (np.asarray(meta.k[0][i], np.float64), np.asarray(meta.w2c[0][i],
+                                                                         np.float64),
+                     meta.cam_id[0][i]) for folder, i in first.items()}
 
 
 def _camera(folder: str, K: np.ndarray, w2c: np.ndarray, w: int, h: int, where: str,
@@ -264,12 +265,14 @@ def _imported(root: Path, cameras: dict[str, Camera], frames: list[str],
               images: dict[tuple[str, str], Path], test: list[str], points: PointCloud | None,
               files: list[Path]) -> ImportedCapture:
     order = sorted(cameras, key=lambda c: (len(c), c))  # numeric folder names in order
+    seg = {cid: root / "seg" / images[(frames[0], cid)].parent.name for cid in order}
+    masks = {cid: set(os.listdir(folder)) if folder.is_dir() else set()  # one listing a camera
+             for cid, folder in seg.items()}
     views = []
     for frame in frames:
         for cid in order:
-            mask = root / "seg" / images[(frame, cid)].parent.name / f"{frame}.png"
-            views.append(SourceView(safe_name(frame), cid, images[(frame, cid)],
-                                    mask if mask.is_file() else None))
+            mask = seg[cid] / f"{frame}.png" if f"{frame}.png" in masks[cid] else None
+            views.append(SourceView(safe_name(frame), cid, images[(frame, cid)], mask))
     cams = [cameras[c] for c in order]
     record: dict[str, Any] = {
         "format": "panoptic",

@@ -11,7 +11,7 @@ from __future__ import annotations
 import zipfile
 import zlib
 from collections.abc import Sequence
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 from typing import Annotated, Any, TypeVar
 
 import numpy as np
@@ -174,7 +174,7 @@ def field_problems(path: Path, exc: ValidationError, prefix: str = "") -> list[P
         message = "is missing" if error["type"] == "missing" else error["msg"]
         if error["type"] in ("json_invalid", "model_type"):
             message = f"cannot parse it: {message}" if error["type"] == "json_invalid" else \
-                "expected a JSON object at the top"
+                f"expected an object, got {_short(error['input'])}"
         elif not error["type"].startswith("source_") and error["type"] not in (
                 "missing", "too_long", "too_short") and not isinstance(
                 error["input"], (dict, list)):
@@ -267,5 +267,8 @@ def _plain(exc: BaseException) -> str:
 
 
 def stem(path: str) -> str:
-    """A source path's last component without its extension."""
-    return PurePosixPath(path).stem
+    """A source path's last component without its extension (as `PurePosixPath.stem`, at
+    string speed: a source names every view)."""
+    name = path.rpartition("/")[2]
+    dot = name.rfind(".")
+    return name[:dot] if 0 < dot < len(name) - 1 else name
