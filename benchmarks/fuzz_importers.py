@@ -30,7 +30,7 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 BIG = """
-import json, resource, sys, time
+import json, sys, time
 from pathlib import Path
 from core.data import CaptureError
 from core.data.importers.panoptic import read_panoptic
@@ -42,8 +42,10 @@ except CaptureError as exc:
     what = "CaptureError: " + exc.problems[0].message[:120]
 except Exception as exc:
     what = type(exc).__name__ + ": " + str(exc)[:120]
+# VmHWM, not ru_maxrss: Linux carries the forking parent's peak into a child's ru_maxrss.
+hwm = next(l for l in open("/proc/self/status") if l.startswith("VmHWM:"))
 print(json.dumps({"seconds": time.perf_counter() - t, "what": what,
-                  "peak_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}))
+                  "peak_mb": int(hwm.split()[1]) / 1024}))
 """
 
 
@@ -80,6 +82,7 @@ def fuzz(work: Path, examples: int, api_every: int, seed: int) -> dict:
     kinds = sorted(sources)
     counts: dict[str, collections.Counter] = {k: collections.Counter() for k in kinds}
     unexpected: list[dict] = []
+    errors: collections.Counter = collections.Counter()  # what escaped, by exception type
     client = _app(work / "data") if api_every else None
     for i in range(examples):
         kind = kinds[i % len(kinds)]
@@ -88,6 +91,8 @@ def fuzz(work: Path, examples: int, api_every: int, seed: int) -> dict:
         folder, done = mutated_copy(sources[kind], case / "src", seed + i)
         outcome, what = run_importer(sources[kind], folder, case / "out")
         counts[kind][outcome] += 1
+        if outcome == "unexpected":
+            errors[what.split("\n", 1)[0]] += 1
         if outcome == "unexpected" and len(unexpected) < 20:
             unexpected.append({"kind": kind, "seed": seed + i, "mutations": done, "what": what})
         if client is not None and i % api_every == 0:
@@ -101,7 +106,8 @@ def fuzz(work: Path, examples: int, api_every: int, seed: int) -> dict:
                                    "what": f"{r.status_code} {error}"})
         if (i + 1) % 500 == 0:
             print(f"  {i + 1} / {examples}", file=sys.stderr, flush=True)
-    return {"counts": {k: dict(v) for k, v in counts.items()}, "unexpected": unexpected}
+    return {"counts": {k: dict(v) for k, v in counts.items()}, "unexpected": unexpected,
+            "errors": dict(errors.most_common())}
 
 
 def big_meta(work: Path, frames: int, root: Path) -> dict:
@@ -159,6 +165,8 @@ def main() -> int:
     print(_table(result["counts"]))
     for case in result["unexpected"]:
         print(f"\n--- {case['kind']} seed {case['seed']} {case['mutations']}\n{case['what']}")
+    if result["errors"]:
+        print("\nunexpected, by type:", json.dumps(result["errors"]))
     for big in result["big"]:
         print("\nbig train_meta.json:", json.dumps(big))
     print(f"\n{result['seconds']} s")

@@ -271,7 +271,8 @@ READER = {"colmap-text": "colmap", "colmap-binary": "colmap"}
 def run_importer(source: Source, folder: Path, out: Path) -> tuple[str, str]:
     """("imported" | "refused" | "unexpected", what) of reading the mutated `folder` with the
     source's reader (canonical: validated): refused means a CaptureError whose every problem
-    has a message and names a file of the source; anything else raised is unexpected."""
+    has a message and names a file of the source; anything else raised is unexpected (`what`:
+    its type on the first line, then the traceback)."""
     import traceback
 
     from core.data import CaptureError, check_capture, import_capture
@@ -287,8 +288,11 @@ def run_importer(source: Source, folder: Path, out: Path) -> tuple[str, str]:
         bad = [p for p in exc.problems if not p.message or os.path.isabs(p.path) and not (
             p.path.startswith(str(folder)) or p.path.startswith(str(out)))]
         if not exc.problems or bad:
-            return "unexpected", f"a CaptureError without a message or a file: {bad}"
+            return "unexpected", f"CaptureError without a message or a file\n{bad}"
         return "refused", str(exc.problems[0])
     except Exception as exc:  # noqa: BLE001 - what the fuzz is looking for
-        return "unexpected", "".join(traceback.format_exception(exc))[-3000:]
+        kind = type(exc)
+        name = kind.__name__ if kind.__module__ == "builtins" else \
+            f"{kind.__module__}.{kind.__qualname__}"
+        return "unexpected", f"{name}\n" + "".join(traceback.format_exception(exc))[-3000:]
     return "imported", ""
