@@ -12,6 +12,7 @@ from pydantic_core import PydanticCustomError
 from core.config import schema
 from core.config.base import AsTuple, StrictModel
 from core.data.importers import FORMATS
+from core.data.rules import unprintable_at
 from service.errors import ErrorInfo
 from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJobParams
 
@@ -38,7 +39,7 @@ MAX_NAME = 256
 
 
 def _printable(value: str) -> str:
-    bad = next((i for i, c in enumerate(value) if not c.isprintable()), None)
+    bad = unprintable_at(value)  # the one rule, core's: importers hold source names to it too
     if bad is not None:
         raise PydanticCustomError(
             "name_printable", "a name takes printable characters only (no control, format or "

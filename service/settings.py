@@ -7,6 +7,7 @@ import functools
 
 from pydantic import Field
 
+from core.data.rules import MAX_METADATA_BYTES
 from worker.settings import WorkerSettings
 
 __all__ = ["ServiceSettings", "get_service_settings"]
@@ -54,8 +55,10 @@ class ServiceSettings(WorkerSettings):
     max_manifest_bytes: int = Field(256 * MiB, ge=1024)
     """Largest body of a capture manifest (POST /v1/captures, PATCH .../manifest): one of a
     million files is about 150 MiB."""
-    max_json_file_bytes: int = Field(256 * MiB, ge=1024)
-    """Largest .json file in a capture manifest (parsed whole, in memory, at commit)."""
+    max_json_file_bytes: int = Field(MAX_METADATA_BYTES, ge=1024, le=MAX_METADATA_BYTES)
+    """Largest .json file in a capture manifest (parsed whole, in memory, at commit): at most
+    core's limit on a metadata file (core.data.rules.MAX_METADATA_BYTES, 64 MiB), which the
+    commit applies anyway, so a larger file is refused when it is declared."""
     commit_wait_seconds: float = Field(20.0, ge=0)
     """How long POST /v1/captures/{id}/commit waits for validation before it answers 202
     (state committing) and finishes in the background."""

@@ -18,6 +18,7 @@ import numpy as np
 
 from core.files import write_text
 from core.data.points import POINTS_PLY
+from core.data.rules import valid_name
 
 __all__ = [
     "CAPTURE_JSON",
@@ -38,15 +39,6 @@ FORMAT_VERSION = 1
 IMAGE_EXTS: tuple[str, ...] = (".png", ".jpg", ".exr")
 MASK_EXTS: tuple[str, ...] = (".png",)
 NORMAL_EXTS: tuple[str, ...] = (".png", ".exr")
-
-# Frame and camera names become file names; this keeps them from naming a path outside the capture.
-_NAME_RE = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$")
-
-
-def valid_name(name: object) -> bool:
-    """True when ``name`` can be used as a frame or camera id (a single safe path component)."""
-    return isinstance(name, str) and bool(_NAME_RE.match(name)) and name not in (".", "..")
-
 
 @dataclass(frozen=True)
 class Problem:

@@ -90,11 +90,13 @@ def read_header(path: Path) -> ImageHeader:
                           ".png, .jpg, .exr or .hdr)")
     try:
         size = path.stat().st_size
+        if size == 0:
+            raise HeaderError("is empty (0 bytes)")
+        width, height = _READERS[fmt](path)
     except FileNotFoundError:
         raise HeaderError("file not found") from None
-    if size == 0:
-        raise HeaderError("is empty (0 bytes)")
-    width, height = _READERS[fmt](path)
+    except OSError as exc:  # a folder, a file that cannot be opened: never its path
+        raise HeaderError(f"cannot be read ({exc.strerror or type(exc).__name__})") from None
     if width <= 0 or height <= 0:
         raise HeaderError(f"has no pixels (its header says {width}x{height})")
     return ImageHeader(width, height, fmt)

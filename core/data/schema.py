@@ -22,6 +22,7 @@ from core.data.capture import (
     Problem,
     valid_name,
 )
+from core.data.rules import json_values_problem, read_bounded
 
 __all__ = [
     "extrinsics_problems",
@@ -37,15 +38,21 @@ _ROTATION_TOL = 1e-4
 
 def read_json(path: Path) -> Any:
     """The JSON document in ``path``; ValueError saying what is wrong (never naming the path:
-    callers name the file) when it cannot be read, is not UTF-8, not JSON, or nested too deeply
-    for the parser."""
+    callers name the file) when it is larger or holds more values than a metadata file may
+    (core.data.rules, checked before it is parsed), cannot be read, is not UTF-8, not JSON,
+    or nested too deeply for the parser."""
+    data = read_bounded(Path(path))
+    problem = json_values_problem(data)
+    if problem is not None:
+        raise ValueError(problem)
     try:
-        return json.loads(Path(path).read_text(encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        text = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        raise ValueError(f"cannot parse JSON: {text}") from None
+        return json.loads(data.decode("utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ValueError(f"cannot parse JSON: {exc}") from None
     except RecursionError:
         raise ValueError("cannot parse JSON: nested too deeply") from None
+    except ValueError as exc:  # an integer of more digits than Python converts
+        raise ValueError(f"cannot parse JSON: {exc}") from None
 
 
 def load_capture(root: str | os.PathLike[str]) -> Capture:
@@ -225,21 +232,24 @@ def intrinsics_problems(K: np.ndarray | None) -> list[str]:
     return out
 
 
-def extrinsics_problems(w2c: np.ndarray | None) -> list[str]:
-    """Why ``w2c`` is not a rigid world-to-camera transform (empty when it is)."""
+def extrinsics_problems(w2c: np.ndarray | None, name: str = "world_to_camera") -> list[str]:
+    """Why ``w2c`` (called `name` in the messages) is not a rigid transform (empty when it
+    is)."""
     if w2c is None:
-        return ["world_to_camera must be a 4x4 matrix of numbers"]
+        return [f"{name} must be a 4x4 matrix of numbers"]
     if not np.all(np.isfinite(w2c)):
-        return ["world_to_camera has non-finite entries"]
+        return [f"{name} has non-finite entries"]
     out = []
     if np.abs(w2c[3] - np.array([0, 0, 0, 1.0])).max() > 1e-9:
-        out.append(f"world_to_camera last row must be [0,0,0,1], got {w2c[3].tolist()}")
+        out.append(f"{name} last row must be [0,0,0,1], got {w2c[3].tolist()}")
     R = w2c[:3, :3]
-    err = float(np.abs(R @ R.T - np.eye(3)).max())
-    if err > _ROTATION_TOL or np.linalg.det(R) <= 0:
+    with np.errstate(all="ignore"):  # huge entries overflow to inf: not a rotation either
+        err = float(np.abs(R @ R.T - np.eye(3)).max())
+        det = float(np.linalg.det(R))
+    if not err <= _ROTATION_TOL or not det > 0:
         out.append(
-            f"world_to_camera rotation is not a rotation (|R R^T - I| = {err:.2e}, det = "
-            f"{np.linalg.det(R):.4f}); expected orthonormal with det +1"
+            f"{name} rotation is not a rotation (|R R^T - I| = {err:.2e}, det = "
+            f"{det:.4f}); expected orthonormal with det +1"
         )
     return out
 
@@ -247,7 +257,7 @@ def extrinsics_problems(w2c: np.ndarray | None) -> list[str]:
 def _float_array(value: Any, shape: tuple[int, ...]) -> np.ndarray | None:
     try:
         arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # not numbers, ragged, or past float64
         return None
     if arr.shape != shape:
         return None

@@ -176,7 +176,9 @@ class Uploads(Http):
             cap = self.capture(capture_id)
         if cap["state"] == "uploading" and cap.get("error"):
             e = cap["error"]
-            raise ApiError(422 if e["code"] == "invalid_capture" else 500, e["code"],
+            # The server's rule (service.upload.commit.commit_status): the files decide these.
+            status = 422 if e["code"] in ("invalid_capture", "import_failed") else 500
+            raise ApiError(status, e["code"],
                            e["message"], e.get("retryable", False), e.get("details"))
         if cap["state"] != "ready":
             raise TimeoutError(f"capture {capture_id} is still {cap['state']} after "

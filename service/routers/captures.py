@@ -35,7 +35,7 @@ from service.schemas import (
     manifest_entries,
 )
 from service.upload.archive import extract, inspect_zip, spool
-from service.upload.commit import OWNER_KEY, begin_commit, run_commit
+from service.upload.commit import OWNER_KEY, begin_commit, commit_status, run_commit
 from service.upload.manifest import check_manifest
 from service.upload.staging import Manifest, file_states
 from worker.models import Capture, Job, Upload
@@ -213,8 +213,7 @@ def commit_capture(capture_id: str, services: ServicesDep, tenant: TenantDep) ->
     c = get_capture(services.store, capture_id, tenant)
     out = capture_out(services, c)
     if c.state == "uploading" and c.error:
-        status = 422 if c.error.get("code") == "invalid_capture" else 500
-        raise ApiError(status, c.error["message"], code=c.error["code"],
+        raise ApiError(commit_status(c.error), c.error["message"], code=c.error["code"],
                        retryable=c.error.get("retryable", False),
                        details=c.error.get("details", []))
     return JSONResponse(out.model_dump(mode="json"), status_code=200 if c.state == "ready" else 202)
@@ -279,7 +278,7 @@ def _commit_archive(services: Services, tenant: str, archive, fmt: str, name: st
         c = get_capture(services.store, capture_id, tenant)
         if c.state != "ready":
             error = c.error or {"code": "internal", "message": "commit failed"}
-            raise ApiError(422 if error["code"] == "invalid_capture" else 500, error["message"],
+            raise ApiError(commit_status(error), error["message"],
                            code=error["code"], retryable=error.get("retryable", False),
                            details=error.get("details", []))
         return capture_out(services, c)

@@ -11,8 +11,10 @@ otherwise answers 202 (state committing). A commit whose process died is noticed
 from __future__ import annotations
 
 import collections
+import errno
 import logging
 import os
+import secrets
 import shutil
 import threading
 from pathlib import Path
@@ -28,10 +30,16 @@ from worker.models import Capture, Upload, utcnow
 from worker.redact import SERVER, redact
 from worker.store import Owner
 
-__all__ = ["Committer", "begin_commit", "missing_files", "recover_commits", "run_commit"]
+__all__ = ["INPUT_CODES", "Committer", "begin_commit", "commit_status", "missing_files",
+           "recover_commits", "run_commit"]
 
 log = logging.getLogger("dgs.service")
 OWNER_KEY = "commit_owner"
+INPUT_CODES = ("invalid_capture", "import_failed")
+"""Error codes of a commit that the client's files decide (answered 422, not retryable)."""
+_TRANSIENT_ERRNOS = {errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EROFS, errno.EMFILE,
+                     errno.ENFILE, errno.ENOMEM, errno.EAGAIN, errno.EBUSY, errno.ETIMEDOUT,
+                     errno.ESTALE}
 
 
 def missing_files(services: Services, capture_id: str) -> list[str]:
@@ -144,40 +152,76 @@ def freeze(services: Services, root: Path, capture_id: str) -> None:
         services.blobs.put_file(f"{prefix}/{path.relative_to(root).as_posix()}", path)
 
 
+def commit_status(error: dict[str, Any]) -> int:
+    """The HTTP status of a failed commit's recorded error: 422 when the client's files decide
+    the outcome (`INPUT_CODES`: the same files always fail the same way, so nothing invites a
+    retry, which clients do for every 5xx), 500 when the server's disk or store failed."""
+    return 422 if error.get("code") in INPUT_CODES else 500
+
+
+def _validated(src: Path, out: Path, fmt: str, limit: int):
+    """(capture, its root) of the received files: checked in place (canonical) or imported
+    into `out`."""
+    if fmt == "canonical":
+        return check_capture(src, max_pixels=limit), src
+    shutil.rmtree(out, ignore_errors=True)
+    return import_capture(src, out, fmt, link=True, max_pixels=limit), out
+
+
+def _input_error(exc: CaptureError, roots: list) -> dict[str, Any]:
+    details = [{"path": redact(p.path, roots), "message": redact(p.message, roots)}
+               for p in exc.problems]
+    first = f"{details[0]['path']}: {details[0]['message']}" if details else "invalid"
+    more = f" (and {len(details) - 1} more)" if len(details) > 1 else ""
+    return {"code": "invalid_capture", "retryable": False,
+            "message": f"not a valid capture: {first}{more}", "details": details[:1000]}
+
+
+def _bug(capture_id: str, fmt: str, exc: Exception, roots: list) -> dict[str, Any]:
+    """An importer or the validation raised something else than CaptureError on the client's
+    files: a bug, logged with its traceback under a reference; answered 422 `import_failed`
+    (not retryable: the same files fail the same way), never 500 retryable (docs/decisions/
+    2026-11-29-importers-fail-closed.md)."""
+    ref = secrets.token_hex(4)
+    log.error("capture %s: the %s importer failed on the client's files (ref %s)", capture_id,
+              fmt, ref, exc_info=exc)
+    what = redact(f"{type(exc).__name__}: {exc}", roots)[:300]
+    step = "validation" if fmt == "canonical" else f"the {fmt} importer"
+    return {"code": "import_failed", "retryable": False, "details": [],
+            "message": f"{step} failed on these files ({what}); this is a bug in "
+                       f"the server, logged as {ref}. Committing the same files again gives "
+                       "the same answer: change them, or report the bug with the reference"}
+
+
 def run_commit(services: Services, capture_id: str) -> None:
     """Validate and freeze a committing capture; records the outcome (never raises)."""
     src = services.staging.files_dir(capture_id)
     out = services.staging.capture_dir(capture_id) / "canonical"
     with services.store.session(write=False) as s:
         fmt = s.scalar(select(Capture.format).where(Capture.id == capture_id))
-    limit = services.settings.max_image_pixels
     # Problems name the client's files (manifest paths), whether they are in the received
     # folder or the imported copy; nothing else of the server.
     roots = [(src, ""), (out, ""), (services.settings.data_dir, SERVER),
              (services.settings.scratch, SERVER)]
     try:
         fmt = _resolve_format(fmt, src)
-        if fmt == "canonical":
-            capture, root = check_capture(src, max_pixels=limit), src
-        else:
-            shutil.rmtree(out, ignore_errors=True)
-            capture, root = import_capture(src, out, fmt, link=True, max_pixels=limit), out
+        capture, root = _validated(src, out, fmt, services.settings.max_image_pixels)
         summary = summarize(capture, fmt)
-        freeze(services, root, capture_id)
     except CaptureError as exc:
-        details = [{"path": redact(p.path, roots), "message": redact(p.message, roots)}
-                   for p in exc.problems]
-        first = f"{details[0]['path']}: {details[0]['message']}" if details else "invalid"
-        more = f" (and {len(details) - 1} more)" if len(details) > 1 else ""
-        _fail(services, capture_id, {"code": "invalid_capture", "retryable": False,
-                                     "message": f"not a valid capture: {first}{more}",
-                                     "details": details[:1000]})
+        _fail(services, capture_id, _input_error(exc, roots))
         return
+    except Exception as exc:
+        if not _transient(exc):
+            _fail(services, capture_id, _bug(capture_id, fmt, exc, roots))
+            return
+        log.exception("capture %s: commit failed", capture_id)
+        _fail(services, capture_id, _internal(exc, roots))
+        return
+    try:
+        freeze(services, root, capture_id)
     except Exception as exc:  # disk full, store unreachable: the client may commit again
         log.exception("capture %s: commit failed", capture_id)
-        _fail(services, capture_id, {"code": "internal", "retryable": True, "details": [],
-                                     "message": redact(f"commit failed: {type(exc).__name__}: "
-                                                       f"{exc}", roots)})
+        _fail(services, capture_id, _internal(exc, roots))
         return
     with services.store.session() as s:
         s.execute(update(Capture).where(Capture.id == capture_id).values(
@@ -186,6 +230,18 @@ def run_commit(services: Services, capture_id: str) -> None:
                                        Upload.state == "receiving").values(state="terminated"))
     services.staging.remove(capture_id)
     services.manifests.forget(capture_id)
+
+
+def _transient(exc: Exception) -> bool:
+    """Whether `exc` is the server's trouble (a full or failing disk, memory), which may pass,
+    rather than something the client's files caused."""
+    return isinstance(exc, MemoryError) or (
+        isinstance(exc, OSError) and exc.errno in _TRANSIENT_ERRNOS)
+
+
+def _internal(exc: Exception, roots: list) -> dict[str, Any]:
+    return {"code": "internal", "retryable": True, "details": [],
+            "message": redact(f"commit failed: {type(exc).__name__}: {exc}", roots)}
 
 
 def _fail(services: Services, capture_id: str, error: dict[str, Any]) -> None:

@@ -3,9 +3,9 @@ of them touches a file system: relative POSIX paths that cannot leave the captur
 
 from __future__ import annotations
 
-import re
 from collections.abc import Iterable
 
+from core.data.rules import path_problem
 from service.errors import ApiError
 from service.settings import ServiceSettings
 
@@ -13,33 +13,8 @@ __all__ = ["CANONICAL_DIRS", "check_manifest", "check_path", "path_problem"]
 
 CANONICAL_DIRS = ("images", "masks", "normals")
 CANONICAL_FILES = ("capture.json", "points.ply")  # points.ply: optional seed points
-_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
-_DRIVE = re.compile(r"^[A-Za-z]:")
-MAX_PART_BYTES = 255  # a file name on every common file system
-
-
-def path_problem(path: object, max_bytes: int = 1024) -> str | None:
-    """What is wrong with `path` as a file inside a capture, or None when it is safe."""
-    if not isinstance(path, str) or not path:
-        return "empty path"
-    if _CONTROL.search(path):
-        return "contains a control character"
-    if "\\" in path:
-        return "contains a backslash; use '/' between folders"
-    if path.startswith("/") or _DRIVE.match(path):
-        return "is absolute; paths are relative to the capture folder"
-    if len(path.encode("utf-8", "surrogatepass")) > max_bytes:
-        return f"is longer than {max_bytes} bytes"
-    try:
-        path.encode("utf-8")
-    except UnicodeEncodeError:
-        return "is not valid UTF-8"
-    for part in path.split("/"):
-        if part in ("", ".", ".."):
-            return "has an empty, '.' or '..' component"
-        if len(part.encode("utf-8")) > MAX_PART_BYTES:
-            return f"has a component longer than {MAX_PART_BYTES} bytes"
-    return None
+# The rule itself is core's (core.data.rules.path_problem): the importers hold the paths their
+# metadata names to it too.
 
 
 def check_path(path: object, where: str, max_bytes: int = 1024) -> str:

@@ -113,7 +113,7 @@ def test_idr_errors_name_the_file(synth_capture: Path, tmp_path: Path):
     data = dict(np.load(tmp_path / "scan" / "cameras.npz"))
     del data["world_mat_1"]
     np.savez(tmp_path / "scan" / "cameras.npz", **data)
-    with pytest.raises(CaptureError, match="world_mat_1 missing"):
+    with pytest.raises(CaptureError, match="world_mat_1: is missing"):
         import_capture(tmp_path / "scan", tmp_path / "out")
     (tmp_path / "scan" / "cameras.npz").write_bytes(b"not an archive")
     with pytest.raises(CaptureError, match="cannot read as a .npz"):

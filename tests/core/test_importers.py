@@ -197,7 +197,7 @@ def test_transforms_errors_name_file_and_problem(tmp_path: Path, digest) -> None
         "missing.png" in text
         and "not a rotation" in text
         and "frames[2]" in text
-        and "non-finite" in text
+        and "frames[3].fl_x: Input should be a finite number" in text
     )
     assert not (tmp_path / "out").exists() and digest(src) == before
 
@@ -283,7 +283,8 @@ def test_actorshq_convention_and_errors(tmp_path: Path) -> None:
     with pytest.raises(CaptureError) as err:
         import_capture(src, tmp_path / "out2", "actorshq")
     assert "calibration.csv" in str(err.value) and (
-        "duplicate" in str(err.value) or "non-finite" in str(err.value)
+        "duplicate" in str(err.value)
+        or "row 3: fx: Input should be a finite number" in str(err.value)
     )
 
 

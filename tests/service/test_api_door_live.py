@@ -1,9 +1,10 @@
-"""Issue 20's bad requests (malformed uploads, server folders in messages, tus edge cases) and
-issue 32's nine findings replayed against a real `dgs serve` (API and embedded worker, fresh
-data folder): each bad request gets a 4xx that says what is wrong, naming files as the client
-knows them; nothing answers 500 and no answer, job error or artifact shows the server's data
-folder; a large body never holds the API; Location never comes from Host; submits with one
-Idempotency-Key make one job; a finished part names its worker."""
+"""Issue 20's bad requests (malformed uploads, server folders in messages, tus edge cases),
+issue 32's nine findings and issue 42's hostile capture files replayed against a real `dgs
+serve` (API and embedded worker, fresh data folder): each bad request gets a 4xx that says what
+is wrong, naming files (and, in a capture's metadata, fields) as the client knows them; nothing
+answers 500 and no answer, job error or artifact shows the server's data folder; a large body
+never holds the API; Location never comes from Host; submits with one Idempotency-Key make one
+job; a finished part names its worker."""
 
 from __future__ import annotations
 
@@ -21,6 +22,7 @@ from service_harness import TUS, capture_files, manifest_of, metadata, submit_to
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bad_inputs import HUGE, bad_variants, good_image, png_header  # noqa: E402
+from hostile_sources import ATTACKS, attacked  # noqa: E402
 from live_server import LiveServer, wait_for  # noqa: E402
 
 from core.rundir import ARTIFACT_KINDS  # noqa: E402
@@ -116,6 +118,30 @@ def test_a_capture_by_tus_names_its_bad_file_and_tus_edges_are_refused(live, syn
         **patch, "Upload-Offset": "100",
         "Upload-Checksum": "sha1 " + base64.b64encode(bytes(20)).decode()})
     assert "the sha1 of the 50 bytes sent does not match" in _refused(r, server, 460)["message"]
+
+
+@pytest.mark.parametrize("attack", ATTACKS, ids=lambda a: a.name)
+def test_hostile_capture_files_answer_422_naming_file_and_field(live, synth_capture, attack):
+    """Issue 42: each of the review's files, as a zip and through tus, answers 422 naming the
+    metadata file and the field (it answered 500 retryable); committing the same files again
+    answers the same 422, and the capture stays uploading with the error to read."""
+    server, http = live
+    files = attacked(synth_capture, attack)
+    expected = f"{attack.file}: {attack.message}"
+    error = _refused(http.post("/v1/captures/archive", params={"format": attack.fmt},
+                               content=_zip(files), headers=ZIP), server)
+    assert error["code"] == "invalid_capture" and expected in error["message"], error
+    assert not error["retryable"]
+    capture = http.post("/v1/captures", json={"format": attack.fmt,
+                                              "manifest": manifest_of(files)}).json()
+    for path, data in files.items():
+        _tus_upload(http, capture["id"], path, data)
+    first = _refused(http.post(f"/v1/captures/{capture['id']}/commit"), server)
+    assert first["code"] == "invalid_capture" and expected in first["message"], first
+    assert any(d["path"] == attack.file for d in first["details"])
+    assert _refused(http.post(f"/v1/captures/{capture['id']}/commit"), server) == first
+    state = http.get(f"/v1/captures/{capture['id']}").json()
+    assert state["state"] == "uploading" and state["error"] == first
 
 
 def test_a_failed_job_names_the_capture_file_not_the_server_folder(live, synth_capture):

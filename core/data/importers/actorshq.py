@@ -10,13 +10,17 @@ height. Images are ``rgbs/<cam>/<cam>_rgb<frame>.(jpg|png)``, masks
 from __future__ import annotations
 
 import csv
+import io
+import itertools
 import re
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import cv2
 import numpy as np
+from pydantic import AfterValidator, ConfigDict
+from pydantic_core import PydanticCustomError
 
 from core.data.capture import (
     Camera,
@@ -30,6 +34,16 @@ from core.data.importers.common import (
     safe_name,
     source_transform,
 )
+from core.data.importers.records import (
+    MAX_CAMERAS,
+    Number,
+    Record,
+    Side,
+    SourceName,
+    checked,
+    read_text,
+)
+from core.data.rules import path_problem
 from core.data.schema import extrinsics_problems, intrinsics_problems
 
 __all__ = ["export_actorshq", "find_calibration", "read_actorshq"]
@@ -59,31 +73,57 @@ def _axis_angle(R: np.ndarray) -> np.ndarray:
     return cv2.Rodrigues(np.asarray(R, dtype=np.float64))[0].ravel()
 
 
-def _parse_row(row: dict[str, str], where: str, problems: list[Problem]) -> Camera | None:
-    try:
-        v = {k: float(row[k]) for k in _COLUMNS[1:]}
-        w, h = int(v["w"]), int(v["h"])
-    except (KeyError, TypeError, ValueError) as exc:
-        problems.append(Problem(where, f"bad value ({exc})"))
-        return None
-    K = np.array([[v["fx"] * w, 0, v["px"] * w], [0, v["fy"] * h, v["py"] * h], [0, 0, 1.0]])
+def _component(value: str) -> str:
+    problem = path_problem(value)
+    if problem is not None or "/" in value:
+        raise PydanticCustomError("source_path", "{name} names a folder under rgbs/ and masks/: "
+                                  "one file name, {problem}", {"name": repr(value)[:60],
+                                                              "problem": problem or "no '/'"})
+    return value
+
+
+class ActorsHQRow(Record):
+    """A row of calibration.csv. CSV cells are text, so numbers are parsed from it (and must
+    be finite numbers: "nan" or "1e999" are refused)."""
+
+    model_config = ConfigDict(strict=False, frozen=True, extra="forbid")
+    name: Annotated[SourceName, AfterValidator(_component)]
+    w: Side
+    h: Side
+    rx: Number
+    ry: Number
+    rz: Number
+    tx: Number
+    ty: Number
+    tz: Number
+    fx: Number
+    fy: Number
+    px: Number
+    py: Number
+
+
+def _parse_row(row: ActorsHQRow, where: str, problems: list[Problem]) -> Camera | None:
+    w, h = row.w, row.h
+    K = np.array([[row.fx * w, 0, row.px * w], [0, row.fy * h, row.py * h], [0, 0, 1.0]])
     c2w = np.eye(4)
-    c2w[:3, :3] = _rodrigues(np.array([v["rx"], v["ry"], v["rz"]]))
-    c2w[:3, 3] = [v["tx"], v["ty"], v["tz"]]
-    w2c = np.linalg.inv(c2w) if np.all(np.isfinite(c2w)) else c2w
-    bad = intrinsics_problems(K) + extrinsics_problems(w2c)
-    if w <= 0 or h <= 0:
-        bad.append(f"w and h must be positive, got {w}x{h}")
+    with np.errstate(all="ignore"):  # a huge rotation vector overflows: refused below
+        c2w[:3, :3] = _rodrigues(np.array([row.rx, row.ry, row.rz]))
+    c2w[:3, 3] = [row.tx, row.ty, row.tz]
+    bad = intrinsics_problems(K) + extrinsics_problems(c2w, "the camera's pose")
     problems.extend(Problem(where, m) for m in bad)
-    return None if bad else Camera(safe_name(row["name"]), w, h, K, w2c, None)
+    return None if bad else Camera(safe_name(row.name), w, h, K, np.linalg.inv(c2w), None)
 
 
 def _read_csv(path: Path, problems: list[Problem]) -> tuple[list[Camera], dict[str, str]]:
     try:
-        with open(path, newline="") as fh:
-            rows = list(csv.DictReader(fh))
-    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        text = read_text(path)
+        rows = list(itertools.islice(csv.DictReader(io.StringIO(text, newline="")),
+                                     MAX_CAMERAS + 1))
+    except csv.Error as exc:
         problems.append(Problem(str(path), f"cannot read CSV: {exc}"))
+        return [], {}
+    except CaptureError as exc:
+        problems.extend(exc.problems)
         return [], {}
     header = set(rows[0]) if rows else set()
     missing = [c for c in _COLUMNS if c not in header]
@@ -92,15 +132,21 @@ def _read_csv(path: Path, problems: list[Problem]) -> tuple[list[Camera], dict[s
             Problem(str(path), f"expected columns {','.join(_COLUMNS)}; missing {missing}")
         )
         return [], {}
+    if len(rows) > MAX_CAMERAS:
+        problems.append(Problem(str(path), f"lists more than {MAX_CAMERAS} cameras"))
+        return [], {}
     cameras, names = [], {}
-    for i, row in enumerate(rows):
-        cam = _parse_row(row, f"{path} row {i + 2} ({row.get('name')})", problems)
+    for i, raw in enumerate(rows):
+        row = checked(ActorsHQRow, {k: raw.get(k) for k in _COLUMNS}, path, f"row {i + 2}",
+                      problems)
+        cam = None if row is None else _parse_row(row, f"{path} row {i + 2} ({row.name})",
+                                                  problems)
         if cam is None:
             continue
         if cam.id in names:
             problems.append(Problem(str(path), f"row {i + 2}: duplicate camera id {cam.id!r}"))
             continue
-        names[cam.id] = row["name"]
+        names[cam.id] = row.name
         cameras.append(cam)
     return cameras, names
 
@@ -115,7 +161,8 @@ def _find_frames(
         if not folder.is_dir():
             problems.append(Problem(str(folder), f"image folder of camera {name!r} not found"))
             continue
-        pattern = re.compile(rf"^{re.escape(name)}_rgb(\d+)\.(jpg|jpeg|png)$", re.IGNORECASE)
+        pattern = re.compile(rf"^{re.escape(name)}_rgb([0-9]{{1,9}})\.(jpg|jpeg|png)$",
+                             re.IGNORECASE | re.ASCII)
         for path in sorted(folder.iterdir()):
             m = pattern.match(path.name)
             if m:

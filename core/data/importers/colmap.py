@@ -14,7 +14,7 @@ from __future__ import annotations
 import shutil
 import struct
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
 import numpy as np
 
@@ -25,28 +25,20 @@ from core.data.capture import (
     Problem,
 )
 from core.data.importers.common import ImportedCapture, SourceView, safe_name, source_transform
+from core.data.importers.colmap_model import (
+    MAX_MODEL_BYTES,
+    MODEL_IDS,
+    MODELS,
+    ColmapCamera,
+    ColmapImage,
+    read_model,
+)
 from core.data.points import PointCloud, read_colmap_points, read_points_ply, write_colmap_points
+from core.data.rules import name_problem
 from core.data.schema import extrinsics_problems, intrinsics_problems
 from core.rotations import quat_to_rotmat, rotmat_to_quat
 
 __all__ = ["export_colmap", "find_model", "read_colmap"]
-
-# model id: (name, number of params)
-_MODELS: dict[int, tuple[str, int]] = {
-    0: ("SIMPLE_PINHOLE", 3),
-    1: ("PINHOLE", 4),
-    2: ("SIMPLE_RADIAL", 4),
-    3: ("RADIAL", 5),
-    4: ("OPENCV", 8),
-    5: ("OPENCV_FISHEYE", 8),
-    6: ("FULL_OPENCV", 12),
-    7: ("FOV", 5),
-    8: ("SIMPLE_RADIAL_FISHEYE", 4),
-    9: ("RADIAL_FISHEYE", 5),
-    10: ("THIN_PRISM_FISHEYE", 12),
-}
-_MODEL_IDS = {name: mid for mid, (name, _) in _MODELS.items()}
-
 
 def find_model(src: Path) -> Path | None:
     """The folder holding cameras/images model files, searched where COLMAP usually puts it."""
@@ -58,6 +50,10 @@ def find_model(src: Path) -> Path | None:
 
 
 def _intrinsics(model: str, p: list[float]) -> tuple[np.ndarray, tuple | None]:
+    if model not in MODEL_IDS:
+        raise ValueError(f"camera model {model[:40]!r} is not one of COLMAP's")
+    if len(p) != MODELS[MODEL_IDS[model]][1]:
+        raise ValueError(f"{model} takes {MODELS[MODEL_IDS[model]][1]} parameters, got {len(p)}")
     if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
         fx = fy = p[0]
         cx, cy = p[1], p[2]
@@ -77,77 +73,6 @@ def _intrinsics(model: str, p: list[float]) -> tuple[np.ndarray, tuple | None]:
     return K, (tuple(float(d) for d in dist) if any(dist) else None)
 
 
-def _read_cameras_txt(path: Path) -> dict[int, tuple[str, int, int, list[float]]]:
-    out = {}
-    for line in path.read_text().splitlines():
-        if line.strip() and not line.startswith("#"):
-            f = line.split()
-            out[int(f[0])] = (f[1], int(f[2]), int(f[3]), [float(x) for x in f[4:]])
-    return out
-
-
-def _read_images_txt(path: Path) -> list[tuple[int, np.ndarray, np.ndarray, int, str]]:
-    lines = [ln for ln in path.read_text().splitlines() if not ln.startswith("#")]
-    out = []
-    # Each image is two lines; the second (2D points) may be empty, so pair by position.
-    for header in lines[0::2]:
-        if not header.strip():
-            continue
-        f = header.split(maxsplit=9)
-        out.append((int(f[0]), np.array(f[1:5], float), np.array(f[5:8], float), int(f[8]), f[9]))
-    return out
-
-
-def _unpack(fh: BinaryIO, fmt: str) -> tuple:
-    size = struct.calcsize(fmt)
-    data = fh.read(size)
-    if len(data) != size:
-        raise ValueError("file ends early (truncated?)")
-    return struct.unpack(fmt, data)
-
-
-def _read_cameras_bin(path: Path) -> dict[int, tuple[str, int, int, list[float]]]:
-    out = {}
-    with open(path, "rb") as fh:
-        (n,) = _unpack(fh, "<Q")
-        for _ in range(n):
-            cid, mid, w, h = _unpack(fh, "<iiQQ")
-            if mid not in _MODELS:
-                raise ValueError(f"unknown camera model id {mid}")
-            name, nparams = _MODELS[mid]
-            out[cid] = (name, w, h, list(_unpack(fh, f"<{nparams}d")))
-    return out
-
-
-def _read_images_bin(path: Path) -> list[tuple[int, np.ndarray, np.ndarray, int, str]]:
-    out = []
-    with open(path, "rb") as fh:
-        (n,) = _unpack(fh, "<Q")
-        for _ in range(n):
-            vals = _unpack(fh, "<i7di")
-            name = b""
-            while (ch := fh.read(1)) not in (b"\x00", b""):
-                name += ch
-            (npts,) = _unpack(fh, "<Q")
-            fh.seek(24 * npts, 1)
-            out.append((vals[0], np.array(vals[1:5]), np.array(vals[5:8]), vals[8], name.decode()))
-    return out
-
-
-def _read_model(model: Path) -> tuple[dict, list, str]:
-    ext = ".txt" if (model / "cameras.txt").is_file() else ".bin"
-    for name in ("cameras", "images"):
-        path = model / f"{name}{ext}"
-        try:
-            if name == "cameras":
-                cams = _read_cameras_txt(path) if ext == ".txt" else _read_cameras_bin(path)
-            else:
-                images = _read_images_txt(path) if ext == ".txt" else _read_images_bin(path)
-        except (OSError, ValueError, IndexError, UnicodeDecodeError, struct.error) as exc:
-            raise CaptureError([Problem(str(path), f"cannot parse COLMAP {name}: {exc}")]) from None
-    return cams, images, ext
-
-
 def read_colmap(src: str | Path) -> ImportedCapture:
     """Read a COLMAP source folder; raises :class:`CaptureError` listing every problem."""
     src = Path(src)
@@ -156,7 +81,7 @@ def read_colmap(src: str | Path) -> ImportedCapture:
         raise CaptureError(
             [Problem(str(src), "no COLMAP model (cameras/images .txt or .bin) found")]
         )
-    cams, images, ext = _read_model(model)
+    cams, images, ext = read_model(model)
     problems: list[Problem] = []
     posed = _pose_images(model, ext, cams, images, problems)
     if not posed and not problems:
@@ -166,6 +91,9 @@ def read_colmap(src: str | Path) -> ImportedCapture:
     grouping = _group_frames(posed)
     if grouping is None:
         grouping = {name: ("000000", name.rsplit(".", 1)[0]) for name, *_ in posed}
+    problems += _name_problems(grouping, str(model / f"images{ext}"))
+    if problems:
+        raise CaptureError(problems)
     image_root = src / "images" if (src / "images").is_dir() else src
     cameras: dict[str, Camera] = {}
     views: list[SourceView] = []
@@ -199,37 +127,67 @@ def read_colmap(src: str | Path) -> ImportedCapture:
         ),
         "views": record_views,
     }
-    try:
-        points = read_colmap_points(model)
-    except ValueError as exc:
-        raise CaptureError([Problem(str(model), f"cannot parse COLMAP points3D: {exc}")]) from None
+    points = _points(model)
     record["points"] = 0 if points is None else len(points)
     frames = sorted({v.frame for v in views})
     cam_list = list(cameras.values())
     return ImportedCapture(cam_list, frames, _estimate_up(cam_list), views, record, meta, points)
 
 
-def _pose_images(model: Path, ext: str, cams: dict, images: list, problems: list[Problem]) -> list:
+def _points(model: Path) -> PointCloud | None:
+    """points3D (text or binary), bounded by its size before it is read."""
+    try:
+        for path in (model / "points3D.txt", model / "points3D.bin"):
+            if path.is_file() and path.stat().st_size > MAX_MODEL_BYTES:
+                raise ValueError(f"{path.name} is {path.stat().st_size} bytes; this COLMAP "
+                                 f"file may have {MAX_MODEL_BYTES}")
+        return read_colmap_points(model)
+    except ValueError as exc:
+        raise CaptureError([Problem(str(model), f"cannot parse COLMAP points3D: {exc}")]) from None
+
+
+def _pose_images(model: Path, ext: str, cams: dict[int, ColmapCamera],
+                 images: list[ColmapImage], problems: list[Problem]) -> list:
     """(name, image id, COLMAP camera id, Camera) per image; bad entries become problems."""
     where = str(model / f"images{ext}")
     out = []
-    for image_id, q, t, cam_id, name in images:
-        label = f"image {image_id} ({name})"
-        if cam_id not in cams:
-            problems.append(Problem(where, f"{label}: camera id {cam_id} not in cameras{ext}"))
+    for image in images:
+        label = f"image {image.id} ({image.name})"
+        cam = cams.get(image.camera_id)
+        if cam is None:
+            problems.append(Problem(where, f"{label}: camera id {image.camera_id} not in "
+                                           f"cameras{ext}"))
             continue
-        model_name, w, h, params = cams[cam_id]
         try:
-            K, dist = _intrinsics(model_name, params)
-        except (ValueError, IndexError) as exc:
-            problems.append(Problem(str(model / f"cameras{ext}"), f"camera {cam_id}: {exc}"))
+            K, dist = _intrinsics(cam.model, list(cam.params))
+        except ValueError as exc:
+            problems.append(Problem(str(model / f"cameras{ext}"), f"camera {cam.id}: {exc}"))
+            continue
+        q = np.asarray(image.qvec, np.float64)
+        with np.errstate(all="ignore"):  # a huge quaternion overflows: refused below
+            norm = float(np.linalg.norm(q))
+        if not (np.isfinite(norm) and norm > 1e-12):
+            problems.append(Problem(where, f"{label}: qvec must be a non-zero quaternion of "
+                                           f"finite size, got {list(image.qvec)}"))
             continue
         w2c = np.eye(4)
-        w2c[:3, :3] = quat_to_rotmat(q) if np.linalg.norm(q) > 0 else np.zeros((3, 3))
-        w2c[:3, 3] = t
+        w2c[:3, :3] = quat_to_rotmat(q / norm)
+        w2c[:3, 3] = image.tvec
         bad = intrinsics_problems(K) + extrinsics_problems(w2c)
         problems.extend(Problem(where, f"{label}: {m}") for m in bad)
-        out.append((name, image_id, cam_id, Camera("x", int(w), int(h), K, w2c, dist)))
+        out.append((image.name, image.id, cam.id,
+                    Camera("x", cam.width, cam.height, K, w2c, dist)))
+    return out
+
+
+def _name_problems(grouping: dict[str, tuple[str, str]], where: str) -> list[Problem]:
+    """The image names whose frame or camera part cannot become an id."""
+    out = []
+    for name, parts in grouping.items():
+        for what, part in zip(("frame", "camera"), parts):
+            problem = name_problem(part)
+            if problem is not None:
+                out.append(Problem(where, f"{name!r}: {what} {part!r} {problem}"))
     return out
 
 
@@ -321,7 +279,7 @@ def _write_bin(model: Path, cams: dict, images: list) -> None:
     with open(model / "cameras.bin", "wb") as fh:
         fh.write(struct.pack("<Q", len(cams)))
         for cid, (name, params, w, h) in cams.items():
-            fh.write(struct.pack("<iiQQ", cid, _MODEL_IDS[name], w, h))
+            fh.write(struct.pack("<iiQQ", cid, MODEL_IDS[name], w, h))
             fh.write(struct.pack(f"<{len(params)}d", *params))
     with open(model / "images.bin", "wb") as fh:
         fh.write(struct.pack("<Q", len(images)))

@@ -25,10 +25,10 @@ from core.data.capture import (
     CaptureError,
     Problem,
     save_capture,
-    valid_name,
 )
 from core.data.headers import HeaderError, ImageHeader, check_pixels, read_other_header
 from core.data.points import POINTS_PLY, PointCloud, write_points_ply
+from core.data.rules import safe_name  # the one rule for ids; the importers take it from here
 from core.data.validate import validate_capture
 
 __all__ = [
@@ -91,14 +91,6 @@ def source_transform(camera_axes: np.ndarray, pose: str) -> dict[str, Any]:
         "source_camera_from_camera": np.asarray(camera_axes, dtype=np.float64).tolist(),
         "pose": pose,
     }
-
-
-def safe_name(text: str) -> str:
-    """A frame/camera id derived from free text (a file path, a CSV name)."""
-    out = "".join(ch if ch.isalnum() or ch in "_.-" else "_" for ch in text).strip(".")
-    out = out.lstrip("_.-") or "x"
-    assert valid_name(out), out
-    return out
 
 
 def _target_ext(path: Path) -> str | None:

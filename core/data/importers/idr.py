@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import TypeAdapter
 
 from core.data.capture import Camera, Capture, CaptureError, Problem
 from core.data.images import ImageReadError, image_size
@@ -29,6 +30,8 @@ from core.data.importers.common import (
     safe_name,
     source_transform,
 )
+from core.data.importers.records import MAX_CAMERAS, checked, load_npz, matrix
+from core.data.rules import name_problem
 from core.data.schema import extrinsics_problems, intrinsics_problems
 
 __all__ = ["SKEW_TOLERANCE", "decompose_projection", "drop_skew", "export_idr",
@@ -87,49 +90,61 @@ def drop_skew(K: np.ndarray, tolerance: float = SKEW_TOLERANCE) -> tuple[np.ndar
     return out, f"skew {skew:.3g} px ({ratio:.2g} of fx) dropped"
 
 
+_WORLD_MAT = TypeAdapter(matrix(4, 4, least_rows=3))
+_SCALE_MAT = TypeAdapter(matrix(4, 4))
+
+
 def _sorted_files(folder: Path) -> list[Path]:
     if not folder.is_dir():
         return []
     return sorted(p for p in folder.iterdir() if p.suffix.lower() in _IMAGE_EXTS)
 
 
-def _load_npz(path: Path) -> dict[str, np.ndarray]:
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: np.asarray(data[k]) for k in data.files}
-    except (OSError, ValueError, EOFError) as exc:
-        raise CaptureError([Problem(str(path), f"cannot read as a .npz archive: {exc}")]) from None
+def _projection(i: int, name: str, mats: dict[str, np.ndarray], where: Path,
+                problems: list[Problem]) -> tuple[np.ndarray, np.ndarray] | None:
+    """(P = world_mat @ scale_mat, scale_mat) of camera i, its arrays parsed as matrices."""
+    if f"world_mat_{i}" not in mats:
+        problems.append(Problem(str(where), f"world_mat_{i}: is missing (image {name})"))
+        return None
+    n = len(problems)
+    world = checked(_WORLD_MAT, mats[f"world_mat_{i}"].tolist(), where, f"world_mat_{i}",
+                    problems)
+    scale = checked(_SCALE_MAT, mats[f"scale_mat_{i}"].tolist(), where, f"scale_mat_{i}",
+                    problems) if f"scale_mat_{i}" in mats else np.eye(4).tolist()
+    if len(problems) > n:
+        return None
+    with np.errstate(all="ignore"):  # huge entries overflow: refused just below
+        P = np.asarray(world, np.float64)[:3, :4] @ np.asarray(scale, np.float64)
+        det = float(np.linalg.det(P[:, :3])) if np.isfinite(P).all() else 0.0
+    if not abs(det) >= 1e-12:
+        problems.append(Problem(str(where), f"world_mat_{i} @ scale_mat_{i} is singular or "
+                                            "not finite"))
+        return None
+    return P, np.asarray(scale, np.float64)
 
 
 def _camera(i: int, name: str, mats: dict[str, np.ndarray], size: tuple[int, int],
-            where: str, problems: list[Problem]) -> tuple[Camera, np.ndarray, str | None] | None:
-    world = mats.get(f"world_mat_{i}")
-    if world is None:
-        problems.append(Problem(where, f"world_mat_{i} missing (image {name})"))
+            where: Path, problems: list[Problem]) -> tuple[Camera, np.ndarray, str | None] | None:
+    problem = name_problem(Path(name).stem)
+    if problem is not None:
+        problems.append(Problem(str(where.parent / "image" / name), f"image name {problem}"))
         return None
-    scale = mats.get(f"scale_mat_{i}", np.eye(4))
-    if world.shape not in ((3, 4), (4, 4)) or scale.shape != (4, 4):
-        problems.append(Problem(where, f"world_mat_{i} must be 3x4 or 4x4 and scale_mat_{i} 4x4, "
-                                       f"got {world.shape} and {scale.shape}"))
+    made = _projection(i, name, mats, where, problems)
+    if made is None:
         return None
-    if not (np.isfinite(world).all() and np.isfinite(scale).all()):
-        problems.append(Problem(where, f"world_mat_{i} or scale_mat_{i} has non-finite entries"))
-        return None
-    P = world[:3, :4].astype(np.float64) @ scale.astype(np.float64)
-    if abs(np.linalg.det(P[:, :3])) < 1e-12:
-        problems.append(Problem(where, f"world_mat_{i} @ scale_mat_{i} is singular"))
-        return None
-    K, w2c = decompose_projection(P)
+    P, scale = made
     try:
+        with np.errstate(all="ignore"):
+            K, w2c = decompose_projection(P)
         K, note = drop_skew(K)
-    except ValueError as exc:
-        problems.append(Problem(where, f"camera {i} ({name}): {exc}"))
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        problems.append(Problem(str(where), f"camera {i} ({name}): {exc}"))
         return None
     K[0, 2] += 0.5  # integer pixel centres in the source, +0.5 in ours (docs/design.md 3.1)
     K[1, 2] += 0.5
     K[1, 0] = K[2, 0] = K[2, 1] = 0.0
     bad = intrinsics_problems(K) + extrinsics_problems(w2c)
-    problems.extend(Problem(where, f"camera {i} ({name}): {m}") for m in bad)
+    problems.extend(Problem(str(where), f"camera {i} ({name}): {m}") for m in bad)
     return Camera(safe_name(Path(name).stem), size[0], size[1], K, w2c), scale, note
 
 
@@ -144,10 +159,13 @@ def read_idr(src: str | Path) -> ImportedCapture:
     problems: list[Problem] = []
     if not images:
         problems.append(Problem(str(root / "image"), "no images (image/*.png or .jpg) found"))
+    if len(images) > MAX_CAMERAS:
+        raise CaptureError([Problem(str(root / "image"), f"holds {len(images)} images; a "
+                                    f"capture may have {MAX_CAMERAS} cameras")])
     if masks and len(masks) != len(images):
         problems.append(Problem(str(root / "mask"), f"{len(masks)} masks for {len(images)} "
                                                     "images; expected one per image"))
-    mats = _load_npz(npz)
+    mats = load_npz(npz)
     cameras, views, notes, scales = [], [], {}, []
     for i, image in enumerate(images):
         try:
@@ -155,7 +173,7 @@ def read_idr(src: str | Path) -> ImportedCapture:
         except ImageReadError as exc:
             problems.append(Problem(str(exc.path), exc.message))
             continue
-        made = _camera(i, image.name, mats, size, str(npz), problems)
+        made = _camera(i, image.name, mats, size, npz, problems)
         if made is None:
             continue
         cam, scale, note = made

@@ -19,24 +19,77 @@ whose dome is reconstructed too: capture.json says ``"masks": "subject"`` (docs/
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import AfterValidator
+from pydantic_core import PydanticCustomError
 
 from core.data.capture import Camera, Capture, CaptureError, Problem
 from core.data.importers.common import ImportedCapture, SourceView, safe_name, source_transform
+from core.data.importers.records import (
+    MAX_CAMERAS,
+    MAX_FRAMES,
+    IdOrNumber,
+    Record,
+    Side,
+    SourcePath,
+    listof,
+    load_json,
+    load_npz,
+    matrix,
+    stem,
+)
 from core.data.points import PointCloud
+from core.data.rules import name_problem
 from core.data.schema import extrinsics_problems, intrinsics_problems
 
 __all__ = ["CALIBRATION_TOLERANCE", "export_panoptic", "find_meta", "read_panoptic"]
 
 _TRAIN, _TEST = "train_meta.json", "test_meta.json"
-_KEYS = ("w", "h", "k", "w2c", "fn", "cam_id")
 CALIBRATION_TOLERANCE = 1e-6
 """Largest difference (relative to the value's scale) between two frames' calibration of one
 camera that still counts as the same rig (the dataset repeats it to the last digit)."""
+
+
+def _fn(value: str) -> str:
+    parts = value.split("/")
+    if len(parts) != 2:
+        raise PydanticCustomError("source_path", "{fn} must be <camera folder>/<frame>.<ext>",
+                                  {"fn": repr(value)[:80]})
+    for what, name in (("camera folder", parts[0]), ("frame", stem(parts[1]))):
+        problem = name_problem(name)
+        if problem is not None:
+            raise PydanticCustomError("source_name", "{what} {name}: {problem}",
+                                      {"what": what, "name": repr(name)[:80], "problem": problem})
+    return value
+
+
+def _per_frame(item: Any) -> Any:
+    return listof(listof(item, MAX_CAMERAS), MAX_FRAMES)
+
+
+Fn = Annotated[SourcePath, AfterValidator(_fn)]
+_Ks, _W2Cs = _per_frame(matrix(3, 3)), _per_frame(matrix(4, 4))
+_Fns, _Ids = _per_frame(Fn), _per_frame(IdOrNumber)
+
+
+class PanopticMeta(Record):
+    """train_meta.json / test_meta.json: per frame t, lists over the split's cameras."""
+
+    w: Side
+    h: Side
+    k: _Ks
+    """k[t][i]: 3x3 intrinsics, integer pixel centres."""
+    w2c: _W2Cs
+    """w2c[t][i]: 4x4 world-to-camera, OpenCV axes."""
+    fn: _Fns
+    """fn[t][i]: the image, ``<camera folder>/<frame>.<ext>`` under ``ims/``."""
+    cam_id: _Ids
+    """cam_id[t][i]: the dataset's camera number (used in messages)."""
 
 
 def find_meta(src: Path) -> Path | None:
@@ -48,97 +101,84 @@ def find_meta(src: Path) -> Path | None:
     return path if path.is_file() else None
 
 
-def _load_meta(path: Path, problems: list[Problem]) -> dict | None:
-    try:
-        meta = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        problems.append(Problem(str(path), f"cannot read JSON: {exc}"))
-        return None
-    missing = [k for k in _KEYS if not isinstance(meta, dict) or k not in meta]
-    if missing:
-        problems.append(Problem(str(path), f"expected keys {', '.join(_KEYS)}; missing "
-                                f"{', '.join(missing)}"))
-        return None
-    lengths = {k: len(meta[k]) if isinstance(meta[k], list) else -1 for k in _KEYS[2:]}
-    if min(lengths.values()) < 1 or len(set(lengths.values())) != 1:
-        problems.append(Problem(str(path), "k, w2c, fn and cam_id must be lists with one entry "
-                                f"per frame, got lengths {lengths}"))
-        return None
-    return meta
+def _shape_problems(meta: PanopticMeta, path: Path) -> list[Problem]:
+    lengths = {k: len(getattr(meta, k)) for k in ("k", "w2c", "fn", "cam_id")}
+    if len(set(lengths.values())) != 1:
+        return [Problem(str(path), f"k, w2c, fn and cam_id must have one entry per frame, got "
+                                   f"lengths {lengths}")]
+    for t in range(lengths["fn"]):
+        per = {k: len(getattr(meta, k)[t]) for k in lengths}
+        if len(set(per.values())) != 1:
+            return [Problem(str(path), f"frame {t}: cam_id[{t}], k[{t}], w2c[{t}] and fn[{t}] "
+                                       f"must list the same cameras, got lengths {per}")]
+    return []
 
 
-def _frame_of(fn: str) -> tuple[str, str]:
-    """(camera folder, frame name) of a ``<cam>/<frame>.jpg`` entry."""
-    cam, _, name = str(fn).replace("\\", "/").rpartition("/")
-    return cam, name.rsplit(".", 1)[0]
+def _frames(meta: PanopticMeta, path: Path, problems: list[Problem]) -> list[str]:
+    """The frame name of each t, every entry of a frame naming it, each camera folder once a
+    frame and every frame the cameras of frame 0."""
+    names: dict[str, int] = {}  # frame name -> t (a dict: a list's `in` is quadratic)
+    rig = {fn.split("/")[0] for fn in meta.fn[0]}
+    for t, fns in enumerate(meta.fn):
+        folders = [fn.split("/")[0] for fn in fns]
+        frame = stem(fns[0].split("/")[1])
+        for i, fn in enumerate(fns):
+            if stem(fn.split("/")[1]) != frame:
+                problems.append(Problem(str(path), f"fn[{t}][{i}]: {fn!r} names another frame "
+                                        f"than fn[{t}][0] ({frame!r}); a frame's entries name "
+                                        "one frame"))
+                return []
+        if len(set(folders)) != len(folders):
+            twice = next(f for f in folders if folders.count(f) > 1)
+            problems.append(Problem(str(path), f"fn[{t}]: camera folder {twice!r} appears "
+                                    "twice in one frame"))
+            return []
+        if set(folders) != rig:
+            problems.append(Problem(str(path), f"fn[{t}]: frame {t} has cameras "
+                                    f"{sorted(set(folders) ^ rig)[:5]} that frame 0 has "
+                                    "not, or lacks some of its cameras; a capture has one rig"))
+            return []
+        if frame in names:
+            problems.append(Problem(str(path), f"fn[{t}]: frame {frame!r} is also frame "
+                                    f"{names[frame]}"))
+            return []
+        names[frame] = t
+    return list(names)
 
 
-def _rig(meta: dict, path: Path, problems: list[Problem]) -> dict[str, tuple]:
-    """{camera folder: (K, w2c, cam id)} of the first frame, every later frame checked
-    against it (one rig), and the frame names per camera checked to agree."""
-    rig: dict[str, tuple] = {}
-    frames = len(meta["fn"])
-    for t in range(frames):
-        ids, ks, w2cs, fns = (meta[k][t] for k in ("cam_id", "k", "w2c", "fn"))
-        if not (len(ids) == len(ks) == len(w2cs) == len(fns)):
-            problems.append(Problem(str(path), f"frame {t}: cam_id, k, w2c and fn differ in "
-                                    "length"))
+def _rig(meta: PanopticMeta, path: Path, problems: list[Problem]) -> dict[str, tuple]:
+    """{camera folder: (K, w2c, cam id)} of frame 0, every later frame checked against it (one
+    rig), all frames at once (a source may have tens of thousands)."""
+    first = {fn.split("/")[0]: i for i, fn in enumerate(meta.fn[0])}
+    # order[t, i]: which of frame 0's entries is the camera of entry i of frame t
+    order = np.array([[first[fn.split("/")[0]] for fn in fns] for fns in meta.fn])
+    for what in ("k", "w2c"):
+        arr = np.asarray(getattr(meta, what), np.float64)  # (frames, cameras, rows, cols)
+        ref = arr[0][order]
+        with np.errstate(all="ignore"):  # huge entries overflow: they differ, then
+            scale = np.maximum(1.0, np.abs(ref).max(axis=(2, 3)))
+            same = np.abs(arr - ref).max(axis=(2, 3)) <= CALIBRATION_TOLERANCE * scale
+        if not same.all():
+            t, i = (int(x) for x in np.argwhere(~same)[0])
+            problems.append(Problem(str(path), f"{what}[{t}][{i}]: frame {t} "
+                                    f"({stem(meta.fn[t][i])}), camera {meta.cam_id[t][i]}: "
+                                    f"{what} differs from frame 0; a capture has one rig "
+                                    "(calibration that moves between frames is not "
+                                    "supported)"))
             return {}
-        for cid, k, w2c, fn in zip(ids, ks, w2cs, fns):
-            folder, _ = _frame_of(fn)
-            try:
-                K, E = np.asarray(k, np.float64), np.asarray(w2c, np.float64)
-            except (TypeError, ValueError):
-                problems.append(Problem(str(path), f"frame {t}, camera {cid}: k or w2c is not "
-                                        "a matrix of numbers"))
-                return {}
-            if t == 0:
-                rig[folder] = (K, E, cid)
-                continue
-            first = rig.get(folder)
-            if first is None:
-                problems.append(Problem(str(path), f"frame {t}: camera {cid} is not in frame 0"))
-                return {}
-            if K.shape != first[0].shape or E.shape != first[1].shape or not (
-                    _same(K, first[0]) and _same(E, first[1])):
-                what = "k" if K.shape != first[0].shape or not _same(K, first[0]) else "w2c"
-                problems.append(Problem(str(path), f"frame {t} ({_frame_of(fn)[1]}), camera "
-                                        f"{cid}: {what} differs from frame 0; a capture has "
-                                        "one rig (calibration that moves between frames is "
-                                        "not supported)"))
-                return {}
-        if t > 0 and len(ids) != len(rig):
-            problems.append(Problem(str(path), f"frame {t}: {len(ids)} cameras, frame 0 has "
-                                    f"{len(rig)}"))
-            return {}
-    return rig
-
-
-def _same(a: np.ndarray, b: np.ndarray) -> bool:
-    scale = max(1.0, float(np.abs(b).max()))
-    return bool(np.all(np.isfinite(a))) and float(np.abs(a - b).max()) <= \
-        CALIBRATION_TOLERANCE * scale
+    return {folder: (np.asarray(meta.k[0][i], np.float64), np.asarray(meta.w2c[0][i],
+                                                                         np.float64),
+                     meta.cam_id[0][i]) for folder, i in first.items()}
 
 
 def _camera(folder: str, K: np.ndarray, w2c: np.ndarray, w: int, h: int, where: str,
             problems: list[Problem]) -> Camera | None:
     K = K.copy()
-    if K.shape == (3, 3):
-        K[0, 2] += 0.5  # integer pixel centres in the source
-        K[1, 2] += 0.5
-    bad = intrinsics_problems(K if K.shape == (3, 3) else None) + extrinsics_problems(
-        w2c if w2c.shape == (4, 4) else None)
+    K[0, 2] += 0.5  # integer pixel centres in the source
+    K[1, 2] += 0.5
+    bad = intrinsics_problems(K) + extrinsics_problems(w2c)
     problems.extend(Problem(where, m) for m in bad)
     return None if bad else Camera(safe_name(folder), w, h, K, w2c, None)
-
-
-def _size(meta: dict, path: Path, problems: list[Problem]) -> tuple[int, int]:
-    w, h = meta["w"], meta["h"]
-    if not all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in (w, h)):
-        problems.append(Problem(str(path), f"w and h must be positive integers, got {w!r}, "
-                                f"{h!r}"))
-        return 0, 0
-    return w, h
 
 
 def _points(root: Path, problems: list[Problem]) -> PointCloud | None:
@@ -146,14 +186,38 @@ def _points(root: Path, problems: list[Problem]) -> PointCloud | None:
     if not path.is_file():
         return None
     try:
-        data = np.load(path)["data"]
-        xyz, rgb = np.asarray(data[:, :3], np.float64), np.asarray(data[:, 3:6], np.float64)
-    except (OSError, KeyError, ValueError, IndexError) as exc:
-        problems.append(Problem(str(path), f"cannot read the point cloud ('data': N x 7): "
-                                f"{exc}"))
+        data = load_npz(path, limit=1 << 31)
+    except CaptureError as exc:
+        problems.extend(exc.problems)
         return None
-    keep = np.all(np.isfinite(xyz), axis=1)
+    cloud = data.get("data")
+    if cloud is None or cloud.ndim != 2 or cloud.shape[1] < 6:
+        problems.append(Problem(str(path), "cannot read the point cloud: 'data' must be an "
+                                "N x 7 array (x, y, z, r, g, b, seg)"))
+        return None
+    xyz, rgb = cloud[:, :3].astype(np.float64), cloud[:, 3:6].astype(np.float64)
+    keep = np.all(np.isfinite(xyz), axis=1) & np.all(np.isfinite(rgb), axis=1)
     return PointCloud(xyz[keep], np.clip(rgb[keep], 0, 1))
+
+
+def _split(path: Path, meta: PanopticMeta, problems: list[Problem]
+           ) -> tuple[list[str], dict[str, Camera], dict[tuple[str, str], str]]:
+    """One split's frame names, cameras by id and image paths by (frame, id)."""
+    n = len(problems)
+    problems.extend(_shape_problems(meta, path))
+    frames = _frames(meta, path, problems) if len(problems) == n else []
+    rig = _rig(meta, path, problems) if len(problems) == n else {}
+    cameras: dict[str, Camera] = {}
+    for folder, (K, E, cid) in rig.items():
+        cam = _camera(folder, K, E, meta.w, meta.h, f"{path} camera {cid}", problems)
+        if cam is not None and cam.id in cameras:
+            problems.append(Problem(str(path), f"camera folders {folder!r} and another give "
+                                    f"one id {cam.id!r}; rename one"))
+        elif cam is not None:
+            cameras[cam.id] = cam
+    images = {(frame, safe_name(fn.split("/")[0])): fn
+              for frame, fns in zip(frames, meta.fn) for fn in fns}
+    return frames, cameras, images
 
 
 def read_panoptic(src: str | Path) -> ImportedCapture:
@@ -163,9 +227,13 @@ def read_panoptic(src: str | Path) -> ImportedCapture:
         raise CaptureError([Problem(str(src), f"{_TRAIN} not found")])
     root = train_path.parent
     problems: list[Problem] = []
-    metas = [(train_path, _load_meta(train_path, problems))]
-    if (root / _TEST).is_file():
-        metas.append((root / _TEST, _load_meta(root / _TEST, problems)))
+    paths = [train_path] + ([root / _TEST] if (root / _TEST).is_file() else [])
+    metas = []
+    for path in paths:
+        try:
+            metas.append((path, load_json(path, PanopticMeta)))
+        except CaptureError as exc:
+            problems.extend(exc.problems)
     if problems:
         raise CaptureError(problems)
     cameras: dict[str, Camera] = {}
@@ -173,36 +241,38 @@ def read_panoptic(src: str | Path) -> ImportedCapture:
     test: list[str] = []
     images: dict[tuple[str, str], Path] = {}
     for path, meta in metas:
-        w, h = _size(meta, path, problems)
-        rig = _rig(meta, path, problems)
-        these = [_frame_of(meta["fn"][t][0])[1] for t in range(len(meta["fn"]))]
-        for t, frame in enumerate(these):
-            for fn in meta["fn"][t]:
-                images[(frame, _frame_of(fn)[0])] = root / "ims" / str(fn)
+        these, cams, files = _split(path, meta, problems)
+        images.update({key: root / "ims" / fn for key, fn in files.items()})
         if frames is None:
             frames = these
-        elif these != frames:
+        elif these != frames and not problems:
             problems.append(Problem(str(path), f"its {len(these)} frames differ from "
                                     f"{_TRAIN}'s {len(frames)}"))
-        for folder, (K, E, cid) in rig.items():
-            cam = _camera(folder, K, E, w, h, f"{path} camera {cid}", problems)
-            if cam is None:
-                continue
-            if cam.id in cameras:
-                problems.append(Problem(str(path), f"camera {cid} appears in both splits"))
-            cameras[cam.id] = cam
+        for cid, cam in cams.items():
+            if cid in cameras:
+                problems.append(Problem(str(path), f"camera {cid!r} appears in both splits"))
+            cameras[cid] = cam
             if path.name == _TEST:
-                test.append(cam.id)
+                test.append(cid)
     points = _points(root, problems)
     if problems:
         raise CaptureError(problems)
+    return _imported(root, cameras, frames or [], images, test, points,
+                     [p for p, _ in metas])
+
+
+def _imported(root: Path, cameras: dict[str, Camera], frames: list[str],
+              images: dict[tuple[str, str], Path], test: list[str], points: PointCloud | None,
+              files: list[Path]) -> ImportedCapture:
     order = sorted(cameras, key=lambda c: (len(c), c))  # numeric folder names in order
+    seg = {cid: root / "seg" / images[(frames[0], cid)].parent.name for cid in order}
+    masks = {cid: set(os.listdir(folder)) if folder.is_dir() else set()  # one listing a camera
+             for cid, folder in seg.items()}
     views = []
-    for frame in frames or []:
+    for frame in frames:
         for cid in order:
-            mask = root / "seg" / cid / f"{frame}.png"
-            views.append(SourceView(safe_name(frame), cid, images[(frame, cid)],
-                                    mask if mask.is_file() else None))
+            mask = seg[cid] / f"{frame}.png" if f"{frame}.png" in masks[cid] else None
+            views.append(SourceView(safe_name(frame), cid, images[(frame, cid)], mask))
     cams = [cameras[c] for c in order]
     record: dict[str, Any] = {
         "format": "panoptic",
@@ -212,8 +282,7 @@ def read_panoptic(src: str | Path) -> ImportedCapture:
     }
     ups = np.stack([-c.R[1] for c in cams]).mean(axis=0)  # the cameras' mean up (-y)
     up = ups / max(float(np.linalg.norm(ups)), 1e-12)
-    files = [p for p, _ in metas]
-    return ImportedCapture(cams, [safe_name(f) for f in frames or []],
+    return ImportedCapture(cams, [safe_name(f) for f in frames],
                            (float(up[0]), float(up[1]), float(up[2])), views, record, files,
                            points, test_cameras=test or None, masks="subject")
 

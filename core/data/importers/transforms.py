@@ -16,10 +16,11 @@ from __future__ import annotations
 import json
 import math
 import shutil
-from pathlib import Path
-from typing import Any
+from pathlib import Path, PurePosixPath
+from typing import Annotated, Any
 
 import numpy as np
+from pydantic import Field
 
 from core.data.capture import (
     Camera,
@@ -35,31 +36,67 @@ from core.data.importers.common import (
     safe_name,
     source_transform,
 )
+from core.data.importers.records import (
+    MAX_VIEWS,
+    FieldError,
+    IdOrNumber,
+    Number,
+    Record,
+    Side,
+    SourcePath,
+    checked,
+    listof,
+    load_json,
+    matrix,
+)
 from core.data.points import PointCloud, read_points_ply
-from core.data.schema import extrinsics_problems, intrinsics_problems, read_json
+from core.data.rules import name_problem
+from core.data.schema import extrinsics_problems, intrinsics_problems
 
 __all__ = ["export_transforms", "find_transforms", "read_transforms"]
 
-_INTRINSIC_KEYS = (
-    "fl_x",
-    "fl_y",
-    "cx",
-    "cy",
-    "w",
-    "h",
-    "camera_angle_x",
-    "camera_angle_y",
-    "k1",
-    "k2",
-    "k3",
-    "k4",
-    "p1",
-    "p2",
-    "camera_model",
-)
-_ENTRY_KEYS = {"file_path", "transform_matrix", "time", "camera_id", "mask_path", *_INTRINSIC_KEYS}
+_INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
+                   "k1", "k2", "k3", "k4", "p1", "p2", "camera_model")
 _SUPPORTED_MODELS = {"OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"}
 _IMAGE_GUESS_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".PNG", ".JPG", ".JPEG")
+
+
+class _Intrinsics(Record):
+    """Intrinsics, at the top level (defaults) or per entry (they win)."""
+
+    fl_x: Number | None = None
+    fl_y: Number | None = None
+    cx: Number | None = None
+    cy: Number | None = None
+    w: Side | None = None
+    h: Side | None = None
+    camera_angle_x: Number | None = None
+    camera_angle_y: Number | None = None
+    k1: Number | None = None
+    k2: Number | None = None
+    k3: Number | None = None
+    k4: Number | None = None
+    p1: Number | None = None
+    p2: Number | None = None
+    camera_model: Annotated[str, Field(max_length=64)] | None = None
+
+
+class TransformsEntry(_Intrinsics):
+    """One entry of ``frames``: an image and its camera-to-world (OpenGL axes)."""
+
+    file_path: SourcePath
+    transform_matrix: matrix(4, 4, least_rows=3)  # type: ignore[valid-type]
+    time: Number | None = None
+    camera_id: IdOrNumber | None = None
+    mask_path: SourcePath | None = None
+
+
+class TransformsFile(_Intrinsics):
+    """A transforms JSON file; each entry of ``frames`` is parsed on its own (a
+    `TransformsEntry`), so one bad entry does not hide the problems of the others."""
+
+    frames: listof(dict[str, Any], MAX_VIEWS)  # type: ignore[valid-type]
+    ply_file_path: SourcePath | None = None
 
 
 def find_transforms(src: Path) -> list[Path]:
@@ -82,10 +119,16 @@ def read_transforms(src: str | Path) -> ImportedCapture:
     problems: list[Problem] = []
     entries: list[dict[str, Any]] = []
     top_extra: dict[str, Any] = {}
+    docs: dict[Path, TransformsFile] = {}
     for path in files:
+        try:
+            docs[path] = load_json(path, TransformsFile)
+        except CaptureError as exc:
+            problems.extend(exc.problems)
+    for path, doc in docs.items():
         prefix = path.stem.removeprefix("transforms_") + "_" if len(files) > 1 else ""
-        entries += _read_file(path, prefix, problems, top_extra)
-    points = _points(files, top_extra, problems)
+        entries += _read_file(path, doc, prefix, problems, top_extra)
+    points = _points(docs, problems)
     if problems:
         raise CaptureError(problems)
     cameras, frames, views, view_extra = _group(entries, problems)
@@ -109,19 +152,14 @@ def read_transforms(src: str | Path) -> ImportedCapture:
                            points)
 
 
-def _points(files: list[Path], top_extra: dict[str, Any],
-            problems: list[Problem]) -> PointCloud | None:
+def _points(docs: dict[Path, TransformsFile], problems: list[Problem]) -> PointCloud | None:
     """The point clouds named by ``ply_file_path`` (nerfstudio), merged; None without any."""
     clouds = []
-    for path in files:
-        rel = top_extra.get(path.name, {}).get("ply_file_path")
-        if rel is None:
-            continue
-        if not isinstance(rel, str) or not rel:
-            problems.append(Problem(str(path), f"ply_file_path must be a path, got {rel!r}"))
+    for path, doc in docs.items():
+        if doc.ply_file_path is None:
             continue
         try:
-            clouds.append(read_points_ply(path.parent / rel))
+            clouds.append(read_points_ply(path.parent / doc.ply_file_path))
         except ValueError as exc:
             problems.append(Problem(str(path), f"ply_file_path: {exc}"))
     if not clouds:
@@ -131,36 +169,24 @@ def _points(files: list[Path], top_extra: dict[str, Any],
                       np.concatenate([c.colors for c in clouds]) if colored else None)
 
 
-def _read_file(
-    path: Path, prefix: str, problems: list[Problem], top_extra: dict[str, Any]
-) -> list[dict]:
-    try:
-        data = read_json(path)
-    except ValueError as exc:
-        problems.append(Problem(str(path), str(exc)))
-        return []
-    if not isinstance(data, dict) or not isinstance(data.get("frames"), list) or not data["frames"]:
-        problems.append(Problem(str(path), "expected an object with a non-empty 'frames' list"))
-        return []
-    defaults = {k: data[k] for k in _INTRINSIC_KEYS if k in data}
-    top_extra[path.name] = {
-        k: v for k, v in data.items() if k not in _INTRINSIC_KEYS and k != "frames"
-    }
+def _set(record: _Intrinsics) -> dict[str, Any]:
+    return {k: getattr(record, k) for k in _INTRINSIC_KEYS if getattr(record, k) is not None}
+
+
+def _read_file(path: Path, doc: TransformsFile, prefix: str, problems: list[Problem],
+               top_extra: dict[str, Any]) -> list[dict]:
+    defaults = _set(doc)
+    top_extra[path.name] = {**(doc.model_extra or {}), **(
+        {"ply_file_path": doc.ply_file_path} if doc.ply_file_path is not None else {})}
     out = []
-    for i, entry in enumerate(data["frames"]):
-        where = f"frames[{i}]"
-        if (
-            not isinstance(entry, dict)
-            or "file_path" not in entry
-            or "transform_matrix" not in entry
-        ):
-            problems.append(
-                Problem(str(path), f"{where}: needs 'file_path' and 'transform_matrix'")
-            )
+    for i, raw in enumerate(doc.frames):
+        entry = checked(TransformsEntry, raw, path, f"frames[{i}]", problems)
+        if entry is None:
             continue
-        parsed = _parse_entry(path, where, {**defaults, **entry}, prefix, problems)
+        parsed = _parse_entry(path, f"frames[{i}]", entry, {**defaults, **_set(entry)}, prefix,
+                              problems)
         if parsed is not None:
-            parsed["extra"] = {k: v for k, v in entry.items() if k not in _ENTRY_KEYS}
+            parsed["extra"] = dict(entry.model_extra or {})
             out.append(parsed)
     return out
 
@@ -175,73 +201,87 @@ def _resolve_image(base: Path, rel: str) -> Path:
     return path
 
 
-def _parse_entry(
-    path: Path, where: str, e: dict[str, Any], prefix: str, problems: list[Problem]
-) -> dict | None:
-    image = _resolve_image(path.parent, str(e["file_path"]))
+def _ids(entry: TransformsEntry, prefix: str) -> tuple[str | None, str, str]:
+    """(camera id given, id from the file's stem, id from its whole path); FieldError naming
+    the field whose name cannot become an id."""
+    rel = PurePosixPath(entry.file_path)
+    rel = rel.with_name(rel.stem) if rel.stem else rel
+    for field, name in (("file_path", rel.as_posix()), ("camera_id", entry.camera_id)):
+        problem = None if name is None else name_problem(prefix + str(name))
+        if problem is not None:
+            raise FieldError(field, f"{prefix + str(name)!r} {problem}")
+    given = None if entry.camera_id is None else safe_name(prefix + str(entry.camera_id))
+    return given, safe_name(prefix + rel.name), safe_name(prefix + rel.as_posix())
+
+
+def _parse_entry(path: Path, where: str, entry: TransformsEntry, e: dict[str, Any],
+                 prefix: str, problems: list[Problem]) -> dict | None:
+    image = _resolve_image(path.parent, entry.file_path)
     n0 = len(problems)
     model = str(e.get("camera_model", "OPENCV")).upper()
     if model not in _SUPPORTED_MODELS:
-        problems.append(
-            Problem(
-                str(path), f"{where}: camera_model {model!r} is not supported (pinhole/OpenCV only)"
-            )
-        )
-    if float(e.get("k4", 0.0) or 0.0) != 0.0:
-        problems.append(
-            Problem(str(path), f"{where}: k4 is not supported by the OpenCV 5-parameter model")
-        )
+        problems.append(Problem(str(path), f"{where}: camera_model {model!r} is not supported "
+                                           "(pinhole/OpenCV only)"))
+    if e.get("k4", 0.0) != 0.0:
+        problems.append(Problem(str(path), f"{where}: k4 is not supported by the OpenCV "
+                                           "5-parameter model"))
     try:
-        w, h = (int(e["w"]), int(e["h"])) if "w" in e and "h" in e else image_size(image)
+        w, h = (e["w"], e["h"]) if "w" in e and "h" in e else image_size(image)
         K = _intrinsics(e, w, h)
-        c2w = np.array(e["transform_matrix"], dtype=np.float64)
-        if c2w.shape == (3, 4):
-            c2w = np.vstack([c2w, [0, 0, 0, 1]])
-        if c2w.shape != (4, 4):
-            raise ValueError(f"transform_matrix must be 4x4, got shape {c2w.shape}")
+        camera, stem_id, long_id = _ids(entry, prefix)
     except ImageReadError as exc:
         problems.append(
             Problem(str(exc.path), f"{exc.message} (needed for the size of {where} in {path.name})")
         )
         return None
-    except (KeyError, TypeError, ValueError) as exc:
-        problems.append(Problem(str(path), f"{where}: {exc}"))
+    except FieldError as exc:
+        problems.append(Problem(str(path), f"{where}.{exc.field}: {exc.message}"))
         return None
+    c2w = np.array(entry.transform_matrix, dtype=np.float64)
+    if c2w.shape == (3, 4):
+        c2w = np.vstack([c2w, [0, 0, 0, 1]])
     problems.extend(Problem(str(path), f"{where}: {m}") for m in intrinsics_problems(K))
-    w2c = np.linalg.inv(c2w @ OPENGL_TO_OPENCV) if np.all(np.isfinite(c2w)) else c2w
-    problems.extend(Problem(str(path), f"{where}: {m}") for m in extrinsics_problems(w2c))
+    c2w_cv = c2w @ OPENGL_TO_OPENCV
+    bad = extrinsics_problems(c2w_cv, "transform_matrix")
+    problems.extend(Problem(str(path), f"{where}: {m}") for m in bad)
     if len(problems) > n0:
         return None
-    dist = [float(e.get(k, 0.0) or 0.0) for k in ("k1", "k2", "p1", "p2", "k3")]
-    rel = Path(str(e["file_path"])).with_suffix("")
-    given = e.get("camera_id")
-    mask = e.get("mask_path")
+    w2c = np.linalg.inv(c2w_cv)  # rigid, so invertible: the checks above made sure
+    dist = [float(e.get(k, 0.0)) for k in ("k1", "k2", "p1", "p2", "k3")]
     return {
         # Ids from file names use the bare stem unless stems collide (decided in _group).
-        "camera": safe_name(prefix + str(given)) if given else None,
-        "stem": safe_name(prefix + rel.name),
-        "long": safe_name(prefix + rel.as_posix()),
-        "time": e.get("time"),
+        "camera": camera,
+        "stem": stem_id,
+        "long": long_id,
+        "time": entry.time,
         "camera_obj": (w, h, K, w2c, tuple(dist) if any(dist) else None),
         "image": image,
-        "mask": None if mask is None else path.parent / str(mask),
+        "mask": None if entry.mask_path is None else path.parent / entry.mask_path,
         "source": str(path),
         "where": where,
-        "file_path": e["file_path"],
+        "file_path": entry.file_path,
     }
+
+
+def _focal(e: dict[str, Any], key: str, size: int) -> float:
+    """The focal length from a field of view `e[key]`, which must be in (0, pi)."""
+    angle = e[key]
+    if not 0.0 < angle < math.pi:
+        raise FieldError(key, f"must be a field of view in (0, pi) radians, got {angle}")
+    return 0.5 * size / math.tan(0.5 * angle)
 
 
 def _intrinsics(e: dict[str, Any], w: int, h: int) -> np.ndarray:
     if "fl_x" in e:
         fx = float(e["fl_x"])
     elif "camera_angle_x" in e:
-        fx = 0.5 * w / math.tan(0.5 * float(e["camera_angle_x"]))
+        fx = _focal(e, "camera_angle_x", w)
     else:
-        raise KeyError("no focal length: give fl_x or camera_angle_x")
+        raise FieldError("fl_x", "no focal length: give fl_x or camera_angle_x")
     if "fl_y" in e:
         fy = float(e["fl_y"])
     elif "camera_angle_y" in e and "fl_x" not in e:
-        fy = 0.5 * h / math.tan(0.5 * float(e["camera_angle_y"]))
+        fy = _focal(e, "camera_angle_y", h)
     else:
         fy = fx
     cx = float(e.get("cx", w / 2.0))
@@ -251,13 +291,6 @@ def _intrinsics(e: dict[str, Any], w: int, h: int) -> np.ndarray:
 
 def _group(entries: list[dict], problems: list[Problem]):
     """Entries to (cameras, (frame names, times), views, per-view extras)."""
-    bad = [e for e in entries if not isinstance(e["time"], (int, float, type(None)))]
-    for e in bad:
-        problems.append(
-            Problem(e["source"], f"{e['where']}: 'time' must be a number, got {e['time']!r}")
-        )
-    if bad:
-        return [], ([], []), [], {}
     times = sorted({e["time"] for e in entries if e["time"] is not None})
     if times and any(e["time"] is None for e in entries):
         problems.append(Problem(entries[0]["source"], "some frames have 'time' and some do not"))
