@@ -22,13 +22,14 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
 from worker import jobrows
+from worker.api_queries import ApiQueries
 from worker.db import session_scope
 from worker.housekeeping import Housekeeping
 from worker.idempotency import Idempotency, remember
-from worker.jobrows import JobState, new_id, progress_of
-from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
 from worker.owner import Owner, run_ended, run_started
+from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
 from worker.parts import active_parts, part_event, parts_of
+from worker.jobrows import ACTIVE, TERMINAL, JobState, new_id, progress_of
 
 __all__ = [
     "ACTIVE",
@@ -40,8 +41,6 @@ __all__ = [
     "progress_of",
 ]
 
-ACTIVE = ("queued", "running")
-TERMINAL = ("succeeded", "failed", "cancelled")
 
 
 @dataclass(frozen=True)
@@ -57,10 +56,11 @@ class Claim:
     retry_in: float = 0.0
 
 
-class JobStore(Housekeeping):
+class JobStore(ApiQueries, Housekeeping):
     """Job lifecycle operations on the database at `url`, each in its own transaction (the
-    changes to the rows, those of jobs run as parts included, in `worker.jobrows`; the
-    sweepers' questions in `worker.housekeeping.Housekeeping`)."""
+    changes to the rows, those of jobs run as parts included, in `worker.jobrows`; the API's
+    pages and deletions in `worker.api_queries.ApiQueries`; the sweepers' questions in
+    `worker.housekeeping.Housekeeping`)."""
 
     def __init__(self, url: str):
         self.url = url
@@ -81,13 +81,15 @@ class JobStore(Housekeeping):
     # -- created and changed by the API -------------------------------------------------------
     def create(self, tenant: str, pipeline: str, params: dict[str, Any], *,
                capture_id: str | None, name: str = "", expires_at: dt.datetime | None = None,
-               idempotency: Idempotency | None = None) -> Job:
-        """A queued job; with `idempotency`, its key is kept with it in the same transaction
-        (IntegrityError, and no job, when a live row has the key: `worker.idempotency`)."""
+               idempotency: Idempotency | None = None,
+               resolved_run: dict[str, Any] | None = None) -> Job:
+        """A queued job (`resolved_run`: a reconstruction's run, resolved at submit); with
+        `idempotency`, its key is kept with it in the same transaction (IntegrityError, and
+        no job, when a live row has the key: `worker.idempotency`)."""
         with self.session() as s:
             job = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
                       params=params, name=name, state="queued", stage="queued",
-                      expires_at=expires_at)
+                      expires_at=expires_at, resolved_run=resolved_run)
             s.add(job)
             s.flush()
             remember(s, idempotency, job.id)
@@ -97,14 +99,16 @@ class JobStore(Housekeeping):
     def create_parted(self, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
                       capture_id: str | None, name: str = "",
                       expires_at: dt.datetime | None = None,
-                      idempotency: Idempotency | None = None) -> tuple[Job, list[Job]]:
+                      idempotency: Idempotency | None = None,
+                      resolved_run: dict[str, Any] | None = None) -> tuple[Job, list[Job]]:
         """A sequence job and its parts (one per group of `groups`), all queued; the caller
         dispatches the parts (the parent itself is dispatched when they have succeeded).
-        `idempotency`: as `create` (the key names the parent)."""
+        `idempotency`, `resolved_run`: as `create` (the key names the parent; every part runs
+        the same run)."""
         with self.session() as s:
             return jobrows.create_parted(s, tenant, params, groups, capture_id=capture_id,
                                          name=name, expires_at=expires_at,
-                                         idempotency=idempotency)
+                                         idempotency=idempotency, resolved_run=resolved_run)
 
     def create_render(self, tenant: str, source_job_id: str, pipeline: str,
                       params: dict[str, Any], *, name: str = "",
@@ -127,12 +131,6 @@ class JobStore(Housekeeping):
             remember(s, idempotency, job.id)
             jobrows.state_event(s, job)
             return job
-
-    @staticmethod
-    def dependents(s: Session, job_id: str) -> list[str]:
-        """Queued or running jobs that need `job_id`'s results (in session `s`)."""
-        return list(s.scalars(select(Job.id).where(Job.source_job_id == job_id,
-                                                   Job.state.in_(ACTIVE))))
 
     def get(self, job_id: str, tenant: str | None = None) -> Job | None:
         """The job, or None when it does not exist or belongs to another tenant."""
@@ -162,7 +160,8 @@ class JobStore(Housekeeping):
                 return None
             if job.parts and job.state in ACTIVE:
                 job.cancel_requested = True
-                jobrows.event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
+                jobrows.event(s, job.id, "state", {"state": job.state,
+                                                       "cancel_requested": True})
                 jobrows.cancel_parts(s, job)
             elif job.state == "queued" and job.lease_owner is None:
                 job.state, job.stage, job.finished_at = "cancelled", "cancelled", utcnow()
@@ -170,7 +169,8 @@ class JobStore(Housekeeping):
                 jobrows.state_event(s, job)
             elif job.state in ACTIVE and not job.cancel_requested:
                 job.cancel_requested = True
-                jobrows.event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
+                jobrows.event(s, job.id, "state", {"state": job.state,
+                                                       "cancel_requested": True})
             return job
 
     def retry(self, job_id: str, tenant: str) -> Job | None:

@@ -7,8 +7,7 @@ import argparse
 import time
 
 from core.cli import command_help, fail
-from core.config import METHODS, PRESETS
-from core.data.split import SPLITS
+from core.config import METHODS, PRESETS, SPLITS
 from core.pipeline.run import reconstruct
 
 __all__ = ["register"]
