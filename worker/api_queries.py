@@ -3,7 +3,7 @@ captures (newest first, keyset cursors), deleting them, amending an uploading ca
 manifest, undoing a dispatch the broker refused. `worker.store.JobStore` inherits it, so every
 query of the API's jobs and captures lives in the store, never in a router.
 
-Outcomes are typed (`Deleted`); `service.records.deleted` turns them into HTTP answers.
+Outcomes are typed (`Deleted`); `service.lookups.deleted` turns them into HTTP answers.
 """
 
 from __future__ import annotations
@@ -16,7 +16,7 @@ from typing import Literal
 from sqlalchemy import Select, and_, delete, or_, select, update
 from sqlalchemy.orm import Session, defer
 
-from worker.jobrows import ACTIVE
+from worker.transitions import ACTIVE
 from worker.models import Capture, Job, Upload
 from worker.parts import delete_parts
 

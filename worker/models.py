@@ -180,7 +180,7 @@ class Job(Base):
     worker: Mapped[str | None] = mapped_column(String(256), default=None)
     """host/pid of the worker that runs it or ran it last (kept when the lease ends)."""
     runs: Mapped[list[Any] | None] = mapped_column(default=None)
-    """Each claim, newest last (at most worker.owner.MAX_RUNS): {"attempt", "worker",
+    """Each claim, newest last (at most worker.lease.MAX_RUNS): {"attempt", "worker",
     "started_at", "ended_at", "outcome"}; a run its worker never ended is "lost"."""
     lease_expires_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     dispatched_at: Mapped[dt.datetime | None] = mapped_column(default=None)

@@ -3,7 +3,7 @@ of `jobs` with `parent_id` set, so that a part has everything a job has (its lea
 attempts, broker message, checkpoints, cancel) without a second copy of that machinery. This
 module holds what is particular to parts: how the parts' states roll up into the parent's, and
 the parent's overall progress read from its parts (how a job is split is
-`core.config.independent_groups`, the groups its run plans); `worker.jobrows` applies these to
+`core.config.independent_groups`, the groups its run plans); `worker.transitions` applies these to
 the rows for the job store. Torch-free (the API reads parts when it shows a job)."""
 
 from __future__ import annotations

@@ -15,8 +15,8 @@ from service.auth import TenantDep
 from service.body import JsonRoute, body_limit
 from service.deps import Services, ServicesDep, default_expiry, location
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
+from service.lookups import deleted, get_capture
 from service.pagination import after, decode_cursor, encode_cursor, next_cursor
-from service.records import deleted, get_capture
 from service.schemas import (
     CaptureFilesOut,
     CaptureIn,

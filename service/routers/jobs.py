@@ -20,9 +20,9 @@ from service.deps import Services, ServicesDep, default_expiry, location
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.events import job_events
 from service.idempotency import IdempotencyKey, Submit
+from service.lookups import deleted, get_capture, get_job
 from service.pagination import after, next_cursor
 from service.parts import job_parts, split_job
-from service.records import deleted, get_capture, get_job
 from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressOut
 from worker.celery_app import dispatch
 from worker.models import Job

@@ -18,7 +18,7 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from worker.idempotency import Idempotency, remember
-from worker.owner import run_ended
+from worker.lease import run_ended
 from worker.models import Job, JobEvent, utcnow
 from worker.parts import ASSEMBLY_SHARE, failed_error, part_event, parts_of, roll_up
 
