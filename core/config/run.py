@@ -130,9 +130,10 @@ def load_config(preset: str = "fast", config_file: str | os.PathLike[str] | None
                 overrides: dict | None = None, *, gop: int | None = None,
                 where: str = "config") -> RunConfig:
     """The preset's configuration, then a JSON file's overrides, then `overrides` (both in the
-    shape of RUN/config.json), then `gop`; ConfigError on any bad setting. A `train.method`
-    among them brings that method's defaults under every override (`method_defaults`): the
-    preset's plan with 3DGS's densification, say, unless a setting names another value."""
+    shape of RUN/config.json's `config`), then `gop`; ConfigError on any bad setting. A
+    `train.method` among them brings that method's defaults under every override
+    (`method_defaults`): the preset's plan with 3DGS's densification, say, unless a setting
+    names another value."""
     layers: list[tuple[dict, str]] = []
     if config_file is not None:
         path = Path(config_file)
