@@ -12,7 +12,6 @@ whose alpha matches the masks scores alike on all three.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 from pathlib import Path
@@ -29,18 +28,18 @@ def score(capture_dir: Path, run: Path) -> dict[str, float]:
     from core.data import CaptureDataset, load_capture
     from core.model import GaussianModel
     from core.render import RenderCamera, render
-    from core.config import Schedule
+    from core.config import read_run
     from core.stages import plan
 
-    config = json.loads((run / "config.json").read_text())
-    schedule = Schedule(**config["train"]["schedule"])
+    resolved = read_run(run, capture_dir)
+    schedule = resolved.config.train.schedule
     p = plan(schedule.iterations - 1, schedule)
     capture = load_capture(capture_dir)
     frame = capture.frames[0]
     model = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
-    held = [c.id for i, c in enumerate(capture.cameras) if i % 8 == 0]
+    held = list(resolved.views.split.scored)
     ds = CaptureDataset(capture, frames=[frame], cameras=held,
-                        downscale=float(config.get("downscale", 1.0)))
+                        downscale=resolved.views.downscale)
     out = {}
     for name, colour in BACKGROUNDS.items():
         bg = torch.tensor(colour)
@@ -49,8 +48,8 @@ def score(capture_dir: Path, run: Path) -> dict[str, float]:
             s = ds[i]
             with torch.no_grad():
                 r = render(model, RenderCamera.from_camera(s.camera), sh_degree=p.sh_degree,
-                           beta=p.beta, background=bg, eps2d=config["train"]["eps2d"],
-                           antialiased=config["train"]["antialiased"])
+                           beta=p.beta, background=bg, eps2d=resolved.config.train.eps2d,
+                           antialiased=resolved.config.train.antialiased)
             rgb = torch.floor(r.rgb.clamp(0, 1) * 255 + 0.5) / 255  # as the 8-bit renders
             target = s.image if s.mask is None else s.image * s.mask + bg * (1 - s.mask)
             mse.append(float((rgb - target).square().mean()))

@@ -47,6 +47,7 @@ def relit_rows(run: Path, capture: Path) -> list[dict]:
     """Scores of the relit held-out views: the method, no AO, uniform capture light."""
     import numpy as np
 
+    from core.config import read_run
     from core.evaluation import evaluate_run
     from core.relight.metrics import relit_heldout
 
@@ -56,12 +57,11 @@ def relit_rows(run: Path, capture: Path) -> list[dict]:
             {"variant": "without the AO term (baseline)", "psnr": ev["psnr_no_ao"],
              "psnr_full": ev["psnr_full_no_ao"], "ssim": ev["ssim_no_ao"]}]
     # docs/design.md's default: a uniform capture irradiance of pi.
-    config = json.loads((run / "config.json").read_text())
-    cams = [c["id"] for i, c in enumerate(json.loads(
-        (capture / "capture.json").read_text())["cameras"]) if i % 8 == 0]
+    resolved = read_run(run, capture)
+    cams = list(resolved.views.split.scored)
     scores = []
-    for frame in config["frames"]:
-        scores += relit_heldout(run, capture, frame, cams, float(config.get("downscale", 1)),
+    for frame in resolved.frames:
+        scores += relit_heldout(run, capture, frame, cams, resolved.views.downscale,
                                 sheet_maps=(), capture_light=None)["scores"]
     rows.append({"variant": "uniform capture light pi + AO (docs/design.md default)",
                  **{k: float(np.mean([s[k] for s in scores])) for k in ("psnr", "psnr_full", "ssim")}})

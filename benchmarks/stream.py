@@ -27,16 +27,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 def _views(run: Path):
     from core.data import load_capture
-    from core.data.split import camera_split
     from core.relight.gbuffer import run_render
     from core.render import RenderCamera
 
     settings = run_render(run)
     capture = load_capture(settings.capture)
-    ds = settings.downscale
-    scored = set(camera_split(capture, settings.split).scored)
-    cams = [c.scaled(max(1, round(c.width / ds)), max(1, round(c.height / ds)))
-            for c in capture.cameras if c.id in scored]
+    cams = [settings.views.served(c) for c in settings.views.cameras(capture, "scored")]
     return settings, [RenderCamera.from_camera(c) for c in cams]
 
 

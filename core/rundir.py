@@ -3,7 +3,7 @@ of artifact each file is, and its reads and writes (atomic, so a reader never se
 file). Every module that reads or writes a run goes through `RunDir`; the worker's artifact
 listing classifies files with `classify`. Torch-free.
 
-    RUN/config.json                      the fully resolved configuration
+    RUN/config.json                      the resolved run (`core.config.ResolvedRun`)
     RUN/metrics.json                     per-frame records (`core.pipeline.record.FrameRecord`)
     RUN/sequence.json                    groups, roles and timings of a sequence
     RUN/eval.json                        held-out scores (`dgs eval`)
@@ -28,6 +28,7 @@ from typing import Any
 
 import numpy as np
 
+from core.config.resolved import ResolvedRun, read_run
 from core.files import atomic_path, write_json
 
 __all__ = ["ARTIFACT_KINDS", "CONTENT_TYPES", "ArtifactKind", "RunDir", "classify",
@@ -161,12 +162,10 @@ class RunDir:
         return [f for f in frames if self.ply(f).is_file()]
 
     # -- records -----------------------------------------------------------------------------
-    def read_config(self) -> dict[str, Any]:
-        """RUN/config.json; ValueError when this is not a run directory."""
-        if not self.config.is_file():
-            raise ValueError(f"run_dir: {self.root.name} is not a run directory (no "
-                             "config.json)")
-        return json.loads(self.config.read_text())
+    def read_run(self, capture_dir: str | os.PathLike[str] | None = None) -> ResolvedRun:
+        """RUN/config.json as the run it records (`core.config.read_run`: `capture_dir` only
+        for a record of an older version); ValueError when this is not a run directory."""
+        return read_run(self.root, capture_dir)
 
     def read_metrics(self) -> dict[str, Any]:
         """RUN/metrics.json ({} before the first frame is finished)."""

@@ -1,16 +1,22 @@
 """A job's parameters checked against what only the server knows, before the job is made: the
 capture's frames and cameras, the devices this deployment offers, the tenant's own model assets
-and the operator's allow-list. Every refusal is a 422 naming the parameter; nothing a request
-sends is ever opened as a file."""
+and the operator's allow-list; and a reconstruction's run resolved against its capture
+(`core.config.resolve_run`, the rules the worker and the command line follow), which the job
+stores. Every refusal is a 422 naming the parameter; nothing a request sends is ever opened as
+a file."""
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
 from sqlalchemy import select
 
-from core.config import parse_frames
+from core.config import ConfigError, ResolvedRun, parse_frames
+from core.data.capture import Capture as CaptureLayout
+from core.data.schema import parse_capture_json
 from service.deps import Services
 from service.errors import ApiError
 from worker.models import Asset, Capture, Job
@@ -50,16 +56,37 @@ def check_params(pipeline: Pipeline, params: BaseModel) -> None:
     try:
         pipeline.check(params)
     except ValueError as exc:
-        details = [{"path": f"params.{d['path']}", "message": d["message"]}
-                   for d in getattr(exc, "details", [{"path": "", "message": str(exc)}])]
-        raise ApiError(422, f"{details[0]['path']}: {details[0]['message']}",
-                       details=details) from None
+        raise _refused(exc) from None
+
+
+def _refused(exc: ValueError) -> ApiError:
+    """A 422 with a detail per problem of a job's parameters (`ConfigError.details`; paths
+    under `params.`)."""
+    problems = getattr(exc, "details", None) or [{"path": "", "message": str(exc)}]
+    details = [{"path": f"params.{d['path']}", "message": d["message"]} for d in problems]
+    return ApiError(422, f"{details[0]['path']}: {details[0]['message']}", details=details)
+
+
+def _layout(services: Services, capture: Capture) -> CaptureLayout:
+    """The capture's frozen capture.json, parsed (the API never opens its other files)."""
+    key = f"captures/{capture.id}/capture.json"
+    size = services.blobs.size(key)
+    if size is None:
+        raise ApiError(409, f"capture {capture.id} has no capture.json in the store; upload "
+                            "and commit it again")
+    data = json.loads(b"".join(services.blobs.read_range(key, 0, size)))
+    layout, problems = parse_capture_json(data, Path(capture.id))
+    if layout is None:  # it was valid when committed: the store changed under it
+        raise ApiError(409, f"capture {capture.id}: {problems[0].message}; commit it again")
+    return layout
 
 
 def check_reconstruct(services: Services, tenant: str, capture: Capture,
-                      params: ReconstructParams) -> None:
+                      params: ReconstructParams) -> ResolvedRun:
     """The frames exist, the devices are offered and the normal estimator is one the tenant
-    may use (`check_params` has resolved the configuration)."""
+    may use (`check_params` has resolved the configuration); returns the run resolved against
+    the capture, which the job stores (422 naming `params.config.split` when the split leaves
+    no camera to train on, `params.config.mesh.subject` when the capture has no masks)."""
     cfg = params.run_config()
     summary = capture.summary or {}
     if "frames" in summary:
@@ -72,9 +99,11 @@ def check_reconstruct(services: Services, tenant: str, capture: Capture,
                                f"{', '.join(offered)})")
     if cfg.normal_estimator is not None:
         _check_model(services, tenant, cfg.normal_estimator)
-    if cfg.split == "capture" and "views" in summary and not summary.get("test_cameras"):
-        raise refuse("params.config.split", "the capture declares no test_cameras; choose "
-                                            "auto, every8 or none")
+    try:
+        return params.resolve(_layout(services, capture), capture_name=capture.id,
+                              has_masks=summary.get("masks", 1) > 0)
+    except ConfigError as exc:
+        raise _refused(exc) from None
 
 
 def _check_model(services: Services, tenant: str, name: str) -> None:

@@ -9,11 +9,13 @@ import datetime as dt
 import json
 from typing import Any
 
-from sqlalchemy import Select, and_, or_
+from sqlalchemy import Select
 
 from service.errors import ApiError
+from worker.api_queries import Key
+from worker.api_queries import newest_page as worker_page
 
-__all__ = ["decode_cursor", "encode_cursor", "newest_first", "newest_page"]
+__all__ = ["after", "decode_cursor", "encode_cursor", "newest_page", "next_cursor"]
 
 
 def encode_cursor(*key: Any) -> str:
@@ -42,22 +44,23 @@ def decode_cursor(cursor: str, types: tuple[type, ...]) -> list[Any]:
                        details=[{"path": "cursor", "message": "invalid cursor"}]) from None
 
 
-def newest_first(query: Select, created_col, id_col, cursor: str | None, limit: int) -> Select:
-    """`query` ordered newest first by (created_at, id), after `cursor`, `limit` + 1 rows (the
-    extra row tells whether another page exists)."""
-    if cursor:
-        created, ident = decode_cursor(cursor, (dt.datetime, str))
-        query = query.where(or_(created_col < created,
-                                and_(created_col == created, id_col < ident)))
-    return query.order_by(created_col.desc(), id_col.desc()).limit(limit + 1)
+def after(cursor: str | None) -> Key | None:
+    """The key a listing's cursor holds (None: the first page); 400 for what no listing
+    returned."""
+    if not cursor:
+        return None
+    created, ident = decode_cursor(cursor, (dt.datetime, str))
+    return created, ident
+
+
+def next_cursor(last: Key | None) -> str | None:
+    """The cursor of the page after the one that ended at `last` (None: it was the last)."""
+    return None if last is None else encode_cursor(*last)
 
 
 def newest_page(session, query: Select, created_col, id_col, cursor: str | None,
                 limit: int) -> tuple[list, str | None]:
     """One page of `query`'s rows, newest first after `cursor`, and the cursor of the next page
-    (None on the last)."""
-    rows = list(session.scalars(newest_first(query, created_col, id_col, cursor, limit)))
-    if len(rows) <= limit:
-        return rows, None
-    rows = rows[:limit]
-    return rows, encode_cursor(rows[-1].created_at, rows[-1].id)
+    (None on the last): `worker.api_queries.newest_page` under cursors."""
+    rows, last = worker_page(session, query, created_col, id_col, after(cursor), limit)
+    return rows, next_cursor(last)

@@ -1,33 +1,25 @@
 """The API side of jobs run as parts (docs/design.md 4.4): whether a posted reconstruction is
-split (its frames read from the frozen capture.json), a parent's parts and overall progress as
-the API shows them."""
+split (the groups of its resolved run), a parent's parts and overall progress as the API shows
+them."""
 
 from __future__ import annotations
 
-import json
-
-from core.config import parse_frames
+from core.config import ResolvedRun, independent_groups
 from service.deps import Services
 from service.schemas import PartOut
-from worker.models import Capture, Job
-from worker.parts import overall_progress, part_out, split_frames
-from worker.pipelines import ReconstructParams
+from worker.models import Job
+from worker.parts import overall_progress, part_out
 from worker.store import progress_of
 
 __all__ = ["job_parts", "split_job"]
 
 
-def split_job(services: Services, capture: Capture,
-              params: ReconstructParams) -> list[list[str]] | None:
-    """The frames of each part of a reconstruct job (one per group of pictures), or None when
-    it runs as one (a single group, or groups that depend on each other)."""
-    key = f"captures/{capture.id}/capture.json"
-    size = services.blobs.size(key)
-    if size is None:
-        return None
-    frames = json.loads(b"".join(services.blobs.read_range(key, 0, size))).get("frames") or []
-    chosen = parse_frames(params.frames, [str(f) for f in frames])
-    return split_frames(chosen, params.run_config())
+def split_job(resolved: ResolvedRun) -> list[list[str]] | None:
+    """The frames of each part of a reconstruct job (one per group of pictures of its run,
+    `core.config.independent_groups`), or None when it runs as one (a single group, or groups
+    that depend on each other)."""
+    groups = independent_groups(resolved.frames, resolved.config)
+    return [list(g.frames) for g in groups] if groups is not None and len(groups) > 1 else None
 
 
 def job_parts(services: Services, job: Job) -> tuple[list[PartOut] | None, dict]:

@@ -40,7 +40,7 @@ class AssembleJob:
                          frame=self.job.frames, frames=self.job.frames,
                          message=f"{self.job.parts} parts")
         records = self._fetch(run)
-        metrics = assemble(run, records)
+        metrics = assemble(run, records, capture)
         self.link.log(f"assembled {len(metrics['frames'])} frames from {len(records)} parts")
         self.whole.evaluate(run, capture)
         self.whole.publish_final(run)

@@ -142,6 +142,11 @@ class Job(Base):
         ForeignKey("captures.id", ondelete="SET NULL"), index=True, default=None)
     pipeline: Mapped[str] = mapped_column(String(32))
     params: Mapped[dict[str, Any]] = mapped_column(default=dict)
+    """The parameters as the request gave them (what the API shows)."""
+    resolved_run: Mapped[dict[str, Any] | None] = mapped_column(default=None)
+    """A reconstruction's run, resolved at submit against its capture (RUN/config.json's
+    content, `core.config.ResolvedRun`), which the worker runs as it is (migration 0007);
+    None for other pipelines and for jobs stored before it existed."""
     source_job_id: Mapped[str | None] = mapped_column(String(32), index=True, default=None)
     """The reconstruction a relight job renders; None for other jobs, and once the source is
     deleted. Not a foreign key (see migration 0002): deleting a job is refused while a queued
@@ -176,7 +181,7 @@ class Job(Base):
     worker: Mapped[str | None] = mapped_column(String(256), default=None)
     """host/pid of the worker that runs it or ran it last (kept when the lease ends)."""
     runs: Mapped[list[Any] | None] = mapped_column(default=None)
-    """Each claim, newest last (at most worker.owner.MAX_RUNS): {"attempt", "worker",
+    """Each claim, newest last (at most worker.lease.MAX_RUNS): {"attempt", "worker",
     "started_at", "ended_at", "outcome"}; a run its worker never ended is "lost"."""
     lease_expires_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     dispatched_at: Mapped[dt.datetime | None] = mapped_column(default=None)

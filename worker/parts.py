@@ -1,41 +1,26 @@
 """A sequence job run as parts (docs/design.md 4.4): one part per group of pictures, each a row
 of `jobs` with `parent_id` set, so that a part has everything a job has (its lease, heartbeat,
 attempts, broker message, checkpoints, cancel) without a second copy of that machinery. This
-module holds what is particular to parts: how a job is split, how the parts' states roll up
-into the parent's, and the parent's overall progress read from its parts; `worker.jobrows`
-applies these to the rows for the job store. Torch-free (the API splits a job when it is
-posted)."""
+module holds what is particular to parts: how the parts' states roll up into the parent's, and
+the parent's overall progress read from its parts (how a job is split is
+`core.config.independent_groups`, the groups its run plans); `worker.transitions` applies these to
+the rows for the job store. Torch-free (the API reads parts when it shows a job)."""
 
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Sequence
 from typing import Any
 
 from sqlalchemy import delete, exists, select
 from sqlalchemy.orm import Session, aliased
 
-from core.config import RunConfig
 from worker.models import Job, JobEvent, utcnow
 
 __all__ = ["ASSEMBLY_SHARE", "active_parts", "delete_parts", "failed_error", "overall_progress",
-           "part_event", "part_out", "parts_of", "roll_up", "split_frames", "worker_of"]
+           "part_event", "part_out", "parts_of", "roll_up", "worker_of"]
 
 ASSEMBLY_SHARE = 0.01
 """Share of a parted job's progress left for the assembly (merge, evaluation, publishing)."""
-
-
-def split_frames(frames: Sequence[str], cfg: RunConfig) -> list[list[str]] | None:
-    """The frames of each part of a reconstruction of `frames` with `cfg`: one part per group of
-    pictures (`core.sequence.segment`: consecutive runs of `gop` frames), one per frame when
-    `sequence.enabled` is off. None when the job runs as one: a single group, or groups that
-    are not independent (`sequence.refine_scope` "run": a group spends what earlier groups
-    saved, so it has to wait for them)."""
-    if cfg.sequence.enabled and cfg.sequence.refine_scope != "group":
-        return None
-    gop = cfg.gop if cfg.sequence.enabled else 1
-    groups = [list(frames[s:s + gop]) for s in range(0, len(frames), gop)]
-    return groups if len(groups) > 1 else None
 
 
 def active_parts(job_id) -> Any:

@@ -1,9 +1,13 @@
-"""The pipelines a job can run, with their parameters as pydantic models (published as JSON
-Schema by `GET /v1/pipelines`) and their time limits. Torch-free: the API validates a job's
-parameters here before it is queued; the worker runs it (`worker.runner`).
+"""The pipelines a job can run, each registered here once (`PIPELINES`): its parameters as a
+pydantic model (published as JSON Schema by `GET /v1/pipelines`), the request that submits it,
+the execution that runs it on a worker, the artifacts it writes and its time limits.
+Torch-free: the API validates a job's parameters here before it is queued; the worker runs it
+(`worker.runner`).
 
-`reconstruct` runs on a capture (POST /v1/jobs); `relight` on the results of a succeeded
-reconstruction (POST /v1/renders names it; the job row keeps it as `source_job_id`)."""
+`reconstruct` runs on a capture (POST /v1/jobs), which the API resolves into the run the job
+stores (`core.config.ResolvedRun`); `relight` and `export` on the results of a succeeded
+reconstruction (POST /v1/renders, /v1/exports name it; the job row keeps it as
+`source_job_id`)."""
 
 from __future__ import annotations
 
@@ -13,8 +17,19 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, PrivateAttr, WithJsonSchema
 
-from core.config import RunConfig, load_config, schema, validate
+from core.config import (
+    CheckpointEvery,
+    GopSize,
+    Preset,
+    ResolvedRun,
+    RunConfig,
+    load_config,
+    resolve_run,
+    schema,
+    validate,
+)
 from core.config.base import FrameSlice, StrictModel
+from core.data.capture import Capture
 from core.config.relight import BUILTIN_ENVMAPS, Light, RelightSettings
 from core.rundir import kinds_written_by
 from worker.settings import WorkerSettings
@@ -34,32 +49,30 @@ class ReconstructParams(StrictModel):
     # the configuration is StrictModel's, which pydantic merges in)
     model_config = ConfigDict(frozen=True)
 
-    preset: Literal["paper", "fast", "test"] = Field(
+    preset: Preset = Field(
         "fast", description="Training schedule: paper (30k steps per key frame), fast (7.5k), "
                             "test (500, for checks).")
     frames: FrameSlice | None = Field(
         None, description="Python slice over the capture's frame list, e.g. '0:10'; all by "
                           "default.")
-    gop: int | None = Field(
-        None, ge=1, le=10_000,
-        description="Frames per group of pictures; default: config.gop (20 unless set).")
-    checkpoint_every: int | None = Field(
-        None, ge=1, le=1_000_000,
-        description="Steps between checkpoints (a lost worker's job resumes from the last); "
-                    "default: the preset's.")
+    gop: GopSize | None = Field(
+        None, description="Frames per group of pictures; default: config.gop (20 unless set).")
+    checkpoint_every: CheckpointEvery | None = Field(
+        None, description="Steps between checkpoints (a lost worker's job resumes from the "
+                          "last); default: the preset's.")
     config: Annotated[dict[str, Any], WithJsonSchema(schema(RunConfig, inline=True))] = Field(
         default_factory=dict,
-        description="Overrides of the preset's configuration, in the shape of RUN/config.json "
-                    "(e.g. {\"train\": {\"seed\": 3}}); every key, type and bound is checked "
-                    "before the job is made (422 naming the setting).")
+        description="Overrides of the preset's configuration, in the shape of RUN/config.json's "
+                    "`config` (e.g. {\"train\": {\"seed\": 3}}); every key, type and bound is "
+                    "checked, and the run resolved against the capture, before the job is made "
+                    "(422 naming the setting).")
 
     _resolved: RunConfig | None = PrivateAttr(None)
 
     def run_config(self) -> RunConfig:
-        """The configuration this job runs with: the preset, `config`, then `checkpoint_every`
-        and `gop` (core.config.ConfigError naming each bad setting under 'config'). The one
-        place a job's configuration is resolved: the API checks it (service.checks, the split
-        into parts) and the worker runs it (worker.reconstruct_job); resolved once per object."""
+        """The configuration these parameters ask for: the preset, `config`, then
+        `checkpoint_every` and `gop` (core.config.ConfigError naming each bad setting under
+        'config'); resolved once per object."""
         if self._resolved is None:
             overrides = dict(self.config)
             if self.checkpoint_every is not None:
@@ -67,6 +80,15 @@ class ReconstructParams(StrictModel):
             self._resolved = load_config(self.preset, overrides=overrides, gop=self.gop,
                                          where="config")
         return self._resolved
+
+    def resolve(self, capture: Capture, *, capture_name: str,
+                has_masks: bool | None = None) -> ResolvedRun:
+        """The run these parameters ask for on `capture` (`core.config.resolve_run`:
+        ConfigError naming `frames`, `config.split`, `config.mesh.subject` when the capture
+        cannot run it). The API makes it once, at submit, and stores it with the job; the
+        worker runs the stored one."""
+        return resolve_run(capture, self.run_config(), preset=self.preset, frames=self.frames,
+                           capture_name=capture_name, has_masks=has_masks)
 
 
 class RelightJobParams(RelightSettings):
@@ -111,16 +133,24 @@ class ExportJobParams(StrictModel):
 
 @dataclass(frozen=True)
 class Pipeline:
+    """A pipeline, registered once in `PIPELINES`: everything the API and the worker need to
+    know of it."""
+
     name: str
     description: str
     params: type[BaseModel]
+    execution: str
+    """What runs a job of it on a worker ("module:Class", imported by `worker.runner` only:
+    it needs torch, which the API never loads)."""
+    endpoint: str
+    """The request that submits a job of it (POST)."""
     artifacts: tuple[str, ...]
-    """Kinds of artifact the pipeline produces."""
+    """Kinds of artifact the pipeline produces (`core.rundir`'s rules name their writer)."""
     soft_limit: str
     """The WorkerSettings field that holds the soft time limit in seconds."""
     source: Literal["capture", "job"] = "capture"
-    """What a job of it runs on: a capture (POST /v1/jobs) or a succeeded reconstruction
-    (POST /v1/renders)."""
+    """What a job of it runs on: a capture (whose run the API resolves and stores with the job)
+    or a succeeded reconstruction."""
     check: Callable[[Any], Any] | None = None
     """Checks across the parameters beyond their schema (ValueError with `details`)."""
 
@@ -144,6 +174,8 @@ PIPELINES: dict[str, Pipeline] = {
         description="Reconstruct every selected frame of a capture: disentangled Gaussians "
                     "(PLY), held-out renders (rgb, normal, AO, depth), metrics, plots.",
         params=ReconstructParams,
+        execution="worker.reconstruct_job:ReconstructJob",
+        endpoint="/v1/jobs",
         artifacts=kinds_written_by("reconstruct"),
         soft_limit="reconstruct_soft_limit_seconds",
         check=ReconstructParams.run_config,
@@ -155,6 +187,8 @@ PIPELINES: dict[str, Pipeline] = {
                     "(linear); with an orbit relit/<frame>.mp4, over several frames "
                     "relit/videos/<camera>.mp4; relit/relight.json.",
         params=RelightJobParams,
+        execution="worker.relight_job:RelightJob",
+        endpoint="/v1/renders",
         artifacts=kinds_written_by("relight"),
         soft_limit="relight_soft_limit_seconds",
         source="job",
@@ -165,6 +199,8 @@ PIPELINES: dict[str, Pipeline] = {
                     "(the relightable sequence stream), export/spz/<frame>.spz, "
                     "export/ply/<frame>.ply, export/export.json (sizes, timings).",
         params=ExportJobParams,
+        execution="worker.export_job:ExportJob",
+        endpoint="/v1/exports",
         artifacts=kinds_written_by("export"),
         soft_limit="export_soft_limit_seconds",
         source="job",

@@ -1,5 +1,6 @@
 """The `reconstruct` job: fetch the capture, resume the run directory from its last checkpoint,
-call `core.pipeline.reconstruct`, evaluate the held-out views, publish the run directory.
+call `core.pipeline.reconstruct` on the run the job stored at submit (`Job.resolved_run`, never
+resolved again), evaluate the held-out views, publish the run directory.
 
 A job's run directory lives in the worker's scratch folder (<scratch>/jobs/<id>/run). Every
 checkpoint is also copied to the store (jobs/<id>/state/) and every finished frame published as
@@ -15,6 +16,8 @@ from pathlib import Path
 
 from sqlalchemy import select
 
+from core.config import ResolvedRun
+from core.data import load_capture
 from core.evaluation import evaluate_run
 from core.pipeline import Stopped, reconstruct
 from worker.execution import Host, JobStopped
@@ -50,7 +53,7 @@ class ReconstructJob:
         capture = self.runner.capture(self.job, self.link)
         run = self._run_dir()
         try:
-            self._reconstruct(capture, run)
+            self._reconstruct(capture, run, self.resolved(capture))
         except Stopped as exc:
             raise JobStopped(f"step {exc.step}") from exc
         if self.part:
@@ -77,24 +80,29 @@ class ReconstructJob:
                                   run / "frames" / frame)
         return run
 
-    def _reconstruct(self, capture: Path, run: Path) -> None:
-        params, link = self.params, self.link
+    def resolved(self, capture: Path) -> ResolvedRun:
+        """The run this job stored at submit; a job stored before runs were (migration 0007)
+        resolves its parameters here, once per attempt, as it always did."""
+        if self.job.resolved_run is not None:
+            return ResolvedRun.from_json(self.job.resolved_run, capture, where="resolved_run")
+        return self.params.resolve(load_capture(capture),
+                                   capture_name=self.job.capture_id or "capture")
+
+    def _reconstruct(self, capture: Path, run: Path, resolved: ResolvedRun) -> None:
+        link = self.link
         resume = (run / "config.json").is_file()
         if resume:
             link.log("resuming from the run directory's last checkpoint")
         run.parent.mkdir(parents=True, exist_ok=True)
-        reconstruct(capture, run, preset=params.preset, config=params.run_config(),
-                    frames=params.frames, resume=resume, progress=False,
-                    model_files=self._model_files(run.parent),
+        reconstruct(capture, run, resolved=resolved, resume=resume, progress=False,
+                    model_files=self._model_files(run.parent, resolved.config.normal_estimator),
                     on_progress=self._on_progress(run), should_stop=link.should_stop,
-                    gops=[self.job.part_index] if self.part else None,
-                    capture_name=self.job.capture_id or "capture")
+                    gops=[self.job.part_index] if self.part else None)
 
-    def _model_files(self, work: Path) -> dict[str, Path]:
-        """Where the models the configuration names are on this worker: an operator's
+    def _model_files(self, work: Path, name: str | None) -> dict[str, Path]:
+        """Where the model the configuration names (`name`) is on this worker: an operator's
         allow-listed file, or the tenant's model asset fetched into the job's folder. A name
         that is neither fails the job (the API refuses it first; a path is never opened)."""
-        name = self.params.run_config().normal_estimator
         if name is None:
             return {}
         allowed = self.runner.settings.normal_estimators

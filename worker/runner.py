@@ -8,6 +8,7 @@ publishing a folder's files as typed artifacts under jobs/<id>/artifacts/.
 
 from __future__ import annotations
 
+import importlib
 import shutil
 import signal
 import threading
@@ -27,13 +28,10 @@ from core.rundir import classify
 from worker.assemble_job import AssembleJob
 from worker.blobs import BlobStore, open_store
 from worker.execution import Execution, JobStopped
-from worker.export_job import ExportJob
 from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
-from worker.reconstruct_job import ReconstructJob
 from worker.redact import SERVER, redact
-from worker.relight_job import RelightJob
 from worker.scratch import job_folder, mark
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
@@ -135,8 +133,8 @@ class Runner:
         params = pipeline.parse(job.params)
         if job.parts:  # a job run as parts: what is left of it is their assembly
             return AssembleJob(self, job, params, link)
-        kinds = {"reconstruct": ReconstructJob, "relight": RelightJob, "export": ExportJob}
-        return kinds[pipeline.name](self, job, params, link)
+        module, name = pipeline.execution.split(":")
+        return getattr(importlib.import_module(module), name)(self, job, params, link)
 
     def _execute(self, job: Job, link: JobLink) -> Outcome:
         link.log(f"attempt {job.attempts} on {link.owner.host} (pid {link.owner.pid})")

@@ -21,15 +21,16 @@ from sqlalchemy import func, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session
 
-from worker import jobrows
+from worker import transitions
+from worker.api_queries import ApiQueries
 from worker.db import session_scope
 from worker.housekeeping import Housekeeping
 from worker.idempotency import Idempotency, remember
-from worker.jobrows import JobState, new_id, progress_of
+from worker.lease import Owner, run_ended, run_started
 from worker.models import Artifact, Job, JobEvent, JobLog, utcnow
-from worker.owner import Owner, run_ended, run_started
 from worker.parts import active_parts, part_event, parts_of
 from worker.quota import CapReached, lock_tenant
+from worker.transitions import ACTIVE, TERMINAL, JobState, new_id, progress_of
 
 __all__ = [
     "ACTIVE",
@@ -42,8 +43,6 @@ __all__ = [
     "progress_of",
 ]
 
-ACTIVE = ("queued", "running")
-TERMINAL = ("succeeded", "failed", "cancelled")
 
 
 @dataclass(frozen=True)
@@ -59,10 +58,11 @@ class Claim:
     retry_in: float = 0.0
 
 
-class JobStore(Housekeeping):
+class JobStore(ApiQueries, Housekeeping):
     """Job lifecycle operations on the database at `url`, each in its own transaction (the
-    changes to the rows, those of jobs run as parts included, in `worker.jobrows`; the
-    sweepers' questions in `worker.housekeeping.Housekeeping`)."""
+    changes to the rows, those of jobs run as parts included, in `worker.transitions`; the API's
+    pages and deletions in `worker.api_queries.ApiQueries`; the sweepers' questions in
+    `worker.housekeeping.Housekeeping`)."""
 
     def __init__(self, url: str):
         self.url = url
@@ -97,34 +97,38 @@ class JobStore(Housekeeping):
     # -- created and changed by the API -------------------------------------------------------
     def create(self, tenant: str, pipeline: str, params: dict[str, Any], *,
                capture_id: str | None, name: str = "", expires_at: dt.datetime | None = None,
-               idempotency: Idempotency | None = None, cap: int | None = None) -> Job:
-        """A queued job; with `idempotency`, its key is kept with it in the same transaction
-        (IntegrityError, and no job, when a live row has the key: `worker.idempotency`).
-        `cap`: CapReached, and no job, when the tenant has that many active (`active_jobs`)."""
+               idempotency: Idempotency | None = None, cap: int | None = None,
+               resolved_run: dict[str, Any] | None = None) -> Job:
+        """A queued job (`resolved_run`: a reconstruction's run, resolved at submit); with
+        `idempotency`, its key is kept with it in the same transaction (IntegrityError, and
+        no job, when a live row has the key: `worker.idempotency`). `cap`: CapReached, and no
+        job, when the tenant has that many active (`active_jobs`)."""
         with self.session() as s:
             self.active_jobs(s, tenant, cap)
             job = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
                       params=params, name=name, state="queued", stage="queued",
-                      expires_at=expires_at)
+                      expires_at=expires_at, resolved_run=resolved_run)
             s.add(job)
             s.flush()
             remember(s, idempotency, job.id)
-            jobrows.state_event(s, job)
+            transitions.state_event(s, job)
             return job
 
     def create_parted(self, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
                       capture_id: str | None, name: str = "",
                       expires_at: dt.datetime | None = None,
                       idempotency: Idempotency | None = None,
-                      cap: int | None = None) -> tuple[Job, list[Job]]:
+                      cap: int | None = None,
+                      resolved_run: dict[str, Any] | None = None) -> tuple[Job, list[Job]]:
         """A sequence job and its parts (one per group of `groups`), all queued; the caller
         dispatches the parts (the parent itself is dispatched when they have succeeded).
-        `idempotency`, `cap`: as `create` (the key names the parent; the job counts once)."""
+        `idempotency`, `cap`, `resolved_run`: as `create` (the key names the parent; the job
+        counts once; every part runs the same run)."""
         with self.session() as s:
             self.active_jobs(s, tenant, cap)
-            return jobrows.create_parted(s, tenant, params, groups, capture_id=capture_id,
+            return transitions.create_parted(s, tenant, params, groups, capture_id=capture_id,
                                          name=name, expires_at=expires_at,
-                                         idempotency=idempotency)
+                                         idempotency=idempotency, resolved_run=resolved_run)
 
     def create_render(self, tenant: str, source_job_id: str, pipeline: str,
                       params: dict[str, Any], *, name: str = "",
@@ -147,14 +151,8 @@ class JobStore(Housekeeping):
             s.add(job)
             s.flush()
             remember(s, idempotency, job.id)
-            jobrows.state_event(s, job)
+            transitions.state_event(s, job)
             return job
-
-    @staticmethod
-    def dependents(s: Session, job_id: str) -> list[str]:
-        """Queued or running jobs that need `job_id`'s results (in session `s`)."""
-        return list(s.scalars(select(Job.id).where(Job.source_job_id == job_id,
-                                                   Job.state.in_(ACTIVE))))
 
     def get(self, job_id: str, tenant: str | None = None) -> Job | None:
         """The job, or None when it does not exist or belongs to another tenant."""
@@ -184,15 +182,17 @@ class JobStore(Housekeeping):
                 return None
             if job.parts and job.state in ACTIVE:
                 job.cancel_requested = True
-                jobrows.event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
-                jobrows.cancel_parts(s, job)
+                transitions.event(s, job.id, "state", {"state": job.state,
+                                                       "cancel_requested": True})
+                transitions.cancel_parts(s, job)
             elif job.state == "queued" and job.lease_owner is None:
                 job.state, job.stage, job.finished_at = "cancelled", "cancelled", utcnow()
                 job.eta_s = None
-                jobrows.state_event(s, job)
+                transitions.state_event(s, job)
             elif job.state in ACTIVE and not job.cancel_requested:
                 job.cancel_requested = True
-                jobrows.event(s, job.id, "state", {"state": job.state, "cancel_requested": True})
+                transitions.event(s, job.id, "state", {"state": job.state,
+                                                       "cancel_requested": True})
             return job
 
     def retry(self, job_id: str, tenant: str, cap: int | None = None) -> Job | None:
@@ -207,20 +207,20 @@ class JobStore(Housekeeping):
             if cap is not None and job.state in ("failed", "cancelled"):
                 self.active_jobs(s, tenant, cap)
             if job.parts and job.state in ("failed", "cancelled"):
-                jobrows.retry_parts(s, job)
-                jobrows.state_event(s, job)
+                transitions.retry_parts(s, job)
+                transitions.state_event(s, job)
             elif job.state in ("failed", "cancelled"):
                 job.state, job.stage, job.error, job.message = "queued", "queued", None, ""
                 job.attempts, job.cancel_requested, job.finished_at = 0, False, None
                 job.lease_owner = job.lease_expires_at = job.eta_s = None
-                jobrows.state_event(s, job)
+                transitions.state_event(s, job)
             return job
 
     def to_dispatch(self, job_id: str) -> list[str]:
         """After a retry: the ids to send to the broker (the queued parts of a job run as
         parts, or the job itself)."""
         with self.session(write=False) as s:
-            return jobrows.to_dispatch(s, job_id)
+            return transitions.to_dispatch(s, job_id)
 
     def parts(self, parent_id: str) -> list[Job]:
         """The parent's parts in order (empty for a job that runs as one)."""
@@ -232,13 +232,13 @@ class JobStore(Housekeeping):
         """Take the job's lease (and count an attempt) unless a live worker holds it."""
         now = utcnow()
         with self.session() as s:
-            job = jobrows.lock(s, job_id)
+            job = transitions.lock(s, job_id)
             if job is None:
                 return Claim("missing")
             if job.state in TERMINAL:
                 return Claim("terminal", job)
             if job.cancel_requested:
-                jobrows.finish(s, job, "cancelled", None, "cancelled before it resumed")
+                transitions.finish(s, job, "cancelled", None, "cancelled before it resumed")
                 return Claim("terminal", job)
             if job.parts and s.scalar(select(active_parts(job.id))):
                 return Claim("waiting", job)
@@ -247,7 +247,7 @@ class JobStore(Housekeeping):
                 if holder is None or not holder.is_dead_here():
                     return Claim("leased", job, (job.lease_expires_at - now).total_seconds())
             if job.attempts >= max_attempts:
-                jobrows.finish(s, job, "failed", {
+                transitions.finish(s, job, "failed", {
                     "code": "worker_lost", "retryable": True,
                     "message": f"the worker running this job was lost {job.attempts} times "
                                f"(redelivery cap {max_attempts}); retry resumes from the last "
@@ -261,9 +261,9 @@ class JobStore(Housekeeping):
             job.started_at = job.started_at or now
             job.run_started_at, job.run_start_fraction = now, job.fraction
             job.stage, job.eta_s = "starting", None
-            jobrows.state_event(s, job)
+            transitions.state_event(s, job)
             if job.parent_id is not None:
-                jobrows.part_claimed(s, job)
+                transitions.part_claimed(s, job)
             return Claim("claimed", job)
 
     def heartbeat(self, job_id: str, owner: Owner, lease_seconds: float,
@@ -286,7 +286,7 @@ class JobStore(Housekeeping):
                         setattr(job, key, state[key])
                 job.fraction = min(1.0, max(job.fraction, fraction))
                 job.eta_s = state.get("eta_s", job.eta_s)
-                jobrows.event(s, job.id, "progress", progress_of(job))
+                transitions.event(s, job.id, "progress", progress_of(job))
                 if job.parent_id is not None:
                     part_event(s, job, "progress", progress_of(job))
             return True, job.cancel_requested
@@ -295,10 +295,10 @@ class JobStore(Housekeeping):
                error: dict[str, Any] | None = None, message: str = "") -> bool:
         """End the job (only its lease holder may); False when the lease was lost."""
         with self.session() as s:
-            job = jobrows.lock(s, job_id)
+            job = transitions.lock(s, job_id)
             if job is None or job.lease_owner != str(owner):
                 return False
-            jobrows.finish(s, job, state, error, message)
+            transitions.finish(s, job, state, error, message)
             return True
 
     def release(self, job_id: str, owner: Owner, message: str) -> bool:
@@ -316,7 +316,7 @@ class JobStore(Housekeeping):
             run_ended(job, "released", utcnow())
             job.lease_owner = job.lease_expires_at = job.eta_s = job.dispatched_at = None
             job.attempts = max(job.attempts - 1, 0)
-            jobrows.state_event(s, job)
+            transitions.state_event(s, job)
             return True
 
     def append_logs(self, job_id: str, lines: Sequence[str]) -> None:

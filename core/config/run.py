@@ -16,12 +16,16 @@ from pydantic import Field
 from core.config.base import ConfigError, Device, Fraction, section, validate
 from core.config.sequence import SequenceConfig
 from core.config.train import PRESETS, TrainConfig, train_config
-from core.data.split import Split
+from core.config.views import Split
 
-__all__ = ["MESH_FORMATS", "MeshConfig", "RunConfig", "apply_overrides", "load_config",
-           "parse_frames", "preset_config"]
+__all__ = ["CheckpointEvery", "GopSize", "MESH_FORMATS", "MeshConfig", "RunConfig",
+           "apply_overrides", "load_config", "parse_frames", "preset_config"]
 
 MESH_FORMATS = ("ply", "obj", "glb")
+GopSize = Annotated[int, Field(ge=1, le=10_000)]
+"""Frames per group of pictures."""
+CheckpointEvery = Annotated[int, Field(ge=1, le=1_000_000)]
+"""Steps between checkpoints."""
 
 
 @section
@@ -65,9 +69,9 @@ class RunConfig:
 
     train: TrainConfig = field(default_factory=TrainConfig)
     """How each key frame is trained (the preset, with overrides applied)."""
-    checkpoint_every: Annotated[int, Field(ge=1, le=1_000_000)] = 1000
+    checkpoint_every: CheckpointEvery = 1000
     """Steps between checkpoints (RUN/checkpoints/<frame>.pt, written atomically)."""
-    gop: Annotated[int, Field(ge=1, le=10_000)] = 20
+    gop: GopSize = 20
     """Frames per group of pictures: the first is a key frame, the others deform + refine."""
     sequence: SequenceConfig = field(default_factory=SequenceConfig)
     """How the frames after a group's first are deformed and refined."""
@@ -82,7 +86,7 @@ class RunConfig:
     fused stereo depth, with a confidence (`core.rig`); off: no prior there (the
     depth-normal consistency term alone shapes their normals)."""
     split: Split = "auto"
-    """Which cameras are held out (`core.data.split`): `auto` the capture's declared
+    """Which cameras are held out (`core.config.views`): `auto` the capture's declared
     test_cameras, else every 8th; `capture` the declared ones; `every8`; `none` (every camera
     trains; renders and metrics then on training views, labelled so)."""
     downscale: Annotated[float, Field(ge=1, le=64)] = 1.0
@@ -126,9 +130,10 @@ def load_config(preset: str = "fast", config_file: str | os.PathLike[str] | None
                 overrides: dict | None = None, *, gop: int | None = None,
                 where: str = "config") -> RunConfig:
     """The preset's configuration, then a JSON file's overrides, then `overrides` (both in the
-    shape of RUN/config.json), then `gop`; ConfigError on any bad setting. A `train.method`
-    among them brings that method's defaults under every override (`method_defaults`): the
-    preset's plan with 3DGS's densification, say, unless a setting names another value."""
+    shape of RUN/config.json's `config`), then `gop`; ConfigError on any bad setting. A
+    `train.method` among them brings that method's defaults under every override
+    (`method_defaults`): the preset's plan with 3DGS's densification, say, unless a setting
+    names another value."""
     layers: list[tuple[dict, str]] = []
     if config_file is not None:
         path = Path(config_file)

@@ -11,6 +11,7 @@ from pydantic import Field
 
 from core.config.base import DEVICE_PATTERN, MAX_STEPS, Device, Fraction, Positive, Steps, Weight, section
 from core.config.rig import StereoConfig
+from core.config.views import Masks
 
 __all__ = ["AOConfig", "DEVICE_PATTERN", "DensifyConfig", "InitConfig", "LearningRates", "LossWeights",
            "METHODS", "Method", "PRESETS", "Preset", "Schedule", "TrainConfig", "method_defaults",
@@ -259,7 +260,7 @@ class TrainConfig:
     """Apply the Mip-Splatting opacity compensation."""
     background: tuple[Color, Color, Color] = (0.0, 0.0, 0.0)
     """Colour behind the Gaussians; masked-out target pixels take it too."""
-    masks: Literal["capture", "matte", "subject"] = "capture"
+    masks: Masks = "capture"
     """How the capture's masks are used: `matte`, they cut the subject out of each picture and
     only it is reconstructed (on `background`); `subject`, the whole picture is reconstructed
     and the masks only mark the subject (what tracked frames move, what a subject export

@@ -168,7 +168,7 @@ class Capture:
     """How an importer produced this capture, including the transform back to the source."""
     test_cameras: tuple[str, ...] | None = None
     """The cameras its dataset holds out for evaluation (capture.json `test_cameras`), or None
-    when it declares none (`core.data.split`)."""
+    when it declares none (`core.config.views`)."""
     masks: Literal["matte", "subject"] = "matte"
     """What its masks are (capture.json `masks`): `matte`, they cut the subject out of each
     picture and only it is reconstructed; `subject`, they mark the subject (the performers)

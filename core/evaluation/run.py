@@ -1,10 +1,10 @@
 """`dgs eval`: quality of a run on its held-out views (docs/design.md 3.3 `eval.json`, section 5).
 
-The views are those the run's camera split scores (`core.data.split`, RUN/config.json `split`):
-its held-out cameras, or, for a run that trained on every camera, its training cameras, which
-eval.json's `split.scored_on` then says.
+The views are those the run scores (RUN/config.json's views, `core.config.Views`): its held-out
+cameras, or, for a run that trained on every camera, its training cameras, which eval.json's
+`split.scored_on` then says.
 
-- every view at the run's resolution (the capture reduced by RUN/config.json's `downscale`, the
+- every view at the run's resolution (the capture reduced by the views' `downscale`, the
   ground-truth normals area-averaged to it);
 - rgb: PSNR over foreground pixels when the capture has masks (else the whole image; `psnr_full`
   is always over the whole image, comparable with papers that composite on black) and SSIM
@@ -31,8 +31,8 @@ import trimesh
 from PIL import Image
 
 from core.color import linear_to_srgb
+from core.config import read_run
 from core.data import CaptureDataset, load_capture
-from core.data.split import camera_split
 from core.device import resolve_device
 from core.evaluation.lpips import Lpips, load_lpips
 from core.files import write_json
@@ -114,10 +114,8 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     is how eval.json names the capture (default: its folder; a service gives its id)."""
     torch_device = resolve_device(device)
     run = Path(run_dir)
-    if not (run / "config.json").is_file():
-        raise ValueError(f"run_dir: {run} is not a run directory (no config.json)")
-    config = json.loads((run / "config.json").read_text())
-    capture_dir = Path(capture_dir if capture_dir is not None else config["capture"])
+    resolved = read_run(run, capture_dir)
+    capture_dir = Path(capture_dir if capture_dir is not None else resolved.capture)
     if not (capture_dir / "capture.json").is_file():
         raise ValueError(f"capture: {capture_dir} has no capture.json (pass --capture)")
     capture = load_capture(capture_dir)
@@ -129,14 +127,11 @@ def evaluate_run(run_dir: str | os.PathLike[str],
     frames = [f for f in capture.frames if f in done and f not in carried]
     if not frames:
         raise ValueError(f"run_dir: {run} has no finished frame of {capture_dir} to evaluate")
-    split = camera_split(capture, config.get("split", "auto"))
-    masks = config["train"].get("masks", "capture")
-    matte = (capture.masks if masks == "capture" else masks) == "matte"
-    held = list(split.scored)
-    background = np.asarray(config["train"]["background"], np.float32)
+    selected = resolved.views
+    matte, held, downscale = selected.matte, list(selected.split.scored), selected.downscale
+    background = np.asarray(resolved.config.train.background, np.float32)
     lpips = load_lpips(device=torch_device)
     per_frame, rows = [], []
-    downscale = float(config.get("downscale", 1.0))  # the run's scoring resolution
     for frame in frames:
         ds = CaptureDataset(capture, frames=[frame], cameras=held, downscale=downscale,
                             matte=matte)
@@ -155,7 +150,7 @@ def evaluate_run(run_dir: str | os.PathLike[str],
         per_frame.append({"frame": frame, **_summary(views), "views": views})
     result = {**_summary(rows), "chamfer": None,
               "normal_reference": rows[0]["normal_reference"],
-              "capture": capture_name or str(capture_dir), "split": split.to_json(),
+              "capture": capture_name or str(capture_dir), "split": selected.split.to_json(),
               "views": len(rows), "per_frame": per_frame}
     result.update(_relight_and_meshes(run, capture_dir, frames, held, downscale, per_frame,
                                       torch_device, matte))

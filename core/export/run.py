@@ -22,9 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-from core.config import Schedule, parse_frames
+from core.config import parse_frames, read_run
 from core.data import load_capture
-from core.data.split import camera_split
 from core.export.codec import StreamConfig
 from core.export.splats import Splats, read_frame_ply, write_frame_ply
 from core.export.subject import subject_rows
@@ -61,24 +60,23 @@ def stream_header(run: Path, frames: list[str], fps: float | None,
     (SH degree, beta, screen blur, background, sRGB or linear colour), the capture light the
     albedo is divided by (uniform pi, docs/design.md section 5) and the capture's cameras (at the
     run's resolution) and up axis."""
-    cfg = json.loads((run / "config.json").read_text())
-    schedule = Schedule(**cfg["train"]["schedule"])
-    p = plan(schedule.iterations - 1, schedule, cfg["train"].get("method", "disentangled"))
+    resolved = read_run(run, capture_dir)
+    train, views = resolved.config.train, resolved.views
+    p = plan(train.schedule.iterations - 1, train.schedule, train.method)
     header = {"frames": frames, "render": {
-        "sh_degree": p.sh_degree, "beta": p.beta, "eps2d": float(cfg["train"]["eps2d"]),
-        "antialiased": bool(cfg["train"]["antialiased"]),
-        "background": list(cfg["train"]["background"]), "linear": False},
-        "capture_light": {"uniform": math.pi}, "up": [0.0, 0.0, 1.0], "cameras": []}
-    capture_path = Path(capture_dir if capture_dir is not None else cfg.get("capture", ""))
+        "sh_degree": p.sh_degree, "beta": p.beta, "eps2d": train.eps2d,
+        "antialiased": train.antialiased, "background": list(train.background),
+        "linear": False}, "capture_light": {"uniform": math.pi}, "up": [0.0, 0.0, 1.0],
+        "cameras": []}
+    capture_path = Path(capture_dir if capture_dir is not None else resolved.capture)
     meta = {}
     if (capture_path / "capture.json").is_file():
         capture = load_capture(capture_path)
         meta = json.loads((capture_path / "capture.json").read_text())
-        ds = float(cfg.get("downscale", 1.0))
         header["up"] = [float(v) for v in capture.up]
-        scored = set(camera_split(capture, cfg.get("split", "auto")).scored)
+        scored = set(views.split.scored)
         for c in capture.cameras:
-            s = c.scaled(max(1, round(c.width / ds)), max(1, round(c.height / ds)))
+            s = views.served(c)
             header["cameras"].append({"id": s.id, "width": s.width, "height": s.height,
                                       "K": s.K.tolist(), "world_to_camera":
                                       s.world_to_camera.tolist(), "heldout": c.id in scored})
@@ -141,8 +139,7 @@ def export_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str],
     bad = [f for f in formats if f not in FORMATS]
     if bad or not formats:
         raise ValueError(f"formats: expected some of {', '.join(FORMATS)}, got {list(formats)}")
-    if not (run / "config.json").is_file():
-        raise ValueError(f"run_dir: {run} is not a run directory (no config.json)")
+    read_run(run, capture_dir)  # a run directory, its record readable, before anything
     order, groups = _run_frames(run)
     if not order:
         raise ValueError(f"run_dir: {run} has no finished frame (frames/<frame>/gaussians.ply)")

@@ -9,13 +9,12 @@ groups stay in correspondence and a limb leaving the masks for a frame does not 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from core.config import SequenceConfig
+from core.config import read_run
 from core.data import load_capture
 from core.export.splats import read_frame_ply
 from core.render import RenderCamera
@@ -28,18 +27,15 @@ __all__ = ["subject_rows"]
 def subject_rows(run: Path, groups: list[list[str]], capture_dir=None) -> dict[str, np.ndarray]:
     """{frame: (N,) bool rows of its PLY that are the subject's} for every frame of `groups`;
     ValueError when the run's capture has no masks to say where the subject is."""
-    cfg = json.loads((run / "config.json").read_text())
-    capture = load_capture(capture_dir if capture_dir is not None else cfg["capture"])
-    seq = SequenceConfig(**{k: v for k, v in cfg.get("sequence", {}).items()
-                            if k in ("hull_dilate", "hull_share")})
-    downscale, split = float(cfg.get("downscale", 1.0)), cfg.get("split", "auto")
-    masks = cfg["train"].get("masks", "capture")
+    resolved = read_run(run, capture_dir)
+    capture = load_capture(capture_dir if capture_dir is not None else resolved.capture)
+    seq = resolved.config.sequence
     out: dict[str, np.ndarray] = {}
     for group in groups:
         ids = {f: read_frame_ply(run / "frames" / f / "gaussians.ply") for f in group}
         chosen: set[int] = set()
         for frame, splats in ids.items():
-            views = frame_views(capture, frame, downscale, split, masks)
+            views = frame_views(capture, frame, resolved.views)
             masked = [v.subject_mask for v in views]
             if all(m is None for m in masked):
                 raise ValueError(f"subject: frame {frame} has no masks in the capture, so "

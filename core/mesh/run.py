@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from core.config import MeshConfig, parse_frames
+from core.config import MeshConfig, Views, parse_frames
 from core.data import load_capture
 from core.export.subject import subject_rows
 from core.files import write_json
@@ -29,7 +29,6 @@ from core.mesh.build import mesh_model
 from core.mesh.surface import export_mesh, transform_mesh
 from core.model import GaussianModel
 from core.relight.gbuffer import run_render
-from core.training import training_cameras
 
 __all__ = ["mesh_run", "source_from_world", "training_views"]
 
@@ -48,10 +47,9 @@ def source_from_world(capture) -> np.ndarray | None:
     return None if np.allclose(m, np.eye(4)) else m
 
 
-def training_views(capture, downscale: float, split: str = "auto") -> list:
-    """The training cameras (under `split`, `core.data.split`) at the run's resolution."""
-    return [c.scaled(max(1, round(c.width / downscale)), max(1, round(c.height / downscale)))
-            for c in training_cameras(capture, split)]
+def training_views(capture, views: Views) -> list:
+    """The run's training cameras (`views`) at its resolution."""
+    return [views.served(c) for c in views.cameras(capture, "training")]
 
 
 def _chosen(frames, finished: list[str]) -> list[str]:
@@ -89,7 +87,7 @@ def mesh_run(run_dir: str | os.PathLike[str], out_dir: str | os.PathLike[str] | 
     chosen = _chosen(frames, finished)
     out = Path(out_dir) if out_dir is not None else run / "meshes"
     to_source = source_from_world(capture)
-    cameras = training_views(capture, settings.downscale, settings.split)
+    cameras = training_views(capture, settings.views)
     first = capture.image_path(capture.frames[0], capture.cameras[0].id)
     linear = first is not None and first.suffix.lower() == ".exr"
     old = {}

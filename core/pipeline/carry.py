@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from core.pipeline.assemble import run_config
+from core.config import ResolvedRun
 from core.plyio import read_gaussian_ply, read_track_ids, write_gaussian_ply
 from core.rundir import RunDir
 from core.sequence.plan import GopPlan
@@ -48,11 +48,10 @@ PART_BYTES = 15 * 2**20
 _NAME = re.compile(r"[^A-Za-z0-9._-]")
 
 
-def _next_frame(run: RunDir) -> tuple[GopPlan, dict, int | None]:
-    record = run.read_config()
-    cfg = run_config(record)
+def _next_frame(run: RunDir, resolved: ResolvedRun) -> tuple[GopPlan, dict, int | None]:
+    cfg = resolved.config
     records = run.read_metrics().get("frames", {})
-    plan = GopPlan(list(record["frames"]), cfg.gop, cfg.sequence, cfg.train.schedule.iterations)
+    plan = GopPlan(list(resolved.frames), cfg.gop, cfg.sequence, cfg.train.schedule.iterations)
     todo = [i for i, r in enumerate(plan.roles) if r.frame not in records]
     return plan, records, (todo[0] if todo else None)
 
@@ -103,7 +102,8 @@ def pack_resume(run_dir: str | os.PathLike[str], out: str | os.PathLike[str], *,
     out.mkdir(parents=True, exist_ok=True)
     for old in out.glob("resume-*.npz"):
         old.unlink()
-    plan, records, index = _next_frame(run)
+    resolved = run.read_run()
+    plan, records, index = _next_frame(run, resolved)
     need = _needs(plan, records, index)
     arrays = {f: _arrays(run, f, kind) for f, kind in need.items()}
     lossy: dict[str, str] = {}
@@ -125,7 +125,7 @@ def pack_resume(run_dir: str | os.PathLike[str], out: str | os.PathLike[str], *,
                 (out / n).unlink()
         need, files, lossy = {}, {}, {}
     metrics = {**run.read_metrics(), "frames": records}
-    record = {"version": 1, "config": run.read_config(), "metrics": metrics,
+    record = {"version": 1, "config": resolved.to_json(), "metrics": metrics,
               "sequence": plan.record(records), "carried": sorted(records),
               "next": dropped[0] if dropped else
               None if index is None else plan.roles[index].frame, "dropped": dropped,

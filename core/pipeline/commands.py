@@ -7,8 +7,7 @@ import argparse
 import time
 
 from core.cli import command_help, fail
-from core.config import METHODS, PRESETS
-from core.data.split import SPLITS
+from core.config import METHODS, PRESETS, SPLITS
 from core.pipeline.run import reconstruct
 
 __all__ = ["register"]
@@ -26,7 +25,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "others are deformed from the frame before and refined (default: the "
                         "config's gop, 20)")
     p.add_argument("--config", default=None, metavar="FILE",
-                   help="JSON file overriding fields of the preset (shape of RUN/config.json)")
+                   help="JSON file overriding fields of the preset (the shape of "
+                        "RUN/config.json's config)")
     p.add_argument("--downscale", type=float, default=None, metavar="F",
                    help="train and score on the images reduced by F (e.g. 4 for 1/4 resolution; "
                         "recorded in config.json)")

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
-from core.config import RunConfig
+from core.config import FrameRole, ResolvedRun, RunConfig, Views
 from core.pipeline.events import History, Hooks
 from core.pipeline.outputs import mesh_frame, render_heldout, thin
 from core.pipeline.record import FrameRecord
@@ -19,7 +19,7 @@ from core.pipeline.seeds import record_seeds, static_seeds
 from core.priors import NormalEstimator, fill_priors
 from core.progress import LogLines, TerminalBar
 from core.rundir import RunDir
-from core.sequence import FrameRole, TrackedInputs, save_frame, tracker_for
+from core.sequence import TrackedInputs, save_frame, tracker_for
 from core.training import Callback, CheckpointCallback, FrameFitter, Trainer
 
 __all__ = ["FrameJob", "fit_frame"]
@@ -32,13 +32,25 @@ class FrameJob:
     capture: object
     """The `core.data.Capture`."""
     run: RunDir
-    cfg: RunConfig
+    resolved: ResolvedRun
+    """What the run does (RUN/config.json)."""
     estimator: NormalEstimator | None
     display: str | None
     """'bar' (a terminal), 'lines' (a log) or None (quiet)."""
-    first: str | None = None
-    """The run's first frame: its key frame's static-scene seeds are kept by later key
-    frames (`core.seeding`)."""
+
+    @property
+    def cfg(self) -> RunConfig:
+        return self.resolved.config
+
+    @property
+    def views(self) -> Views:
+        return self.resolved.views
+
+    @property
+    def first(self) -> str:
+        """The run's first frame: its key frame's static-scene seeds are kept by later key
+        frames (`core.seeding`)."""
+        return self.resolved.frames[0]
 
 
 def _callbacks(job: FrameJob, frame: str, label: str, history: History,
@@ -61,13 +73,11 @@ def _fitter(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None,
         # (sequence.key_steps); a frame alone, or every frame a key frame, does not.
         grouped = cfg.sequence.enabled and role.size > 1
         train = cfg.train.stretched(cfg.sequence.key_steps) if grouped else cfg.train
-        static = None
-        if job.first is not None and role.frame != job.first:
-            static = static_seeds(job, train)
-        return Trainer.from_capture(job.capture, role.frame, train, callbacks=callbacks,
-                                    downscale=cfg.downscale, split=cfg.split, static=static)
+        static = static_seeds(job, train) if role.frame != job.first else None
+        return Trainer.from_capture(job.capture, role.frame, train, views=job.views,
+                                    callbacks=callbacks, static=static)
     return tracker_for(job.capture, role.frame, job.run, inputs, cfg.train, cfg.sequence,
-                       downscale=cfg.downscale, split=cfg.split, callbacks=callbacks)
+                       job.views, callbacks=callbacks)
 
 
 def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, label: str,
@@ -142,7 +152,7 @@ def _outputs(job: FrameJob, frame: str, fitter: FrameFitter, tracked: bool
 
     save_frame(job.run.ply(frame), fitter.model, fitter.ids if tracked else None)
     lap("ply")
-    render_heldout(job.capture, frame, fitter, job.run, job.cfg.downscale, job.cfg.split)
+    render_heldout(job.capture, frame, fitter, job.run, job.views)
     lap("renders")
     mesh = mesh_frame(job.run, job.capture, frame, job.cfg.mesh)
     lap("mesh")

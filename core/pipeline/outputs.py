@@ -7,10 +7,9 @@ import numpy as np
 import torch
 
 from core.color import linear_to_srgb
-from core.config import MeshConfig
+from core.config import MeshConfig, Views
 from core.data.dataset import CaptureDataset
 from core.data.images import write_png
-from core.data.split import camera_split
 from core.mesh import mesh_run
 from core.render import RenderCamera, render, safe_divide
 from core.rundir import RunDir, save_array
@@ -31,21 +30,17 @@ def _to8(a: np.ndarray) -> np.ndarray:
 
 @torch.no_grad()
 def render_heldout(capture, frame: str, fitter: FrameFitter, run: RunDir,
-                   downscale: float = 1.0, split: str = "auto") -> list[str]:
-    """Write <camera>_rgb.png, _normal.png, _ao.png and _depth.npy of the cameras `split`
-    scores (`core.data.split`: the held-out ones, or the training ones with `none`) into
-    RUN/renders/<frame>/ at the training resolution (the input reduced by `downscale`);
-    returns their ids."""
+                   views: Views) -> list[str]:
+    """Write <camera>_rgb.png, _normal.png, _ao.png and _depth.npy of the cameras the run's
+    `views` score (the held-out ones, or the training ones when none is held out) into
+    RUN/renders/<frame>/ at the training resolution; returns their ids."""
     cfg = fitter.config
     p = plan(cfg.schedule.iterations - 1, cfg.schedule, cfg.method)
-    scored = set(camera_split(capture, split).scored)
     device = fitter.model.device
     bg = torch.tensor(cfg.background, dtype=torch.float32, device=device)
     out, ids = run.renders(frame), []
-    served = CaptureDataset(capture, frames=[frame], downscale=downscale).served_camera
-    for cam in capture.cameras:
-        if cam.id not in scored:
-            continue
+    served = CaptureDataset(capture, frames=[frame], downscale=views.downscale).served_camera
+    for cam in views.cameras(capture, "scored"):
         r = render(fitter.model, RenderCamera.from_camera(served(cam), device=device),
                    sh_degree=p.sh_degree, beta=p.beta, geometry=True, tie_opacity=False,
                    background=bg, eps2d=cfg.eps2d, antialiased=cfg.antialiased)

@@ -9,15 +9,13 @@ finished there, and its capture needs only the frames still to do."""
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Callable, Collection
-from dataclasses import asdict, fields, replace
+from dataclasses import replace
 from pathlib import Path
 
-from core.config import RunConfig, load_config, parse_frames
+from core.config import ResolvedRun, load_config, resolve_run
 from core.data import check_capture
-from core.data.split import camera_split
 from core.device import check_device_spec, resolve_device
 from core.pipeline.events import Hooks, Progress
 from core.pipeline.frame import FrameJob, display_mode, fit_frame
@@ -34,42 +32,40 @@ INDEPENDENT_NOTE = ("sequence.enabled is off: every frame was reconstructed inde
                     "full static stages")
 
 
-def _config_record(capture: str, preset: str, chosen: list[str], cfg: RunConfig) -> dict:
-    return {"version": 1, "preset": preset, "capture": capture, "frames": chosen, **asdict(cfg)}
-
-
-def _same_config(old: dict, new: dict) -> bool:
-    """Whether two config.json records describe the same run. The device is left out: a run
-    resumes on another machine (a checkpoint holds CPU tensors)."""
-    keys = [f.name for f in fields(RunConfig)]
-
-    def comparable(record: dict) -> dict:
-        data = json.loads(json.dumps({k: record.get(k) for k in keys}))
-        if isinstance(data.get("train"), dict):
-            data["train"].pop("device", None)
-        return data
-
-    return comparable(old) == comparable(new)
-
-
-def _resolve_run_device(cfg: RunConfig, device: str | None) -> RunConfig:
-    """`cfg` with `device` (when given) and then the device it stands for written into
+def _on_run_device(resolved: ResolvedRun, device: str | None) -> ResolvedRun:
+    """`resolved` with `device` (when given) and then the device it stands for written into
     train.device (`auto` becomes `cuda:0` or `cpu`), so that config.json says where the run
     trained; ValueError (before anything is written) when CUDA is asked for and not usable."""
     where = "device" if device is not None else "train.device"
-    spec = check_device_spec(device, where) if device is not None else cfg.train.device
-    resolved = resolve_device(spec, where)
-    return replace(cfg, train=replace(cfg.train, device=str(resolved)))
+    spec = check_device_spec(device, where) if device is not None else \
+        resolved.config.train.device
+    return resolved.on_device(str(resolve_device(spec, where)))
 
 
-def _start(run: RunDir, record: dict, resume: bool) -> None:
-    """Check the folder, and that a resumed run was made with the same configuration; then
-    write config.json."""
+def _start(run: RunDir, resolved: ResolvedRun, capture_dir: Path, resume: bool) -> None:
+    """Check the folder, and that a resumed run is the same run; then write config.json."""
     run.check_new_or_resumable(resume)
-    if run.config.is_file() and not _same_config(run.read_config(), record):
+    if run.config.is_file() and not run.read_run(capture_dir).same_run(resolved):
         raise ValueError(f"resume: {run.config} records another configuration; resume with "
                          "the same --preset and --config")
-    run.write("config.json", record)
+    run.write("config.json", resolved.to_json())
+
+
+def _resolve(capture, run: RunDir, resolved: ResolvedRun | None, preset: str,
+             frames: str | None, config_file, overrides: dict | None,
+             gop: int | None) -> ResolvedRun:
+    """The run to do: `resolved` (a service's job), or the preset, `config_file`, `overrides`
+    and `gop` resolved against the capture; a carried run's frames are those finished
+    elsewhere, then the selected ones still to do."""
+    if resolved is None:
+        config = load_config(preset, config_file, overrides, gop=gop, where="config")
+        resolved = resolve_run(capture, config, preset=preset, frames=frames)
+    carried = run.read_carried()  # finished by another process (core.pipeline.carry)
+    if carried:
+        done = [f for f in run.read_run(capture.root).frames if f in carried]
+        resolved = replace(resolved, frames=tuple(done + [f for f in resolved.frames
+                                                          if f not in carried]))
+    return resolved
 
 
 def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[str], *,
@@ -79,15 +75,15 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
                 progress: bool = True, on_progress: Callable[[Progress], None] | None = None,
                 should_stop: Callable[[], bool] | None = None, device: str | None = None,
                 model_files: dict[str, Path] | None = None,
-                gops: Collection[int] | None = None, config: RunConfig | None = None,
-                capture_name: str | None = None) -> dict:
+                gops: Collection[int] | None = None,
+                resolved: ResolvedRun | None = None) -> dict:
     """Reconstruct the selected frames (`frames`: 'A:B' over the capture's frame list) into
     `run_dir`; returns the metrics (also RUN/metrics.json). `resume` continues an interrupted
-    run: finished frames are skipped, an unfinished one restarts from its checkpoint. The
-    configuration is the preset, then `config_file`, then `overrides` (same shape), then `gop`
-    (frames per group of pictures), unless `config` is the configuration already resolved (a
-    service's job, `worker.pipelines.ReconstructParams.run_config`; `preset` is still what
-    config.json records); `device` (auto, cpu, cuda, cuda:N) overrides train.device and
+    run: finished frames are skipped, an unfinished one restarts from its checkpoint. The run
+    is the preset, then `config_file`, then `overrides` (same shape), then `gop` (frames per
+    group of pictures), resolved against the capture (`core.config.resolve_run`), unless
+    `resolved` is the run already resolved (a service's job, resolved when it was submitted);
+    config.json records it. `device` (auto, cpu, cuda, cuda:N) overrides train.device and
     config.json records the device it resolved to.
 
     `progress` shows a bar on a terminal; `on_progress` receives `Progress` events (every step,
@@ -97,33 +93,26 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     id or allow-listed name) to the file to load; config.json keeps the name. `gops` runs only
     those groups of pictures (a part of a sequence job, docs/design.md 4.4: with
     `sequence.refine_scope` "group" a group needs no other group's records);
-    `core.pipeline.assemble` merges the parts' records. `capture_name` is how config.json
-    names the capture (default: its folder, resolved; a service gives the capture's id, so
-    that no record it hands out names a folder of the server)."""
-    capture_dir, run = Path(capture_dir), RunDir(run_dir)
-    if config is not None and (config_file is not None or overrides or gop is not None):
-        raise ValueError("config: give a resolved configuration or config_file, overrides and "
+    `core.pipeline.assemble` merges the parts' records."""
+    if resolved is not None and (config_file is not None or overrides or gop is not None
+                                 or frames is not None):
+        raise ValueError("resolved: give a resolved run or frames, config_file, overrides and "
                          "gop, not both")
-    if config is None:
-        config = load_config(preset, config_file, overrides, gop=gop, where="config")
-    cfg = _resolve_run_device(config, device)
+    capture_dir, run = Path(capture_dir), RunDir(run_dir)
+    capture = check_capture(capture_dir)
+    resolved = _on_run_device(_resolve(capture, run, resolved, preset, frames, config_file,
+                                       overrides, gop), device)
+    cfg, chosen = resolved.config, list(resolved.frames)
     named = cfg.normal_estimator
     estimator = load_estimator((model_files or {}).get(named, named), cfg.normal_estimator_space)
-    capture = check_capture(capture_dir)
-    chosen = parse_frames(frames, capture.frames)
-    carried = run.read_carried()  # finished by another process (core.pipeline.carry)
-    if carried:  # the run's frames: those, then the capture's still to do
-        chosen = [f for f in run.read_config()["frames"] if f in carried] + [
-            f for f in chosen if f not in carried]
-    camera_split(capture, cfg.split)  # a split the capture cannot follow, before any file
-    _start(run, _config_record(capture_name or str(capture_dir.resolve()), preset, chosen, cfg),
-           resume)
+    _start(run, resolved, capture_dir, resume)
+    carried = run.read_carried()
     metrics = run.read_metrics()
-    metrics.update({"version": 1, "preset": preset, "gop": cfg.gop,
+    metrics.update({"version": 1, "preset": resolved.preset, "gop": cfg.gop,
                     "note": SEQUENCE_NOTE if cfg.sequence.enabled else INDEPENDENT_NOTE})
     records = metrics.setdefault("frames", {})
     plan = GopPlan(chosen, cfg.gop, cfg.sequence, cfg.train.schedule.iterations)
-    job = FrameJob(capture, run, cfg, estimator, display_mode(progress), first=chosen[0])
+    job = FrameJob(capture, run, resolved, estimator, display_mode(progress))
     for i, role in enumerate(plan.roles):
         if (gops is not None and role.gop not in gops) or (role.frame in records and (
                 run.ply(role.frame).is_file() or role.frame in carried)):

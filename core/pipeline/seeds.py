@@ -40,12 +40,11 @@ def static_seeds(job, train: TrainConfig) -> PointCloud | None:
     not mark a subject in a scene, or whose first frame has no subject."""
     from core.training.views import frame_views  # lazy: needs torch, as the trainer does
 
-    if job.capture.masks != "subject" or job.first is None:
+    if not job.views.subject:
         return None
     run = job.run
     if not run.static_seeds().is_file():
-        views = frame_views(job.capture, job.first, job.cfg.downscale, job.cfg.split,
-                            train.masks)
+        views = frame_views(job.capture, job.first, job.views)
         subjects = [None if v.subject is None else v.subject.numpy() for v in views]
         if all(m is None for m in subjects):
             return None

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from core.data.capture import Camera
-from core.data.split import camera_split
+from core.config import Views
 from core.relight.envmap import up_frame
 from core.synth.generate import look_at
 
@@ -30,15 +30,14 @@ __all__ = ["load_camera_path", "orbit_cameras", "select_cameras"]
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-def select_cameras(capture, spec: str, split: str = "auto") -> list[Camera]:
-    """Cameras of a `core.data.Capture`: `heldout` (those the run's `split` scores,
-    `core.data.split`: its held-out cameras, or its training ones when it held none out),
-    `all`, or comma-separated camera ids."""
+def select_cameras(capture, spec: str, views: Views) -> list[Camera]:
+    """Cameras of a `core.data.Capture`: `heldout` (those the run's `views` score: its
+    held-out cameras, or its training ones when it held none out), `all`, or comma-separated
+    camera ids."""
     cameras = capture.cameras
     spec = (spec or "").strip()
     if spec == "heldout":
-        scored = set(camera_split(capture, split).scored)
-        return [c for c in cameras if c.id in scored]
+        return views.cameras(capture, "scored")
     if spec == "all":
         return list(cameras)
     ids = [s.strip() for s in spec.split(",") if s.strip()]

@@ -10,7 +10,6 @@ back the reconstruction's own colour under the capture light.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -18,7 +17,7 @@ import torch
 from torch import Tensor
 
 from core.color import srgb_to_linear
-from core.config import Schedule
+from core.config import Views, read_run
 from core.render import RenderCamera, render, safe_divide
 from core.stages import plan
 
@@ -30,7 +29,7 @@ MIN_ALPHA = 1e-3
 
 @dataclass(frozen=True)
 class RunRender:
-    """How a run's models are rendered at the end of training (from RUN/config.json)."""
+    """How a run's models are rendered at the end of training (from its `ResolvedRun`)."""
 
     sh_degree: int
     """SH degree of the last step."""
@@ -42,28 +41,28 @@ class RunRender:
     """Mip-Splatting opacity compensation."""
     background: tuple[float, float, float]
     """Background colour as stored (sRGB for PNG captures)."""
-    downscale: float
-    """The run's image reduction (held-out renders are at this resolution)."""
+    views: Views
+    """The run's views: its cameras, held-out ones and resolution."""
     capture: Path
     """The capture the run was made from."""
-    split: str = "auto"
-    """The run's camera split (`core.data.split`; runs before it existed: auto)."""
+
+    @property
+    def downscale(self) -> float:
+        """The run's image reduction (held-out renders are at this resolution)."""
+        return self.views.downscale
 
 
 def run_render(run_dir, capture_dir=None) -> RunRender:
-    """Read RUN/config.json; ValueError when `run_dir` is not a run directory."""
-    path = Path(run_dir) / "config.json"
-    if not path.is_file():
-        raise ValueError(f"run_dir: {Path(run_dir)} is not a run directory (no config.json)")
-    cfg = json.loads(path.read_text())
-    schedule = Schedule(**cfg["train"]["schedule"])
-    p = plan(schedule.iterations - 1, schedule, cfg["train"].get("method", "disentangled"))
-    capture = Path(capture_dir if capture_dir is not None else cfg["capture"])
+    """How the run in `run_dir` renders (its RUN/config.json, `core.config.read_run`);
+    ValueError when it is not a run directory or its capture is not there."""
+    resolved = read_run(run_dir, capture_dir)
+    train = resolved.config.train
+    p = plan(train.schedule.iterations - 1, train.schedule, train.method)
+    capture = Path(capture_dir if capture_dir is not None else resolved.capture)
     if not (capture / "capture.json").is_file():
         raise ValueError(f"capture_dir: {capture} has no capture.json (pass the capture folder)")
-    return RunRender(p.sh_degree, p.beta, float(cfg["train"]["eps2d"]),
-                     bool(cfg["train"]["antialiased"]), tuple(cfg["train"]["background"]),
-                     float(cfg.get("downscale", 1.0)), capture, cfg.get("split", "auto"))
+    return RunRender(p.sh_degree, p.beta, train.eps2d, train.antialiased,
+                     tuple(train.background), resolved.views, capture)  # type: ignore[arg-type]
 
 
 @dataclass

@@ -132,7 +132,7 @@ def prepare(run: Path, params: RelightParams, capture_dir) -> Plan:
         raise ValueError(f"run_dir: {run} has no finished frame (no frames/<frame>/gaussians.ply)")
     frames = parse_frames(params.frames, finished)
     if params.camera_path is None and params.orbit is None:
-        select_cameras(capture, params.cameras, settings.split)
+        select_cameras(capture, params.cameras, settings.views)
     first = capture.image_path(capture.frames[0], capture.cameras[0].id)
     plan = Plan(settings, capture, frames, env, cap_light,
                 first is not None and first.suffix.lower() == ".exr", fps=params.fps)
@@ -151,14 +151,12 @@ def _subject_center(model) -> np.ndarray:
 
 
 def frame_cameras(plan: Plan, params: RelightParams, model) -> list:
-    ds = plan.settings.downscale
-    served = [c.scaled(max(1, round(c.width / ds)), max(1, round(c.height / ds)))
-              for c in plan.capture.cameras]
+    served = [plan.settings.views.served(c) for c in plan.capture.cameras]
     if plan.path_cams is not None:
         return plan.path_cams
     if params.orbit is not None:
         return orbit_cameras(served, _subject_center(model), plan.capture.up, params.orbit)
-    ids = {c.id for c in select_cameras(plan.capture, params.cameras, plan.settings.split)}
+    ids = {c.id for c in select_cameras(plan.capture, params.cameras, plan.settings.views)}
     return [c for c in served if c.id in ids]
 
 
@@ -273,7 +271,7 @@ def _views_per_frame(plan: Plan, params: RelightParams) -> int:
         return len(plan.path_cams)
     if params.orbit is not None:
         return params.orbit
-    return len(select_cameras(plan.capture, params.cameras, plan.settings.split))
+    return len(select_cameras(plan.capture, params.cameras, plan.settings.views))
 
 
 def _camera_videos(out: Path, plan: Plan, params: RelightParams, emit, done: int,
@@ -281,7 +279,7 @@ def _camera_videos(out: Path, plan: Plan, params: RelightParams, emit, done: int
     """OUT/videos/<camera>.mp4: each capture camera's view over the relit frames (the performance
     under the new light), encoded from the PNGs written."""
     names = []
-    for cam in select_cameras(plan.capture, params.cameras, plan.settings.split):
+    for cam in select_cameras(plan.capture, params.cameras, plan.settings.views):
         path = out / "videos" / f"{cam.id}.mp4"
         first = read_image(out / plan.frames[0] / f"{cam.id}.png")
         with Mp4Writer(path, first.shape[1], first.shape[0], plan.fps) as writer:

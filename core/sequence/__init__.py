@@ -3,10 +3,11 @@ static stages and whose other frames are the previous frame's Gaussians deformed
 deformation graph, then refined with temporal regularisation, keeping Gaussian correspondences
 (track ids) inside a group.
 
-plan (the groups, each tracked frame's inputs, sequence.json), tracker (deform + refine on the
-shared fitting loop), deform and graph (the deformation), starts and motion (where the deform
-stage begins), refine (temporal losses, tracked densification), budget (refine rate control),
-tracks (frame PLYs with track ids), metrics and correspondence (flicker, track error)."""
+plan (each tracked frame's inputs, sequence.json; the groups are `core.config.groups`'), tracker
+(deform + refine on the shared fitting loop), deform and graph (the deformation), starts and
+motion (where the deform stage begins), refine (temporal losses, tracked densification), budget
+(refine rate control), tracks (frame PLYs with track ids), metrics and correspondence (flicker,
+track error)."""
 
 from core.sequence.budget import median_deform_loss, refine_credit, refine_steps
 from core.sequence.correspondence import track_errors
@@ -21,7 +22,7 @@ from core.sequence.graph import (
     quat_norm_loss,
 )
 from core.sequence.motion import align_tracks, predict_node_motion, predict_node_motion_second_order
-from core.sequence.plan import FrameRole, Gop, GopPlan, TrackedInputs, roles, segment
+from core.sequence.plan import GopPlan, TrackedInputs
 from core.sequence.refine import (
     TemporalWeights,
     TrackedState,
@@ -38,9 +39,7 @@ from core.sequence.tracks import load_frame, save_frame, tracker_for
 __all__ = [
     "DeformationGraph",
     "DeformedGaussians",
-    "FrameRole",
     "FrameTracker",
-    "Gop",
     "GopPlan",
     "StartRace",
     "TemporalWeights",
@@ -68,9 +67,7 @@ __all__ = [
     "refine_credit",
     "refine_steps",
     "relabel",
-    "roles",
     "save_frame",
-    "segment",
     "temporal_loss",
     "track_errors",
     "tracker_for",

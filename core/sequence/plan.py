@@ -1,6 +1,6 @@
 """The plan of a sequence (docs/design.md section 5.9.1): the selected frames cut into groups of
-pictures of `gop` frames, the first of each a key frame (static stages), the others deformed
-from their predecessor; what each tracked frame starts from and may spend
+pictures of `gop` frames (`core.config.groups`), the first of each a key frame (static stages),
+the others deformed from their predecessor; what each tracked frame starts from and may spend
 (`TrackedInputs`, from the finished frames' records, so a resumed run plans what the
 uninterrupted one would); and RUN/sequence.json, derived from the same records."""
 
@@ -12,58 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from core.config import SequenceConfig
+from core.config.groups import FrameRole, frames_per_group, roles, segment
 from core.sequence.budget import median_deform_loss, refine_credit
 
-__all__ = ["FrameRole", "Gop", "GopPlan", "TrackedInputs", "roles", "segment"]
-
-
-@dataclass(frozen=True)
-class Gop:
-    """One group of pictures."""
-
-    index: int
-    """Position of the group in the run (0-based)."""
-    frames: tuple[str, ...]
-    """Its frames in order; the first is the key frame."""
-
-    @property
-    def key(self) -> str:
-        return self.frames[0]
-
-
-@dataclass(frozen=True)
-class FrameRole:
-    """What a frame is in the sequence."""
-
-    frame: str
-    gop: int
-    """Index of its group."""
-    position: int
-    """Position inside the group (0: the key frame)."""
-    previous: str | None
-    """The frame it is deformed from (None for a key frame)."""
-    size: int = 1
-    """Frames in its group."""
-
-    @property
-    def key(self) -> bool:
-        return self.position == 0
-
-
-def segment(frames: Sequence[str], gop: int) -> list[Gop]:
-    """Cut `frames` (in order) into groups of `gop` frames; the last may be shorter."""
-    if not isinstance(gop, int) or isinstance(gop, bool) or gop < 1:
-        raise ValueError(f"gop: expected an integer >= 1, got {gop!r}")
-    frames = list(frames)
-    if len(set(frames)) != len(frames):
-        raise ValueError("frames: expected distinct frame names")
-    return [Gop(i, tuple(frames[s:s + gop])) for i, s in enumerate(range(0, len(frames), gop))]
-
-
-def roles(frames: Sequence[str], gop: int) -> list[FrameRole]:
-    """Every frame's role, in order (`gop` 1: every frame a key frame)."""
-    return [FrameRole(frame, g.index, p, g.frames[p - 1] if p else None, len(g.frames))
-            for g in segment(frames, gop) for p, frame in enumerate(g.frames)]
+__all__ = ["GopPlan", "TrackedInputs"]
 
 
 @dataclass(frozen=True)
@@ -93,7 +45,7 @@ class GopPlan:
     def __init__(self, frames: Sequence[str], gop: int, sequence: SequenceConfig,
                  key_iterations: int):
         self.frames, self.sequence = list(frames), sequence
-        self.gop = gop if sequence.enabled else 1
+        self.gop = frames_per_group(gop, sequence)
         self.roles = roles(self.frames, self.gop)
         self.nominal = sequence.steps(key_iterations)[1]
 

@@ -9,7 +9,7 @@ import os
 import numpy as np
 import torch
 
-from core.config import SequenceConfig, TrainConfig
+from core.config import SequenceConfig, TrainConfig, Views
 from core.files import atomic_path
 from core.model import GaussianModel
 from core.plyio import read_gaussian_ply, read_track_ids, write_gaussian_ply
@@ -43,10 +43,10 @@ def load_frame(path: str | os.PathLike[str]) -> tuple[GaussianModel, torch.Tenso
 
 
 def tracker_for(capture, frame: str, run: RunDir, inputs: TrackedInputs, train: TrainConfig,
-                sequence: SequenceConfig, *, downscale: float = 1.0, split: str = "auto",
-                callbacks=(), ao_baker=None) -> FrameTracker:
-    """A `FrameTracker` on the training cameras of `frame`, starting from the finished frames
-    `inputs` names in `run`."""
+                sequence: SequenceConfig, views: Views, *, callbacks=(),
+                ao_baker=None) -> FrameTracker:
+    """A `FrameTracker` on the training views of `frame` (as the run's `views` select them),
+    starting from the finished frames `inputs` names in `run`."""
     previous = run.ply(inputs.previous)
     if not previous.is_file():
         raise ValueError(f"previous frame: {inputs.previous} is not finished; the frame "
@@ -57,12 +57,12 @@ def tracker_for(capture, frame: str, run: RunDir, inputs: TrackedInputs, train: 
         earlier = _aligned(run, inputs.earlier, track)
         if inputs.earliest is not None and sequence.second_order:
             earliest = _aligned(run, inputs.earliest, track)
-    views = frame_views(capture, frame, downscale, split, train.masks)
+    seen = frame_views(capture, frame, views)
     moving = None
-    if moves_subject(capture, train, sequence):
-        before = frame_views(capture, inputs.previous, downscale, split, train.masks)
-        moving = subject_rows(model.means, [views, before], sequence)
-    return FrameTracker(views, model, track, inputs.next_id,
+    if moves_subject(views, sequence):
+        before = frame_views(capture, inputs.previous, views)
+        moving = subject_rows(model.means, [seen, before], sequence)
+    return FrameTracker(seen, model, track, inputs.next_id,
                         train, sequence, callbacks=callbacks, ao_baker=ao_baker,
                         reference_loss=inputs.reference_loss, earlier=earlier,
                         refine_credit=inputs.refine_credit,
@@ -70,12 +70,12 @@ def tracker_for(capture, frame: str, run: RunDir, inputs: TrackedInputs, train: 
                         moving=moving)
 
 
-def moves_subject(capture, train: TrainConfig, sequence: SequenceConfig) -> bool:
-    """Whether tracked frames move only the subject (`SequenceConfig.moving`)."""
+def moves_subject(views: Views, sequence: SequenceConfig) -> bool:
+    """Whether tracked frames move only the subject (`SequenceConfig.moving`; `auto`: where
+    the run's masks mark a subject)."""
     if sequence.moving != "auto":
         return sequence.moving == "subject"
-    masks = capture.masks if train.masks == "capture" else train.masks
-    return masks == "subject"
+    return views.subject
 
 
 def subject_rows(means: torch.Tensor, frames: list[list], sequence: SequenceConfig

@@ -15,7 +15,7 @@ import torch
 from torch import Tensor
 
 from core.ao import GaussianAOBaker
-from core.config import TrainConfig
+from core.config import TrainConfig, Views, select_views
 from core.device import to_device
 from core.data.points import PointCloud, read_points_ply
 from core.model import GaussianModel, means_lr
@@ -71,17 +71,18 @@ class Trainer(FrameFitter):
 
     @classmethod
     def from_capture(cls, capture, frame: str, config: TrainConfig = TrainConfig(), *,
-                     downscale: float = 1.0, split: str = "auto", **kwargs) -> Trainer:
-        """A trainer on the training cameras (under `split`, `core.data.split`) of one frame of
-        a `core.data.Capture`, seeded from its points.ply when it has one; `kwargs` go to the
-        constructor (model, callbacks, ao_baker, static)."""
+                     views: Views | None = None, **kwargs) -> Trainer:
+        """A trainer on the training views of one frame of a `core.data.Capture` as the run's
+        `views` select them (None: the capture's defaults with `config.masks`), seeded from
+        its points.ply when it has one; `kwargs` go to the constructor (model, callbacks,
+        ao_baker, static)."""
         path = capture.points_path()
         if path is not None and config.init.source in ("auto", "points") \
                 and kwargs.get("model") is None:
             kwargs["points"] = read_points_ply(path)
-        views = frame_views(capture, frame, downscale, split, config.masks)
+        selected = views or select_views(capture, masks=config.masks)
         kwargs.setdefault("clear_of", capture.cameras)  # held-out cameras' lenses too
-        return cls(views, config, **kwargs)
+        return cls(frame_views(capture, frame, selected), config, **kwargs)
 
     def _initial_model(self, points: PointCloud | None, static: PointCloud | None,
                        clear_of: Sequence) -> GaussianModel:

@@ -1,4 +1,4 @@
-"""A frame's training views in memory, and which cameras train (`core.data.split`)."""
+"""A frame's training views in memory, as a run's `core.config.Views` select them."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from core.config.views import Views, select_views
 from core.data.capture import Camera
 from core.data.dataset import CaptureDataset
-from core.data.split import camera_split
 
 __all__ = ["View", "frame_views", "training_cameras"]
 
@@ -29,10 +29,10 @@ class View:
     """(H, W, 1) the normal prior's confidence in 0..1 (None: 1 wherever there is a prior)."""
 
     @classmethod
-    def from_sample(cls, sample, masks: str = "matte") -> View:
-        """From a `core.data.Sample`; its mask is the matte, or with `masks` subject only
-        where the subject is."""
-        if masks == "subject":
+    def from_sample(cls, sample, subject: bool = False) -> View:
+        """From a `core.data.Sample`; its mask is the matte, or with `subject` (the run's
+        masks mark a subject, `core.config.Views.subject`) only where the subject is."""
+        if subject:
             return cls(sample.camera, sample.image, None, sample.normal, sample.mask)
         return cls(sample.camera, sample.image, sample.mask, sample.normal)
 
@@ -51,21 +51,19 @@ class View:
         return View(self.camera, *moved)
 
 
-def training_cameras(capture, split: str = "auto") -> list[Camera]:
-    """The cameras of a `core.data.Capture` that train under `split` (`core.data.split`)."""
-    ids = set(camera_split(capture, split).training)
-    return [c for c in capture.cameras if c.id in ids]
+def training_cameras(capture, views: Views | None = None) -> list[Camera]:
+    """The cameras of a `core.data.Capture` that train under `views` (None: the capture's
+    defaults, `core.config.select_views`)."""
+    return (views or select_views(capture)).cameras(capture, "training")
 
 
-def frame_views(capture, frame: str, downscale: float = 1.0, split: str = "auto",
-                masks: str = "capture") -> list[View]:
-    """The training views of one frame of a `core.data.Capture` under `split`, reduced by
-    `downscale`, with its masks as `masks` says (`TrainConfig.masks`)."""
+def frame_views(capture, frame: str, views: Views | None = None) -> list[View]:
+    """The training views of one frame of a `core.data.Capture` as `views` selects them (its
+    cameras, size and masks; None: the capture's defaults, `core.config.select_views`)."""
     if frame not in capture.frames:
         raise ValueError(f"frame: {frame!r} is not in the capture (frames "
                          f"{list(capture.frames)[:5]}...)")
-    ids = list(camera_split(capture, split).training)
-    use = capture.masks if masks == "capture" else masks
-    ds = CaptureDataset(capture, frames=[frame], cameras=ids, downscale=downscale,
-                        matte=use == "matte")
-    return [View.from_sample(ds[i], use) for i in range(len(ds))]
+    views = views or select_views(capture)
+    ds = CaptureDataset(capture, frames=[frame], cameras=list(views.split.training),
+                        downscale=views.downscale, matte=views.matte)
+    return [View.from_sample(ds[i], views.subject) for i in range(len(ds))]

@@ -17,9 +17,9 @@ from service.auth import TenantDep
 from service.body import JsonRoute
 from service.deps import ServicesDep, location
 from service.errors import COMMON, ApiError, error_responses
+from service.lookups import get_job
 from service.pagination import decode_cursor, encode_cursor
 from service.ranges import blob_response
-from service.records import get_job
 from service.schemas import ArtifactOut, ArtifactPage
 from service.zipstream import ZipEntry, zip_stream
 from worker.models import Artifact

@@ -20,10 +20,10 @@ from service.body import JsonRoute
 from service.deps import Services, ServicesDep, default_expiry, location
 from service.envmap import CONTENT_TYPES, EnvmapError, inspect_envmap
 from service.errors import COMMON, ApiError, error_responses
+from service.lookups import get_asset
 from service.modelfile import MODEL_CONTENT_TYPES, ModelFileError, inspect_model
 from service.pagination import newest_page
 from service.ranges import blob_response
-from service.records import get_asset
 from service.schemas import AssetOut, AssetPage
 from service.upload.archive import spool
 from worker.models import Asset

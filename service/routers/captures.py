@@ -9,16 +9,14 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import JSONResponse
 from pydantic import AwareDatetime
-from sqlalchemy import select, update
-from sqlalchemy.orm import defer
 from starlette.concurrency import run_in_threadpool as run
 
 from service.auth import TenantDep
 from service.body import JsonRoute, body_limit
 from service.deps import Services, ServicesDep, default_expiry, location
 from service.errors import COMMON, ApiError, ErrorInfo, error_responses
-from service.pagination import decode_cursor, encode_cursor, newest_page
-from service.records import get_capture
+from service.lookups import deleted, get_capture
+from service.pagination import after, decode_cursor, encode_cursor, next_cursor
 from service.schemas import (
     CaptureFilesOut,
     CaptureIn,
@@ -38,8 +36,8 @@ from service.upload.archive import extract, inspect_zip, spool
 from service.upload.commit import OWNER_KEY, begin_commit, commit_status, run_commit
 from service.upload.manifest import check_manifest
 from service.upload.staging import Manifest, file_states
-from worker.models import Capture, Job, Upload
-from worker.store import ACTIVE, Owner, new_id
+from worker.models import Capture
+from worker.store import Owner, new_id
 
 __all__ = ["router"]
 
@@ -104,8 +102,7 @@ def create_capture(body: CaptureIn, request: Request, services: ServicesDep,
     row = Capture(id=new_id("cap"), tenant=tenant, name=body.name, format=body.format,
                   state="uploading", manifest=manifest, total_bytes=total,
                   expires_at=default_expiry(services, body.expires_at))
-    with services.store.session() as s:
-        s.add(row)
+    services.store.add_capture(row)
     services.manifests.put(row.id, Manifest({f["path"]: (f["size"], f["sha256"])
                                              for f in manifest}, row.updated_at))
     return _created(request, services, capture_out(services, row))
@@ -117,12 +114,8 @@ def list_captures(services: ServicesDep, tenant: TenantDep,
                   cursor: Annotated[str | None, Query(max_length=512)] = None,
                   limit: Annotated[int, Query(ge=1, le=200)] = 50) -> CapturePage:
     """The caller's captures, newest first."""
-    q = select(Capture).options(defer(Capture.manifest)).where(Capture.tenant == tenant)
-    if state is not None:
-        q = q.where(Capture.state == state)
-    with services.store.session(write=False) as s:
-        rows, after = newest_page(s, q, Capture.created_at, Capture.id, cursor, limit)
-    return CapturePage(items=[_item(c) for c in rows], next_cursor=after)
+    rows, last = services.store.capture_page(tenant, state, after(cursor), limit)
+    return CapturePage(items=[_item(c) for c in rows], next_cursor=next_cursor(last))
 
 
 @router.get("/{capture_id}", response_model=CaptureOut)
@@ -163,10 +156,9 @@ def amend_manifest(capture_id: str, body: ManifestPatchIn, services: ServicesDep
     """Add, replace or remove manifest entries while uploading (to fix what a failed commit
     reported without uploading the rest again). A replaced or removed file's received copy is
     dropped."""
-    with services.store.session() as s:
-        c = s.scalar(select(Capture).where(Capture.id == capture_id, Capture.tenant == tenant))
-        if c is None:
-            raise ApiError(404, f"no capture {capture_id!r}")
+    changed: set[str] = set()
+
+    def edit(c: Capture) -> set[str]:
         if c.state != "uploading":
             raise ApiError(409, f"capture {capture_id} is {c.state}; its manifest is frozen")
         files = {f["path"]: f for f in c.manifest}
@@ -175,7 +167,7 @@ def amend_manifest(capture_id: str, body: ManifestPatchIn, services: ServicesDep
             raise ApiError(422, f"remove: {unknown[0]!r} is not in the manifest",
                            details=[{"path": p, "message": "not in the manifest"}
                                     for p in unknown[:100]])
-        changed = set(body.remove)
+        changed.update(body.remove)
         for path in body.remove:
             del files[path]
         for f in manifest_entries(body.files):
@@ -186,11 +178,11 @@ def amend_manifest(capture_id: str, body: ManifestPatchIn, services: ServicesDep
         c.total_bytes = check_manifest(((p, f["size"]) for p, f in files.items()), c.format,
                                        services.settings)
         c.manifest = list(files.values())
-        stale = list(s.scalars(select(Upload.id).where(
-            Upload.capture_id == capture_id, Upload.path.in_(changed),
-            Upload.state.in_(("receiving", "received", "corrupt"))))) if changed else []
-        if stale:
-            s.execute(update(Upload).where(Upload.id.in_(stale)).values(state="terminated"))
+        return changed
+
+    c, stale = services.store.amend_manifest(capture_id, tenant, edit)
+    if c is None:
+        raise ApiError(404, f"no capture {capture_id!r}")
     for path in changed:
         services.staging.file(capture_id, path).unlink(missing_ok=True)
     for upload_id in stale:
@@ -224,19 +216,7 @@ def commit_capture(capture_id: str, services: ServicesDep, tenant: TenantDep) ->
 def delete_capture(capture_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
     """Delete the capture, its staged files and its frozen copy (409 while a job uses it or it
     is being validated). Jobs made from it keep their results."""
-    with services.store.session() as s:
-        c = s.scalar(select(Capture).options(defer(Capture.manifest))
-                     .where(Capture.id == capture_id, Capture.tenant == tenant))
-        if c is None:
-            raise ApiError(404, f"no capture {capture_id!r}")
-        busy = s.scalar(select(Job.id).where(Job.capture_id == capture_id,
-                                             Job.state.in_(ACTIVE)).limit(1))
-        if busy is not None:
-            raise ApiError(409, f"job {busy} uses capture {capture_id}; cancel it first")
-        if c.state == "committing":
-            raise ApiError(409, f"capture {capture_id} is being validated; delete it after",
-                           retryable=True)
-        s.delete(c)
+    deleted(services.store.delete_capture(capture_id, tenant), "capture", capture_id)
     services.blobs.delete_prefix(f"captures/{capture_id}")
     services.staging.remove(capture_id)
     services.manifests.forget(capture_id)
@@ -269,11 +249,10 @@ def _commit_archive(services: Services, tenant: str, archive, fmt: str, name: st
     capture_id = new_id("cap")
     try:
         manifest = extract(archive, members, services.staging.files_dir(capture_id))
-        with services.store.session() as s:
-            s.add(Capture(id=capture_id, tenant=tenant, name=name, format=fmt,
-                          state="committing", manifest=manifest,
-                          total_bytes=sum(f["size"] for f in manifest), expires_at=expires_at,
-                          summary={OWNER_KEY: str(Owner.current())}))
+        services.store.add_capture(Capture(
+            id=capture_id, tenant=tenant, name=name, format=fmt, state="committing",
+            manifest=manifest, total_bytes=sum(f["size"] for f in manifest),
+            expires_at=expires_at, summary={OWNER_KEY: str(Owner.current())}))
         run_commit(services, capture_id)
         c = get_capture(services.store, capture_id, tenant)
         if c.state != "ready":
@@ -283,8 +262,7 @@ def _commit_archive(services: Services, tenant: str, archive, fmt: str, name: st
                            details=error.get("details", []))
         return capture_out(services, c)
     except BaseException:
-        with services.store.session() as s:
-            s.execute(Capture.__table__.delete().where(Capture.id == capture_id))
+        services.store.remove_capture(capture_id)
         services.staging.remove(capture_id)
         services.blobs.delete_prefix(f"captures/{capture_id}")
         services.manifests.forget(capture_id)

@@ -17,7 +17,7 @@ from service.checks import check_export
 from service.deps import ServicesDep
 from service.errors import COMMON, error_responses
 from service.idempotency import IdempotencyKey, Submit
-from service.records import get_job
+from service.lookups import get_job
 from service.routers.jobs import REPLAYED, accepted, queue_on_source
 from service.schemas import ExportIn, JobOut
 

@@ -10,7 +10,6 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel
-from sqlalchemy import select, update
 from sqlalchemy.exc import IntegrityError
 
 from core.config import ConfigError
@@ -22,15 +21,15 @@ from service.errors import COMMON, ApiError, ErrorInfo, error_responses
 from service.events import job_events
 from service.idempotency import IdempotencyKey, Submit
 from service.limits import HeldStream, cap_refused
-from service.pagination import newest_page
+from service.lookups import deleted, get_capture, get_job
+from service.pagination import after, next_cursor
 from service.parts import job_parts, split_job
-from service.records import get_capture, get_job
 from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressOut
 from worker.celery_app import dispatch
 from worker.models import Job
-from worker.parts import delete_parts, worker_of
+from worker.parts import worker_of
 from worker.pipelines import get_pipeline
-from worker.store import ACTIVE, TERMINAL, CapReached, JobStore, progress_of
+from worker.store import ACTIVE, TERMINAL, CapReached, progress_of
 
 __all__ = ["REPLAYED", "accepted", "job_out", "queue_on_source", "router", "send"]
 
@@ -79,8 +78,7 @@ def send(services: Services, job: Job) -> None:
         dispatch(services.celery, services.settings, job.id, job.pipeline)
     except Exception:
         log.exception("job %s: the broker refused it; the sweeper will send it again", job.id)
-        with services.store.session() as s:
-            s.execute(update(Job).where(Job.id == job.id).values(dispatched_at=None))
+        services.store.undispatch(job.id)
 
 
 def queue_on_source(services: Services, tenant: str, source: Job, pipeline: str, params: dict,
@@ -89,7 +87,7 @@ def queue_on_source(services: Services, tenant: str, source: Job, pipeline: str,
     `tenant` (409 otherwise, retryable while it runs; 404 when it is deleted meanwhile):
     renders and exports (`what`: "renders", "exports"), kept with `submit`'s key; 429 past
     the tenant's active-jobs cap."""
-    if source.pipeline != "reconstruct":
+    if get_pipeline(source.pipeline).source != "capture":  # a run of a capture: a reconstruction
         raise ApiError(409, f"job {source.id} is a {source.pipeline} job; {what} are made from "
                             "a reconstruct job")
     if source.state != "succeeded":
@@ -120,8 +118,7 @@ def _params(pipeline_name: str, params: dict) -> BaseModel:
         pipeline = get_pipeline(pipeline_name)
         if pipeline.source != "capture":
             raise ValueError(f"pipeline: {pipeline.name} runs on a finished job, not on a "
-                             "capture; request it with POST /v1/"
-                             f"{'exports' if pipeline.name == 'export' else 'renders'}")
+                             f"capture; request it with POST {pipeline.endpoint}")
     except ValueError as exc:
         raise ApiError(422, str(exc), details=[{"path": "pipeline", "message": str(exc)}]) from None
     try:
@@ -150,22 +147,23 @@ def create_job(body: JobIn, services: ServicesDep, tenant: TenantDep,
     if capture.state != "ready":
         raise ApiError(409, f"capture {capture.id} is {capture.state}; commit it first "
                             "(POST /v1/captures/{id}/commit)")
-    check_reconstruct(services, tenant, capture, params)
+    # The run, resolved once against the capture: the job stores it and its worker runs it.
+    resolved = check_reconstruct(services, tenant, capture, params)
     # A sequence of several groups of pictures runs as parts, one per group, on any idle
     # workers (docs/design.md 4.4); the parent is sent once they have all succeeded.
-    groups = split_job(services, capture, params) if body.pipeline == "reconstruct" else None
-    expires_at, cap = default_expiry(services, body.expires_at), services.settings.max_active_jobs
+    groups = split_job(resolved)
+    expires_at = default_expiry(services, body.expires_at)
+    kept = {"capture_id": capture.id, "name": body.name, "expires_at": expires_at,
+            "idempotency": submit.idempotency, "resolved_run": resolved.to_json(),
+            "cap": services.settings.max_active_jobs}
     services.limits.change(tenant)
     try:
         if groups:
             job, sent = services.store.create_parted(
-                tenant, params.model_dump(mode="json"), groups, capture_id=capture.id,
-                name=body.name, expires_at=expires_at, idempotency=submit.idempotency, cap=cap)
+                tenant, params.model_dump(mode="json"), groups, **kept)
         else:
             job = services.store.create(tenant, body.pipeline, params.model_dump(mode="json"),
-                                        capture_id=capture.id, name=body.name,
-                                        expires_at=expires_at, idempotency=submit.idempotency,
-                                        cap=cap)
+                                        **kept)
             sent = [job]
     except (IntegrityError, CapReached) as exc:  # a submit with the same key won, the cap
         if (first := submit.first()) is not None:  # was reached or the capture was deleted
@@ -183,12 +181,8 @@ def list_jobs(services: ServicesDep, tenant: TenantDep, state: JobState | None =
               cursor: Annotated[str | None, Query(max_length=512)] = None,
               limit: Annotated[int, Query(ge=1, le=200)] = 50) -> JobPage:
     """The caller's jobs, newest first; pass next_cursor to read the next page."""
-    q = select(Job).where(Job.tenant == tenant, Job.parent_id.is_(None))
-    if state is not None:
-        q = q.where(Job.state == state)
-    with services.store.session(write=False) as s:
-        rows, after = newest_page(s, q, Job.created_at, Job.id, cursor, limit)
-    return JobPage(items=[job_out(j, services) for j in rows], next_cursor=after)
+    rows, last = services.store.job_page(tenant, state, after(cursor), limit)
+    return JobPage(items=[job_out(j, services) for j in rows], next_cursor=next_cursor(last))
 
 
 @router.get("/{job_id}", response_model=JobOut)
@@ -290,21 +284,7 @@ def delete_job(job_id: str, services: ServicesDep, tenant: TenantDep) -> Respons
     if state in ACTIVE:
         raise ApiError(409, f"job {job_id} is {state}; cancel it first")
     services.limits.change(tenant)
-    with services.store.session() as s:
-        job = s.scalar(select(Job).where(Job.id == job_id, Job.tenant == tenant)
-                       .with_for_update())
-        if job is None:
-            raise ApiError(404, f"no job {job_id!r}")
-        if job.state in ACTIVE:
-            raise ApiError(409, f"job {job_id} is {job.state}; cancel it first")
-        needed = JobStore.dependents(s, job_id)
-        if needed:
-            raise ApiError(409, f"render job {needed[0]} needs the results of job {job_id}; "
-                                "cancel it or wait for it to end, then delete")
-        s.execute(update(Job).where(Job.source_job_id == job_id).values(source_job_id=None))
-        parts = delete_parts(s, job_id)
-        s.delete(job)
-    for each in [job_id, *parts]:
+    for each in deleted(services.store.delete_job(job_id, tenant), "job", job_id):
         services.blobs.delete_prefix(f"jobs/{each}")
         shutil.rmtree(services.settings.scratch / "jobs" / each, ignore_errors=True)
     return Response(status_code=204)

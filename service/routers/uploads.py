@@ -20,7 +20,7 @@ from service.auth import TenantDep
 from service.body import JsonRoute, content_length
 from service.deps import Services, ServicesDep, location
 from service.errors import COMMON, ApiError, error_responses
-from service.records import get_upload
+from service.lookups import get_upload
 from service.upload.files import (
     complete_upload,
     create_upload,

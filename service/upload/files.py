@@ -12,7 +12,7 @@ from sqlalchemy import select, update
 
 from service.deps import Services
 from service.errors import ApiError
-from service.records import get_capture, missing
+from service.lookups import get_capture, missing
 from service.upload.manifest import check_path
 from worker.models import Upload
 from worker.store import new_id

@@ -15,8 +15,7 @@ import torch
 from core.data import CaptureDataset, load_capture
 from core.device import resolve_device, to_device
 from core.config import apply_overrides, preset_config as resolve_config
-from core.pipeline.run import _same_config
-from core.config import TrainConfig, train_config
+from core.config import ResolvedRun, TrainConfig, read_run, train_config
 from core.training import Trainer, View, training_cameras
 
 
@@ -141,19 +140,21 @@ def test_cli_eval_device_without_cuda(tiny_run: Path, no_cuda, capsys: pytest.Ca
 
 
 def test_config_json_records_the_resolved_device(tiny_run: Path):
-    cfg = json.loads((tiny_run / "config.json").read_text())
-    assert cfg["train"]["device"] == "cpu"  # auto, which the tests pin to the CPU
+    assert read_run(tiny_run).config.train.device == "cpu"  # auto, pinned to the CPU here
 
 
 def test_resume_ignores_the_device_and_accepts_records_without_one(tiny_run: Path):
-    record = json.loads((tiny_run / "config.json").read_text())
-    other = json.loads(json.dumps(record))
-    other["train"]["device"] = "cuda:3"
-    old = json.loads(json.dumps(record))
-    del old["train"]["device"]  # written before the field existed
-    assert _same_config(old, record) and _same_config(other, record)
-    other["train"]["eps2d"] = 0.3
-    assert not _same_config(other, record)
+    record = read_run(tiny_run)
+    other = record.on_device("cuda:3")
+    # A version 1 record written before train.device existed (the configuration at the top).
+    flat = {**record.to_json()["config"], "version": 1, "preset": record.preset,
+            "capture": record.capture, "frames": list(record.frames)}
+    del flat["train"]["device"]
+    old = ResolvedRun.from_json(flat)
+    assert old.config.train.device == "auto"
+    assert old.same_run(record) and other.same_run(record) and record.same_run(other)
+    eps = replace(other.config.train, eps2d=0.3)
+    assert not replace(other, config=replace(other.config, train=eps)).same_run(record)
 
 
 # -- checkpoints -----------------------------------------------------------------------------
@@ -242,7 +243,7 @@ def test_cuda_pipeline_end_to_end(synth_capture: Path, tmp_path: Path):
     metrics = reconstruct(synth_capture, run, preset="test", frames="0:1", overrides=overrides,
                           progress=False, device="cuda")
     frame = metrics["frames"]["000000"]
-    assert json.loads((run / "config.json").read_text())["train"]["device"].startswith("cuda")
+    assert read_run(run).config.train.device.startswith("cuda")
     assert math.isfinite(frame["train_psnr"]) and frame["train_psnr"] > 10
     result = evaluate_run(run, device="cuda")
     assert math.isfinite(result["psnr"])

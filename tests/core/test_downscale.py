@@ -11,6 +11,7 @@ import pytest
 from PIL import Image
 
 from core.cli import main
+from core.config import read_run
 from core.synth import SynthConfig, synthesize
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -30,7 +31,7 @@ def test_downscaled_run_trains_renders_and_scores_at_the_reduced_size(tmp_path: 
     args = ["reconstruct", str(capture), "--out", str(run), "--preset", "test", "--config",
             str(tmp_path / "short.json"), "--no-progress", "--downscale", "2"]
     assert main(args) == 0
-    assert json.loads((run / "config.json").read_text())["downscale"] == 2.0
+    assert read_run(run).views.downscale == 2.0
     rgb = np.asarray(Image.open(run / "renders" / "000000" / "cam00_rgb.png"))
     assert rgb.shape == (16, 20, 3) and rgb.max() > 0
     assert np.load(run / "renders" / "000000" / "cam00_depth.npy").shape == (16, 20)

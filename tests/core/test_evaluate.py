@@ -13,6 +13,8 @@ import pytest
 import torch
 from PIL import Image
 
+from core.config import load_config, resolve_run
+from core.data import load_capture
 from core.evaluation import evaluate_run
 from core.metrics import normal_agreement, rgb_scores
 from core.pipeline import reconstruct
@@ -37,8 +39,9 @@ def fake_run(root: Path, capture: Path, normal=lambda gt: gt, rgb_noise: float =
     """A run whose held-out renders are the capture image and a function of the gt normals."""
     run = root / "run"
     run.mkdir(parents=True)
-    (run / "config.json").write_text(json.dumps(
-        {"capture": str(capture), "frames": ["000000"], "train": {"background": [0, 0, 0]}}))
+    resolved = resolve_run(load_capture(capture), load_config("test"), preset="test",
+                           frames="0:1")  # background black; cam00 and cam08 held out
+    (run / "config.json").write_text(json.dumps(resolved.to_json()))
     (run / "metrics.json").write_text(json.dumps({"frames": {"000000": {}}}))
     rng = np.random.default_rng(0)
     for cam in ("cam00", "cam08"):

@@ -6,7 +6,6 @@ from __future__ import annotations
 import gzip
 import json
 import struct
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -217,6 +216,7 @@ def test_stream_config_checks_its_tolerances():
 def fake_run(tmp_path: Path) -> Path:
     """A run directory of the `test` preset whose five frames are `moving_group`s: groups of
     pictures [0, 1, 2] and [3, 4] in sequence.json."""
+    from core.config import CameraSplit, ResolvedRun, Views
     from core.config import preset_config as resolve_config
 
     run = tmp_path / "run"
@@ -224,8 +224,10 @@ def fake_run(tmp_path: Path) -> Path:
     names = [f"{i:06d}" for i in range(5)]
     for name, f in zip(names, frames):
         write_frame_ply(run / "frames" / name / "gaussians.ply", f)
-    (run / "config.json").write_text(json.dumps({"capture": str(tmp_path / "nowhere"),
-                                                 **asdict(resolve_config("test"))}))
+    views = Views(CameraSplit("none", ("cam00",)))  # its capture is not here
+    resolved = ResolvedRun("test", str(tmp_path / "nowhere"), tuple(names),
+                           resolve_config("test"), views)
+    (run / "config.json").write_text(json.dumps(resolved.to_json()))
     (run / "sequence.json").write_text(json.dumps({"gops": [
         {"index": 0, "key": names[0], "frames": names[:3]},
         {"index": 1, "key": names[3], "frames": names[3:]}]}))

@@ -12,7 +12,7 @@ import pytest
 
 from core.data import CaptureError, detect_format, import_capture, load_capture, validate_capture
 from core.data.importers.panoptic import export_panoptic
-from core.data.split import camera_split
+from core.config import camera_split, read_run
 
 TEST_CAMERAS = ["cam00", "cam05"]
 
@@ -122,11 +122,13 @@ def test_a_run_trains_on_every_camera_and_says_so(synth_capture: Path, tmp_path:
     run = tmp_path / "run"
     assert main(["reconstruct", str(synth_capture), "--out", str(run), "--split", "none",
                  "--method", "3dgs", "--config", str(cfg), *TINY_RUN]) == 0
-    config = json.loads((run / "config.json").read_text())
-    assert config["split"] == "none" and config["train"]["method"] == "3dgs"
+    resolved = read_run(run)
+    train = resolved.config.train
+    assert resolved.config.split == "none" and train.method == "3dgs"
+    assert resolved.views.split.rule == "none" and len(resolved.views.split.training) == 8
     # The method's defaults came under the file's settings, which still hold.
-    assert config["train"]["densify"]["gradient"] == "mean"
-    assert config["train"]["eps2d"] == 0.3 and config["train"]["init_points"] == 200
+    assert train.densify.gradient == "mean"
+    assert train.eps2d == 0.3 and train.init_points == 200
     renders = sorted(p.name for p in (run / "renders" / "000000").glob("*_rgb.png"))
     assert len(renders) == 8  # every camera trained, and is scored
     ev = evaluate_run(run)

@@ -4,6 +4,7 @@ selection, checkpoints and resume, progress only on a terminal."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,7 @@ import torch
 from PIL import Image
 
 from core.model import GaussianModel
-from core.config import preset_config, train_config
+from core.config import preset_config, read_run, train_config
 from core.pipeline import Progress, Stopped, reconstruct
 from core.synth import SynthConfig, synthesize
 from core.training import Trainer
@@ -57,13 +58,14 @@ def run(capture: Path, short_config: Path, tmp_path_factory: pytest.TempPathFact
 
 
 def test_run_directory_layout(run: Path, capture: Path):
-    cfg = json.loads((run / "config.json").read_text())
-    assert cfg["preset"] == "test" and cfg["capture"] == str(capture.resolve())
-    assert cfg["train"]["schedule"]["iterations"] == 100  # override applied
-    assert cfg["train"]["densify"]["max_gaussians"] == 4_000  # the rest is the preset
-    assert cfg["checkpoint_every"] == 10 and cfg["gop"] == 1
-    assert cfg["frames"] == ["000000", "000001"]
-    for frame in cfg["frames"]:
+    resolved = read_run(run)
+    cfg = resolved.config
+    assert resolved.preset == "test" and resolved.capture == str(capture.resolve())
+    assert cfg.train.schedule.iterations == 100  # override applied
+    assert cfg.train.densify.max_gaussians == 4_000  # the rest is the preset
+    assert cfg.checkpoint_every == 10 and cfg.gop == 1
+    assert resolved.frames == ("000000", "000001")
+    for frame in resolved.frames:
         model = GaussianModel.load_ply(run / "frames" / frame / "gaussians.ply")
         assert len(model) > 0
         # Held-out camera of 8 is cam index 0 only; nothing rendered for training cameras.
@@ -228,8 +230,8 @@ def test_cli_reconstruct_and_eval(capture: Path, short_config: Path, tmp_path: P
                         "--frames", "1:", "--gop", "5", "--config", short_config)
     assert rc == 0, err
     assert "reconstructed 1 frame(s)" in out and "dgs eval" in out
-    cfg = json.loads((run / "config.json").read_text())
-    assert cfg["gop"] == 5 and cfg["frames"] == ["000001"]
+    resolved = read_run(run)
+    assert resolved.config.gop == 5 and resolved.frames == ("000001",)
     assert json.loads((run / "metrics.json").read_text())["gop"] == 5
     rc, out, err = _cli(capsys, "eval", run)
     assert rc == 0, err
@@ -247,6 +249,8 @@ def test_cli_reconstruct_and_eval(capture: Path, short_config: Path, tmp_path: P
     ("not_a_run", "is not a run directory"),
     ("config_key", "c.json.bogus: unknown setting"),
     ("gop", "gop: Input should be greater than or equal to 1"),
+    ("one_camera", "config.split: every8 leaves no camera to train on"),
+    ("no_masks", "config.mesh.subject: the capture has no masks"),
 ])
 def test_cli_reconstruct_bad_input(case: str, expect: str, capture: Path, tmp_path: Path,
                                    capsys: pytest.CaptureFixture):
@@ -272,6 +276,19 @@ def test_cli_reconstruct_bad_input(case: str, expect: str, capture: Path, tmp_pa
         extra = ["--config", tmp_path / "c.json"]
     elif case == "gop":
         extra = ["--gop", "0"]
+    elif case in ("one_camera", "no_masks"):  # issue 42: what the API refuses, the CLI too
+        cap = tmp_path / "variant"
+        shutil.copytree(capture, cap, ignore=shutil.ignore_patterns("gt"))
+        if case == "one_camera":
+            doc = json.loads((cap / "capture.json").read_text())
+            doc["cameras"] = doc["cameras"][:1]
+            (cap / "capture.json").write_text(json.dumps(doc))
+            for extra_view in cap.glob("*/*/cam0[1-9].*"):
+                extra_view.unlink()
+        else:
+            shutil.rmtree(cap / "masks")
+            (tmp_path / "c.json").write_text('{"mesh": {"subject": true}}')
+            extra = ["--config", tmp_path / "c.json"]
     rc, _, err = _cli(capsys, "reconstruct", cap, "--out", out, "--preset", "test", *extra) \
         if case != "preset" else _cli(capsys, "reconstruct", cap, "--out", out, *extra)
     assert rc != 0

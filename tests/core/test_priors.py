@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch
 
+from core.config import read_run
 from core.data import CaptureDataset, load_capture
 from core.pipeline import reconstruct
 from core.priors import TorchScriptNormalEstimator, fill_priors, load_estimator
@@ -150,5 +151,4 @@ def test_without_priors_training_still_runs(capture: Path, tmp_path: Path):
 def test_estimator_named_in_configuration(capture: Path, model_file: Path, tmp_path: Path):
     f = _run(capture, tmp_path, {"normal_estimator": str(model_file)})
     assert f["normal_prior"] == "estimator" and "normal" in f["final_losses"]
-    cfg = json.loads((tmp_path / "run" / "config.json").read_text())
-    assert cfg["normal_estimator"] == str(model_file)
+    assert read_run(tmp_path / "run").config.normal_estimator == str(model_file)

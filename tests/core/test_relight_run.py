@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from core.config import read_run
 from core.data.images import read_image, write_exr
 from core.relight import RelightStopped, load_envmap, relight_run
 from core.relight.output import read_mp4_info
@@ -193,7 +194,7 @@ def test_reconstruct_writes_meshes(tiny_run: Path):
     assert info["faces"] > 100 and info["files"] == ["000000.ply"]
     recorded = json.loads((tiny_run / "meshes" / "meshes.json").read_text())
     assert recorded["frames"]["000000"]["faces"] == info["faces"]
-    assert json.loads((tiny_run / "config.json").read_text())["mesh"]["resolution"] == 128
+    assert read_run(tiny_run).config.mesh.resolution == 128
 
 
 def test_cli_mesh_formats_and_baseline(tiny_run: Path, tmp_path: Path,

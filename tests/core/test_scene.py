@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from core.config import SequenceConfig, load_config
+from core.config import SequenceConfig, load_config, select_views
 from core.model import GaussianModel
 from core.render import RenderCamera
 from core.sequence.hull import dilate, inside_hull
@@ -96,8 +96,9 @@ def test_a_tracked_frame_moves_the_subject_and_leaves_the_scene(scene: Path, tmp
 
     capture = load_capture(scene)
     cfg = load_config("test", overrides=TINY)
-    assert moves_subject(capture, cfg.train, cfg.sequence)
-    assert not moves_subject(capture, cfg.train, SequenceConfig(moving="all"))
+    views = select_views(capture, masks=cfg.train.masks)
+    assert views.subject and moves_subject(views, cfg.sequence)
+    assert not moves_subject(views, SequenceConfig(moving="all"))
     views = frame_views(capture, "000001")
     assert views[0].mask is None and views[0].subject is not None  # the picture kept whole
     moving = subject_rows(model.means, [views, frame_views(capture, "000000")], cfg.sequence)

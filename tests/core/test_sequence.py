@@ -27,11 +27,9 @@ from core.sequence import (
     prune_transparent,
     quat_norm_loss,
     relabel,
-    roles,
-    segment,
     temporal_loss,
 )
-from core.config import DensifyConfig
+from core.config import DensifyConfig, roles, segment
 from core.strategy import DensifyStrategy
 
 TOL = dict(rtol=1e-5, atol=1e-6)

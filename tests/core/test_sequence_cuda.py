@@ -15,6 +15,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from core.config import read_run
+
 
 def _cuda_ready() -> tuple[bool, str]:
     if not torch.cuda.is_available():
@@ -148,8 +150,7 @@ def test_a_short_sequence_reconstructs_on_cuda_and_carries_to_the_cpu(setup, tmp
         reconstruct(capture.root, tmp_path / "gpu", preset="test", overrides=overrides,
                     progress=False, on_progress=lambda e: e.kind == "frame_done"
                     and done.append(e.frame), should_stop=lambda: bool(done))
-    assert __import__("json").loads((tmp_path / "gpu" / "config.json").read_text())[
-        "train"]["device"] == "cuda:0"
+    assert read_run(tmp_path / "gpu").config.train.device == "cuda:0"
     record = pack_resume(tmp_path / "gpu", tmp_path / "pack")
     assert record["next"] == "000001" and list(record["arrays"]) == ["000000"]
     unpack_resume(tmp_path / "pack", tmp_path / "cpu")

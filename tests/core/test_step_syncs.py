@@ -31,7 +31,7 @@ def _syncs_per_step(fitter) -> list[dict]:
 
 @pytest.fixture(scope="module")
 def fitted(tmp_path_factory: pytest.TempPathFactory):
-    from core.config import load_config
+    from core.config import load_config, select_views
     from core.data import load_capture
     from core.synth import SynthConfig, synthesize
     from core.training import Trainer, frame_views
@@ -45,7 +45,7 @@ def fitted(tmp_path_factory: pytest.TempPathFactory):
     before = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        key = Trainer(frame_views(capture, "000000", masks="subject"), train)
+        key = Trainer(frame_views(capture, "000000", select_views(capture, masks="subject")), train)
         key_syncs = _syncs_per_step(key)
     finally:
         torch.set_num_threads(before)
@@ -60,6 +60,7 @@ def test_a_key_frame_step_reads_nothing_back(fitted):
 
 
 def test_a_tracked_frame_step_reads_nothing_back(fitted, one_thread):
+    from core.config import select_views
     from core.sequence import FrameTracker
     from core.training import frame_views
 
@@ -67,8 +68,9 @@ def test_a_tracked_frame_step_reads_nothing_back(fitted, one_thread):
     model = key.model
     moving = torch.zeros(len(model), dtype=torch.bool)
     moving[::2] = True  # the scene mode: a subject moves, the rest is frozen
-    tracker = FrameTracker(frame_views(capture, "000001", masks="subject"), model,
-                           torch.arange(len(model)), len(model), train, seq, moving=moving)
+    views = frame_views(capture, "000001", select_views(capture, masks="subject"))
+    tracker = FrameTracker(views, model, torch.arange(len(model)), len(model), train, seq,
+                           moving=moving)
     syncs = _syncs_per_step(tracker)
     every = max(1, tracker.refine_steps // 4)
     busy = {0, tracker.deform_steps} | {tracker.deform_steps + k - 1 for k in

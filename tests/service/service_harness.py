@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import base64
 import hashlib
+import json
 import threading
 from pathlib import Path
 
@@ -36,6 +37,23 @@ def capture_files(root: Path) -> dict[str, bytes]:
         if rel.startswith(CANONICAL):
             out[rel] = path.read_bytes()
     return out
+
+
+def capture_variant(root: Path, *, cameras: int | None = None,
+                    masks: bool = True) -> dict[str, bytes]:
+    """The canonical content of the capture at `root` with only its first `cameras` cameras
+    (None: all), and without its masks unless `masks`."""
+    files = capture_files(root)
+    doc = json.loads(files["capture.json"])
+    if cameras is not None:
+        doc["cameras"] = doc["cameras"][:cameras]
+        doc.pop("test_cameras", None)
+        kept = {c["id"] for c in doc["cameras"]}
+        files = {p: b for p, b in files.items() if p == "capture.json" or Path(p).stem in kept}
+    if not masks:
+        files = {p: b for p, b in files.items() if not p.startswith("masks/")}
+    files["capture.json"] = json.dumps(doc).encode()
+    return files
 
 
 def manifest_of(files: dict[str, bytes]) -> dict:

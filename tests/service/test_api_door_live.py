@@ -4,7 +4,8 @@ serve` (API and embedded worker, fresh data folder): each bad request gets a 4xx
 is wrong, naming files (and, in a capture's metadata, fields) as the client knows them; nothing
 answers 500 and no answer, job error or artifact shows the server's data folder; a large body
 never holds the API; Location never comes from Host; submits with one Idempotency-Key make one
-job; a finished part names its worker."""
+job; a finished part names its worker; a run the capture cannot follow (issue 42: a split with no
+camera left to train, a subject mesh without masks) is refused."""
 
 from __future__ import annotations
 
@@ -18,7 +19,14 @@ from pathlib import Path
 
 import httpx
 import pytest
-from service_harness import TUS, capture_files, manifest_of, metadata, submit_together
+from service_harness import (
+    TUS,
+    capture_files,
+    capture_variant,
+    manifest_of,
+    metadata,
+    submit_together,
+)
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bad_inputs import HUGE, bad_variants, good_image, png_header  # noqa: E402
@@ -164,6 +172,30 @@ def test_a_failed_job_names_the_capture_file_not_the_server_folder(live, synth_c
     logs = http.get(f"/v1/jobs/{job['id']}/logs").text
     for text in (str(state), logs):
         assert str(server.data_dir) not in text
+
+
+@pytest.mark.parametrize("cameras, masks, config, field, words", [
+    (1, True, {"split": "auto"}, "params.config.split", "every8 leaves no camera to train on"),
+    (1, True, {"split": "every8"}, "params.config.split", "every8 leaves no camera to train on"),
+    (None, False, {"mesh": {"subject": True}}, "params.config.mesh.subject",
+     "the capture has no masks"),
+])
+def test_a_run_the_capture_cannot_follow_is_refused_at_the_door(live, synth_capture, cameras,
+                                                               masks, config, field, words):
+    """Issue 42, items 3 and 4: a split that leaves a one-camera capture nothing to train on
+    (the worker failed it after a 202), a subject mesh of a capture without masks (it
+    'succeeded' with no mesh): 422 naming the setting, by the rules the worker runs, and no
+    job."""
+    server, http = live
+    files = capture_variant(synth_capture, cameras=cameras, masks=masks)
+    r = http.post("/v1/captures/archive", content=_zip(files), headers=ZIP)
+    assert r.status_code == 201, r.text
+    before = _jobs(http)
+    r = http.post("/v1/jobs", json={"capture_id": r.json()["id"], "params": {
+        "preset": "test", "config": config}})
+    error = _refused(r, server)
+    assert error["details"][0]["path"] == field and words in error["message"], error
+    assert _jobs(http) == before
 
 
 # -- issue 32: the door, second pass ------------------------------------------------------------

@@ -12,6 +12,8 @@ import time
 import pytest
 from sqlalchemy import update
 
+from service_harness import capture_variant, upload_file
+
 import service.events as service_events
 from worker.models import Job
 from worker.store import Owner
@@ -99,9 +101,12 @@ def test_a_broker_that_is_away_leaves_the_job_to_the_sweeper(tmp_path, synth_cap
 
     settings = make_settings(tmp_path / "d", broker_url="redis://127.0.0.1:9/0")
     client = TestClient(create_app(settings))
-    store = client.app.state.services.store
+    services = client.app.state.services
+    store = services.store
     with store.session() as s:
         s.add(Capture(id="cap_x", tenant="local", format="canonical", state="ready"))
+    # Its frozen capture.json, which the door resolves the job's run against.
+    services.blobs.put_file("captures/cap_x/capture.json", synth_capture / "capture.json")
     r = client.post("/v1/jobs", json={"capture_id": "cap_x"})
     assert r.status_code == 202 and r.json()["state"] == "queued"
     job = store.get(r.json()["id"])
@@ -279,24 +284,61 @@ def test_readyz_reports_an_unreachable_broker(tmp_path):
     assert r.json()["checks"]["broker"].startswith("error")
 
 
-def test_a_split_or_subject_the_capture_cannot_follow_is_refused(client, services):
-    """split 'capture' needs the capture's test_cameras, a subject export its masks: both are
-    known from the capture's summary, so both answer 422 before a job exists."""
-    from worker.models import Capture, Job
+def _committed(client, new_capture, files: dict[str, bytes]) -> str:
+    capture = new_capture(files)
+    for path, data in files.items():
+        upload_file(client, capture["id"], path, data)
+    r = client.post(f"/v1/captures/{capture['id']}/commit")
+    assert r.status_code == 200, r.text
+    return capture["id"]
 
-    summary = {"frames": 1, "cameras": 8, "views": 8, "image_sizes": [], "masks": 0,
-               "normals": 0, "source_format": "canonical", "test_cameras": None}
-    with services.store.session() as s:
-        s.add(Capture(id="cap_plain", tenant="local", format="canonical", state="ready",
-                      summary=summary))
-        s.add(Job(id="job_done", tenant="local", capture_id="cap_plain", pipeline="reconstruct",
-                  params={}, state="succeeded", stage="succeeded"))
-    r = client.post("/v1/jobs", json={"capture_id": "cap_plain",
-                                      "params": {"config": {"split": "capture"}}})
+
+def _jobs(client) -> int:
+    return len(client.get("/v1/jobs", params={"limit": 200}).json()["items"])
+
+
+@pytest.mark.parametrize("split", ["auto", "every8", "capture"])
+def test_a_split_that_leaves_no_camera_to_train_on_is_refused(client, services, new_capture,
+                                                              synth_capture, split):
+    """Issue 42, item 3: on a one-camera capture every held-out rule but `none` leaves nothing
+    to train on; the door refuses it with the split rule's own words (the worker failed it
+    after a 202), and `none` gets through."""
+    one = _committed(client, new_capture, capture_variant(synth_capture, cameras=1))
+    before = _jobs(client)
+    r = client.post("/v1/jobs", json={"capture_id": one, "params": {"config": {"split": split}}})
     assert r.status_code == 422, r.text
-    assert r.json()["error"]["details"][0]["path"] == "params.config.split"
+    error = r.json()["error"]
+    assert error["details"][0]["path"] == "params.config.split"
+    words = ("declares no test_cameras" if split == "capture"
+             else "every8 leaves no camera to train on")
+    assert words in error["message"], error
+    assert _jobs(client) == before  # no job
+    r = client.post("/v1/jobs", json={"capture_id": one, "params": {"config": {"split": "none"}}})
+    assert r.status_code == 202, r.text
+    stored = services.store.get(r.json()["id"]).resolved_run  # the run its worker will run
+    assert stored["views"]["split"] == {"rule": "none", "training": ["cam00"], "heldout": []}
+
+
+def test_a_subject_mesh_or_export_of_a_capture_without_masks_is_refused(client, services,
+                                                                      new_capture,
+                                                                      synth_capture):
+    """Issue 42, item 4: `mesh.subject` needs masks to say where the subject is, as a subject
+    export does: both answer 422 before a job exists (the worker 'succeeded' with no mesh)."""
+    bare = _committed(client, new_capture, capture_variant(synth_capture, masks=False))
+    before = _jobs(client)
+    r = client.post("/v1/jobs", json={"capture_id": bare, "params": {
+        "config": {"mesh": {"subject": True}}}})
+    assert r.status_code == 422, r.text
+    error = r.json()["error"]
+    assert error["details"][0]["path"] == "params.config.mesh.subject"
+    assert "the capture has no masks" in error["message"] and _jobs(client) == before
+    with services.store.session() as s:
+        s.add(Job(id="job_done", tenant="local", capture_id=bare, pipeline="reconstruct",
+                  params={}, state="succeeded", stage="succeeded"))
     r = client.post("/v1/exports", json={"job_id": "job_done", "subject": True})
     assert r.status_code == 422, r.text
     assert r.json()["error"]["details"][0]["path"] == "subject"
-    assert "no masks" in r.json()["error"]["message"]
+    assert "the capture has no masks" in r.json()["error"]["message"]
     assert client.post("/v1/exports", json={"job_id": "job_done"}).status_code == 202
+    r = client.post("/v1/jobs", json={"capture_id": bare, "params": {"preset": "test"}})
+    assert r.status_code == 202, r.text

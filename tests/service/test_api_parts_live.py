@@ -15,7 +15,7 @@ import pytest
 from live_server import LiveServer, wait_for
 
 from service.client import Client
-from worker.owner import Owner
+from worker.lease import Owner
 
 pytestmark = pytest.mark.timeout(600)
 

@@ -301,7 +301,7 @@ def test_a_long_body_is_made_durable_while_it_streams(client, app, services, new
 
     import httpx
 
-    from service.records import get_upload
+    from service.lookups import get_upload
 
     mib = 1 << 20
     services.settings = services.settings.model_copy(update={"upload_sync_bytes": mib})

@@ -13,6 +13,7 @@ from pathlib import Path
 import pytest
 
 from core.cli import build_parser
+from core.config import read_run
 from service import demo as demo_module
 from service.demo import run_service_demo
 
@@ -64,8 +65,7 @@ def test_the_demo_through_the_service(tmp_path, monkeypatch, capsys):
     result = json.loads((run / "eval.json").read_text())  # evaluated here, after the download
     assert [f["frame"] for f in result["per_frame"]] == ["000000"]
     assert math.isfinite(result["psnr"]) and -1 <= result["normal_cos"] <= 1
-    config = json.loads((run / "config.json").read_text())
-    assert config["train"]["schedule"]["iterations"] == 40
+    assert read_run(run).config.train.schedule.iterations == 40
     assert "[6/6] results" in text and "contact sheet:" in text and "%" in text
     assert "smaller than the PLY" in text and "open it in a browser:" in text
     assert (run / "export" / "stream.dgss").read_bytes().startswith(b"DGSS")

@@ -1,6 +1,7 @@
-"""A sequence job run as parts (docs/design.md 4.4), in the job store: how a job is split, one
-lease per part (a duplicate delivery does nothing), the parent waiting for its parts and then
-for its assembly, a failed part retried alone, a cancel reaching every part."""
+"""A sequence job run as parts (docs/design.md 4.4), in the job store (how a job is split is
+core.config.independent_groups, tests/core/test_resolved.py): one lease per part (a duplicate
+delivery does nothing), the parent waiting for its parts and then for its assembly, a failed
+part retried alone, a cancel reaching every part."""
 
 from __future__ import annotations
 
@@ -8,9 +9,7 @@ from dataclasses import replace
 
 import pytest
 
-from core.config import load_config
-from core.sequence import segment
-from worker.parts import overall_progress, split_frames
+from worker.parts import overall_progress
 from worker.store import JobStore, Owner
 
 FRAMES = [f"{i:06d}" for i in range(7)]
@@ -27,18 +26,6 @@ def claim(store: JobStore, job_id: str, owner: Owner | None = None):
 
 def states(store: JobStore, parent_id: str) -> list[str]:
     return [p.state for p in store.parts(parent_id)]
-
-
-def test_a_sequence_splits_into_its_groups_of_pictures():
-    cfg = load_config("test", gop=3)
-    assert split_frames(FRAMES, cfg) == [list(g.frames) for g in segment(FRAMES, 3)] == GROUPS
-    assert split_frames(FRAMES[:3], cfg) is None  # one group: the job runs as one
-    # Groups that spend each other's refine balance cannot run apart.
-    run_scope = replace(cfg, sequence=replace(cfg.sequence, refine_scope="run"))
-    assert split_frames(FRAMES, run_scope) is None
-    # Independent frames: one part per frame.
-    off = replace(cfg, sequence=replace(cfg.sequence, enabled=False))
-    assert split_frames(FRAMES[:3], off) == [[f] for f in FRAMES[:3]]
 
 
 def test_each_part_has_its_own_lease_and_the_parent_waits_for_them(store: JobStore):

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 
+from core.config import CameraSplit, ResolvedRun, Views, load_config, validate
 from worker.pipelines import PIPELINES, ReconstructParams
 
 
@@ -26,7 +27,7 @@ def test_resolved_once_and_the_same_on_the_worker(tmp_path):
     params = ReconstructParams(preset="test", gop=2, checkpoint_every=9,
                                config={"train": {"seed": 3}})
     cfg = params.run_config()
-    assert params.run_config() is cfg  # the API's checks and its split share one resolution
+    assert params.run_config() is cfg  # the API's checks and its resolution share it
     with pytest.raises(ValueError, match="frozen"):  # so it cannot go stale
         params.gop = 3
     assert (cfg.gop, cfg.checkpoint_every, cfg.train.seed) == (2, 9, 3)
@@ -35,9 +36,22 @@ def test_resolved_once_and_the_same_on_the_worker(tmp_path):
     assert stored.run_config() == cfg
     from core.pipeline import reconstruct  # lazy: torch, which this module needs nowhere else
 
+    resolved = ResolvedRun("test", "cap_x", ("000000",), cfg,
+                           Views(CameraSplit("none", ("cam00",))))
     with pytest.raises(ValueError, match="not both"):
-        reconstruct(tmp_path / "capture", tmp_path / "run", config=cfg, gop=3)
+        reconstruct(tmp_path / "capture", tmp_path / "run", resolved=resolved, gop=3)
     assert not (tmp_path / "run").exists()
+
+
+def test_the_bounds_are_the_configurations_own():
+    """`gop`, `checkpoint_every` and `preset` are checked by the same types as RunConfig's."""
+    for name, bad in (("gop", 10_001), ("checkpoint_every", 0), ("preset", "huge")):
+        with pytest.raises(ValueError) as err:
+            validate(ReconstructParams, {name: bad}, "params")
+        assert err.value.details[0]["path"] == f"params.{name}"
+        with pytest.raises(ValueError):
+            load_config(**({"preset": bad} if name == "preset" else
+                           {"overrides": {name: bad}}))
 
 
 def test_each_pipeline_lists_the_kinds_of_what_it_writes():
@@ -57,3 +71,18 @@ def test_each_pipeline_lists_the_kinds_of_what_it_writes():
     for name, paths in written.items():
         assert {classify(p).kind for p in paths} == set(PIPELINES[name].artifacts), name
     assert {"mesh", "normal", "ao"} <= set(PIPELINES["reconstruct"].artifacts)
+
+
+def test_a_pipeline_is_registered_in_one_place():
+    """What submits a job of each pipeline and what runs it on a worker are its `PIPELINES`
+    entry's: the router and the runner name no pipeline."""
+    import importlib
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    for pipeline in PIPELINES.values():
+        module, name = pipeline.execution.split(":")
+        assert callable(getattr(importlib.import_module(module), name).run), pipeline.name
+        assert pipeline.endpoint.startswith("/v1/"), pipeline.name
+        for where in ("worker/runner.py", "service/routers/jobs.py"):
+            assert f'"{pipeline.name}"' not in (root / where).read_text(), (where, pipeline.name)

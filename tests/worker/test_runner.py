@@ -19,9 +19,11 @@ import torch
 from sqlalchemy import update
 from worker_harness import add_capture, tiny_config, wait_for
 
+from core.config import read_run
+from core.data import load_capture
 from worker.blobs import LocalBlobStore
 from worker.models import Asset, Capture, Job, utcnow
-from worker.pipelines import MODEL_KIND
+from worker.pipelines import MODEL_KIND, ReconstructParams
 from worker.progress import JobLink
 from worker.runner import Runner
 from worker.settings import WorkerSettings
@@ -57,6 +59,25 @@ def test_bad_parameters_and_missing_capture_fail_clearly(setup, tiny_capture: Pa
     assert "capture" in store.get(gone.id).error["message"]
     assert runner.run(gone.id).status == "terminal"  # a second delivery changes nothing
     assert runner.run("job_missing").status == "missing"
+
+
+def test_a_job_runs_the_run_it_stored_at_submit(setup, tiny_capture: Path):
+    """The worker runs the run the API resolved at submit (Job.resolved_run) as it is: what
+    its parameters would resolve to now (say, a preset changed since) does not change it."""
+    settings, store, blobs = setup
+    cap = add_capture(store, blobs, tiny_capture)
+    config = {**tiny_config(3), "mesh": {"enabled": False}, "split": "none"}
+    params = ReconstructParams(preset="test", config=config)
+    resolved = params.resolve(load_capture(tiny_capture), capture_name=cap)
+    drifted = {"preset": "test", "config": {**config, "split": "every8", "train": {
+        **config["train"], "seed": 9}}}
+    job = store.create("t1", "reconstruct", drifted, capture_id=cap,
+                       resolved_run=resolved.to_json())
+    assert Runner(settings, store, blobs).run(job.id).status == "succeeded", \
+        store.get(job.id).error
+    ran = read_run(settings.data_dir / "store" / "jobs" / job.id / "artifacts")
+    assert ran.same_run(resolved) and ran.config.train.seed == 0 and ran.capture == cap
+    assert ran.views.split.rule == "none" and ran.config.train.device == "cpu"
 
 
 def test_a_duplicate_message_of_a_running_job_is_dropped(setup):
@@ -255,6 +276,5 @@ def test_a_normal_estimator_is_a_model_asset_or_an_allowed_name_never_a_path(
         metrics = json.loads((settings.data_dir / "store" / "jobs" / done / "artifacts" /
                               "metrics.json").read_text())
         assert metrics["frames"]["000000"]["normal_prior"] == "estimator"
-        config = json.loads((settings.data_dir / "store" / "jobs" / done / "artifacts" /
-                             "config.json").read_text())
-        assert config["normal_estimator"] == name  # the name, not where the worker put it
+        resolved = read_run(settings.data_dir / "store" / "jobs" / done / "artifacts")
+        assert resolved.config.normal_estimator == name  # the name, not where it was put

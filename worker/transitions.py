@@ -1,10 +1,11 @@
-"""Changes to job rows inside a transaction the caller holds (`worker.store.JobStore` opens it):
-the events every change appends, ending a job and what ending one of its parts does to a job run
-as parts (docs/design.md 4.4), and the other changes particular to parted jobs (making them, a
-part's claim, cancel and retry). Each function takes the open `Session`; none commits.
+"""A job's state transitions, applied to its rows inside a transaction the caller holds
+(`worker.store.JobStore` opens it): the job states, the events every change appends, ending a
+job and what ending one of its parts does to a job run as parts (docs/design.md 4.4), and the
+other changes particular to parted jobs (making them, a part's claim, cancel and retry). Each
+function takes the open `Session`; none commits.
 
-`worker.parts` holds the decisions about parts that need no database (how a job is split, how
-the parts' states roll up, the overall progress); this module applies them to the rows.
+`worker.parts` holds the decisions about parts that need no database (how the parts' states
+roll up, the overall progress); this module applies them to the rows.
 """
 
 from __future__ import annotations
@@ -17,14 +18,18 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from worker.idempotency import Idempotency, remember
+from worker.lease import run_ended
 from worker.models import Job, JobEvent, utcnow
-from worker.owner import run_ended
 from worker.parts import ASSEMBLY_SHARE, failed_error, part_event, parts_of, roll_up
 
-__all__ = ["JobState", "cancel_parts", "create_parted", "event", "finish", "lock", "new_id",
-           "part_claimed", "progress_of", "retry_parts", "state_event", "to_dispatch"]
+__all__ = ["ACTIVE", "TERMINAL", "JobState", "cancel_parts", "create_parted", "event", "finish",
+           "lock", "new_id", "part_claimed", "progress_of", "retry_parts", "state_event",
+           "to_dispatch"]
 
 JobState = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+ACTIVE = ("queued", "running")
+"""The states of a job that is not over (it holds its capture, its sources, a worker)."""
+TERMINAL = ("succeeded", "failed", "cancelled")
 
 
 def new_id(prefix: str) -> str:
@@ -83,19 +88,23 @@ def finish(s: Session, job: Job, state: JobState, error: dict[str, Any] | None,
 def create_parted(s: Session, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
                   capture_id: str | None, name: str = "",
                   expires_at: dt.datetime | None = None,
-                  idempotency: Idempotency | None = None) -> tuple[Job, list[Job]]:
+                  idempotency: Idempotency | None = None,
+                  resolved_run: dict[str, Any] | None = None) -> tuple[Job, list[Job]]:
     """A sequence job and its parts (one per group of `groups`), all queued; the caller
     dispatches the parts (the parent itself is dispatched when they have succeeded).
-    `idempotency`: as `JobStore.create` (the key names the parent)."""
+    `idempotency`, `resolved_run`: as `JobStore.create` (the key names the parent; every
+    part runs the same run)."""
     parent = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline="reconstruct",
                  params=params, name=name, state="queued", stage="queued",
-                 expires_at=expires_at, parts=len(groups), frames=sum(map(len, groups)))
+                 expires_at=expires_at, parts=len(groups), frames=sum(map(len, groups)),
+                 resolved_run=resolved_run)
     s.add(parent)
     s.flush()
     remember(s, idempotency, parent.id)
     parts = [Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline="reconstruct",
                  params=params, name=name, state="queued", stage="queued", parent_id=parent.id,
-                 part_index=i, part_frames=frames, frames=len(frames))
+                 part_index=i, part_frames=frames, frames=len(frames),
+                 resolved_run=resolved_run)
              for i, frames in enumerate(groups)]
     s.add_all(parts)
     s.flush()

@@ -1,5 +1,6 @@
 """Tenant-scoped lookups: every object a request names is fetched here, filtered by the caller's
-tenant, and answers 404 (never 403) when it belongs to another, so ids cannot be probed."""
+tenant, and answers 404 (never 403) when it belongs to another, so ids cannot be probed; and the
+answer to a deletion the job store made or refused."""
 
 from __future__ import annotations
 
@@ -8,13 +9,24 @@ from sqlalchemy.orm import defer
 
 from service.errors import ApiError
 from worker.models import Asset, Capture, Job, Upload
+from worker.api_queries import Deleted
 from worker.store import JobStore
 
-__all__ = ["get_asset", "get_capture", "get_job", "get_upload", "missing"]
+__all__ = ["deleted", "get_asset", "get_capture", "get_job", "get_upload", "missing"]
 
 
 def missing(kind: str, ident: str) -> ApiError:
     return ApiError(404, f"no {kind} {ident!r}", code="not_found")
+
+
+def deleted(done: Deleted, kind: str, ident: str) -> list[str]:
+    """What a deletion in the job store deleted (`Deleted.ids`); 404 when there was nothing
+    of the tenant's to delete, 409 saying why it was refused."""
+    if done.status == "missing":
+        raise missing(kind, ident)
+    if done.status == "refused":
+        raise ApiError(409, done.why, retryable=done.retryable)
+    return done.ids
 
 
 def get_capture(store: JobStore, capture_id: str, tenant: str) -> Capture:

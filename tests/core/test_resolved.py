@@ -1,0 +1,149 @@
+"""core.config.resolved: the record of a resolved run. It round-trips through RUN/config.json,
+a version 1 config.json as the code wrote it before the record existed upgrades to the run it
+described, and resolving it refuses what the capture cannot run (the rules the API's door uses
+too); and the grouping of frames the API splits a job by and the run plans with."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from core.config import (
+    CONFIG_VERSION,
+    ConfigError,
+    ResolvedRun,
+    independent_groups,
+    load_config,
+    read_run,
+    resolve_run,
+    segment,
+    upgrade,
+)
+from core.data.capture import Camera, Capture
+from core.sequence import GopPlan
+from core.synth import SynthConfig, synthesize
+
+# tests/data/config-v1.json is the config.json that `reconstruct` wrote for a service job
+# (capture named by id) before this record existed: preset test, frames 0:2, gop 2, split
+# every8, downscale 2, train.seed 3, on the CPU; of this capture.
+V1 = Path(__file__).resolve().parents[1] / "data" / "config-v1.json"
+V1_CAPTURE = SynthConfig(frames=3, views=9, width=24, height=24, seed=4)
+
+
+@pytest.fixture(scope="module")
+def v1_capture(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("v1") / "capture"
+    synthesize(out, V1_CAPTURE)
+    return out
+
+
+def _capture(cameras: int, test_cameras: tuple[str, ...] | None = None) -> Capture:
+    """An in-memory capture of `cameras` cameras (no files: nothing here opens one)."""
+    K = np.array([[20.0, 0, 12], [0, 20, 12], [0, 0, 1]])
+    cams = tuple(Camera(f"cam{i:02d}", 24, 24, K, np.eye(4)) for i in range(cameras))
+    return Capture(Path("/nowhere"), cams, ("000000", "000001"), (0.0, 0.0, 1.0),
+                   test_cameras=test_cameras)
+
+
+def test_the_record_round_trips_through_config_json(tmp_path: Path):
+    config = load_config("test", overrides={"split": "none", "downscale": 2.0, "gop": 3,
+                                            "train": {"seed": 5, "masks": "subject"}})
+    run = resolve_run(_capture(3), config, preset="test", frames="1:", capture_name="cap_x")
+    assert run.frames == ("000001",) and run.capture == "cap_x"
+    assert run.views.split.training == ("cam00", "cam01", "cam02") and run.views.subject
+    assert run.views.downscale == 2.0 and run.views.split.heldout == ()
+    data = run.to_json()
+    assert data["version"] == CONFIG_VERSION and data["config"]["train"]["seed"] == 5
+    (tmp_path / "config.json").write_text(json.dumps(data))
+    back = read_run(tmp_path)
+    assert back == run and back.to_json() == data
+    assert isinstance(back.frames, tuple) and isinstance(back.config.train.background, tuple)
+    with pytest.raises(ConfigError) as err:  # a damaged record names the field
+        ResolvedRun.from_json({**data, "views": {**data["views"], "masks": "both"}})
+    assert err.value.details[0]["path"] == "config.json.views.masks"
+
+
+def test_a_version_1_config_json_upgrades_to_the_run_it_described(v1_capture: Path,
+                                                                 tmp_path: Path):
+    old = json.loads(V1.read_text())
+    assert old["version"] == 1 and old["split"] == "every8"  # the file as it was written
+    with pytest.raises(ValueError, match="pass the capture folder"):
+        upgrade(old)  # it names the capture by id: its views need the capture
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    shutil.copyfile(V1, run_dir / "config.json")
+    run = read_run(run_dir, v1_capture)
+    assert (run.preset, run.capture, run.frames) == ("test", old["capture"],
+                                                     ("000000", "000001"))
+    expected = load_config("test", overrides={"split": "every8", "downscale": 2.0,
+                                              "train": {"seed": 3}}, gop=2)
+    assert run.config == run.on_device("cpu").config and run.config.train.device == "cpu"
+    assert dataclasses.replace(expected, train=dataclasses.replace(
+        expected.train, device="cpu")) == run.config
+    assert run.views.split.rule == "every8" and run.views.split.heldout == ("cam00", "cam08")
+    assert run.views.downscale == 2.0 and run.views.masks == "matte"
+    # The run it describes is the one the same request resolves to now: a job stored before
+    # the record existed resumes its old run directory.
+    from core.data import load_capture
+
+    now = resolve_run(load_capture(v1_capture), expected, preset="test", frames="0:2",
+                      capture_name=old["capture"])
+    assert now.same_run(run) and now.frames == run.frames
+    assert upgrade(run.to_json()) == run.to_json()  # the current version as it is
+
+
+def test_an_unknown_version_is_refused_naming_it():
+    with pytest.raises(ConfigError, match="version 7 is not one this code reads"):
+        upgrade({"version": 7})
+
+
+@pytest.mark.parametrize("split", ["auto", "every8"])
+def test_a_split_that_leaves_nothing_to_train_is_refused(split):
+    config = load_config("test", overrides={"split": split})
+    with pytest.raises(ConfigError) as err:
+        resolve_run(_capture(1), config, preset="test")
+    assert err.value.details[0]["path"] == "config.split"
+    assert "every8 leaves no camera to train on" in err.value.details[0]["message"]
+    none = resolve_run(_capture(1), load_config("test", overrides={"split": "none"}),
+                       preset="test")
+    assert none.views.split.scored == ("cam00",)
+
+
+def test_a_subject_mesh_needs_masks():
+    config = load_config("test", overrides={"mesh": {"subject": True}})
+    with pytest.raises(ConfigError) as err:  # no mask file in the (file-less) capture
+        resolve_run(_capture(9), config, preset="test")
+    assert err.value.details[0]["path"] == "config.mesh.subject"
+    assert "has no masks" in err.value.details[0]["message"]
+    with pytest.raises(ConfigError):
+        resolve_run(_capture(9), config, preset="test", has_masks=False)
+    assert resolve_run(_capture(9), config, preset="test", has_masks=True).config.mesh.subject
+
+
+def test_declared_test_cameras_are_held_out_and_frames_are_named():
+    run = resolve_run(_capture(4, ("cam02",)), load_config("test"), preset="test")
+    assert run.views.split.rule == "capture" and run.views.split.heldout == ("cam02",)
+    with pytest.raises(ConfigError) as err:
+        resolve_run(_capture(4), load_config("test"), preset="test", frames="5:9")
+    assert err.value.details[0]["path"] == "frames"
+
+
+def test_a_sequence_splits_into_its_groups_of_pictures():
+    frames = [f"{i:06d}" for i in range(7)]
+    cfg = load_config("test", gop=3)
+    groups = independent_groups(frames, cfg)
+    assert [list(g.frames) for g in groups] == [frames[0:3], frames[3:6], frames[6:7]]
+    assert [g.frames for g in groups] == [g.frames for g in segment(frames, 3)]
+    # Groups that spend each other's refine balance cannot run apart.
+    run_scope = dataclasses.replace(cfg, sequence=dataclasses.replace(cfg.sequence,
+                                                                      refine_scope="run"))
+    assert independent_groups(frames, run_scope) is None
+    # Independent frames: one group per frame, as the plan of the run has them.
+    off = dataclasses.replace(cfg, sequence=dataclasses.replace(cfg.sequence, enabled=False))
+    assert [g.frames for g in independent_groups(frames[:3], off)] == [(f,) for f in frames[:3]]
+    assert GopPlan(frames[:3], 3, off.sequence, 500).gop == 1
