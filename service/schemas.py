@@ -33,8 +33,6 @@ FileState = Literal["received", "missing", "corrupt"]
 SHA256 = r"^[0-9a-fA-F]{64}$"
 PATCH_FILES = 10_000
 """Most entries one manifest patch adds (and removes)."""
-
-
 MAX_NAME = 256
 
 
@@ -123,6 +121,8 @@ class CaptureSummary(BaseModel):
         "The cameras the capture declares held out (capture.json test_cameras), or null."))
     normals: int = Field(description="Views with a normal prior.")
     source_format: str
+    import_warnings: list[str] = Field(default_factory=list, description=(
+        "What the import changed (a mirrored world mirrored back: docs/capture-format.md)."))
 
 
 class CaptureItem(BaseModel):

@@ -51,6 +51,8 @@ def _import(args: argparse.Namespace) -> int:
         f"imported {len(capture.cameras)} cameras x {len(capture.frames)} frames "
         f"({capture.import_record['format']}) into {args.out}"
     )
+    for warning in capture.import_record.get("warnings", []):  # e.g. a mirrored world undone
+        print(f"dgs: warning: {warning}", file=sys.stderr)
     return 0
 
 

@@ -232,9 +232,11 @@ def intrinsics_problems(K: np.ndarray | None) -> list[str]:
     return out
 
 
-def extrinsics_problems(w2c: np.ndarray | None, name: str = "world_to_camera") -> list[str]:
+def extrinsics_problems(w2c: np.ndarray | None, name: str = "world_to_camera",
+                        *, proper: bool = True) -> list[str]:
     """Why ``w2c`` (called `name` in the messages) is not a rigid transform (empty when it
-    is)."""
+    is). ``proper=False`` lets a reflection (det -1) through: the importers read a mirrored
+    world as it is and settle it for the whole rig (`core.data.importers.rig`)."""
     if w2c is None:
         return [f"{name} must be a 4x4 matrix of numbers"]
     if not np.all(np.isfinite(w2c)):
@@ -246,10 +248,10 @@ def extrinsics_problems(w2c: np.ndarray | None, name: str = "world_to_camera") -
     with np.errstate(all="ignore"):  # huge entries overflow to inf: not a rotation either
         err = float(np.abs(R @ R.T - np.eye(3)).max())
         det = float(np.linalg.det(R))
-    if not err <= _ROTATION_TOL or not det > 0:
+    if not err <= _ROTATION_TOL or not (det > 0 or not proper and det < 0):
         out.append(
             f"{name} rotation is not a rotation (|R R^T - I| = {err:.2e}, det = "
-            f"{det:.4f}); expected orthonormal with det +1"
+            f"{det:.4f}); expected orthonormal with det {'+1' if proper else '+1 or -1'}"
         )
     return out
 

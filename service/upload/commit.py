@@ -122,8 +122,8 @@ def _resolve_format(fmt: str, src: Path) -> str:
 
 
 def summarize(capture, fmt: str) -> dict[str, Any]:
-    """frames, cameras, image sizes, how many views have masks and normals, and the cameras
-    the capture holds out (its test_cameras, or None)."""
+    """frames, cameras, image sizes, how many views have masks and normals, the cameras the
+    capture holds out (its test_cameras, or None) and what its import changed (warnings)."""
     sizes = collections.Counter((c.width, c.height) for c in capture.cameras)
     views = capture.views()
     return {"frames": len(capture.frames), "cameras": len(capture.cameras),
@@ -132,7 +132,15 @@ def summarize(capture, fmt: str) -> dict[str, Any]:
                             for (w, h), n in sorted(sizes.items())],
             "masks": sum(v.mask is not None for v in views),
             "normals": sum(v.normal is not None for v in views), "source_format": fmt,
-            "test_cameras": None if capture.test_cameras is None else list(capture.test_cameras)}
+            "test_cameras": None if capture.test_cameras is None else list(capture.test_cameras),
+            "import_warnings": _import_warnings(capture.import_record)}
+
+
+def _import_warnings(record: Any) -> list[str]:
+    """The import record's warnings; a canonical capture.json's "import" is the client's JSON,
+    so anything but a list of strings there is no warning of ours."""
+    found = record.get("warnings") if isinstance(record, dict) else None
+    return [w for w in found if isinstance(w, str)] if isinstance(found, list) else []
 
 
 def freeze(services: Services, root: Path, capture_id: str) -> None:

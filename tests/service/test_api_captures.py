@@ -119,7 +119,8 @@ def test_upload_commit_freezes_a_valid_capture(client, services, new_capture, sy
     assert out["summary"] == {"frames": 1, "cameras": 8, "views": 8, "masks": 8, "normals": 0,
                               "camera_ids": [f"cam{i:02d}" for i in range(8)],
                               "image_sizes": [{"width": 32, "height": 32, "cameras": 8}],
-                              "source_format": "canonical", "test_cameras": None}
+                              "source_format": "canonical", "test_cameras": None,
+                              "import_warnings": []}
     assert out["files"]["received"] == len(files) and out["files"]["missing"] == 0
     assert not services.staging.capture_dir(capture["id"]).exists()
     stored = {b.key for b in services.blobs.list(f"captures/{capture['id']}")}

@@ -13,6 +13,7 @@ from core.data.importers.colmap import find_model, read_colmap
 from core.data.importers.common import ImportedCapture, SourceView, write_canonical
 from core.data.importers.idr import find_cameras_npz, read_idr
 from core.data.importers.panoptic import find_meta, read_panoptic
+from core.data.importers.rig import settle_rig
 from core.data.importers.transforms import find_transforms, read_transforms
 
 __all__ = [
@@ -71,12 +72,14 @@ def detect_format(src: str | os.PathLike[str]) -> str:
 
 
 def read_source(src: str | os.PathLike[str], fmt: str = "auto") -> ImportedCapture:
-    """Read a source of format ``fmt`` (or detected) without writing anything."""
+    """Read a source of format ``fmt`` (or detected) without writing anything. Every reader's
+    cameras pass the rig checks here (`core.data.importers.rig.settle_rig`: a mirrored world
+    mirrored back, mixed handedness and inverted poses refused)."""
     if fmt == "auto":
         fmt = detect_format(src)
     if fmt not in IMPORTERS:
         raise ValueError(f"fmt: expected auto or one of {FORMATS}, got {fmt!r}")
-    return IMPORTERS[fmt].read(Path(src))
+    return settle_rig(IMPORTERS[fmt].read(Path(src)))
 
 
 def import_capture(

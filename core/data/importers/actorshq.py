@@ -30,6 +30,7 @@ from core.data.capture import (
 )
 from core.data.importers.common import (
     ImportedCapture,
+    PoseSource,
     SourceView,
     safe_name,
     source_transform,
@@ -220,6 +221,7 @@ def read_actorshq(src: str | Path) -> ImportedCapture:
         views,
         record,
         [calib],
+        poses=PoseSource(calib, "rx, ry, rz, tx, ty, tz", "camera_to_world"),
     )
 
 

@@ -24,7 +24,13 @@ from core.data.capture import (
     CaptureError,
     Problem,
 )
-from core.data.importers.common import ImportedCapture, SourceView, safe_name, source_transform
+from core.data.importers.common import (
+    ImportedCapture,
+    PoseSource,
+    SourceView,
+    safe_name,
+    source_transform,
+)
 from core.data.importers.colmap_model import (
     MAX_MODEL_BYTES,
     MODEL_IDS,
@@ -131,7 +137,9 @@ def read_colmap(src: str | Path) -> ImportedCapture:
     record["points"] = 0 if points is None else len(points)
     frames = sorted({v.frame for v in views})
     cam_list = list(cameras.values())
-    return ImportedCapture(cam_list, frames, _estimate_up(cam_list), views, record, meta, points)
+    poses = PoseSource(model / f"images{ext}", "qvec, tvec", "world_to_camera")
+    return ImportedCapture(cam_list, frames, _estimate_up(cam_list), views, record, meta, points,
+                           poses=poses)
 
 
 def _points(model: Path) -> PointCloud | None:

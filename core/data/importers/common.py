@@ -14,7 +14,7 @@ import shutil
 import uuid
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -34,6 +34,7 @@ from core.data.validate import validate_capture
 __all__ = [
     "OPENGL_TO_OPENCV",
     "ImportedCapture",
+    "PoseSource",
     "SourceView",
     "safe_name",
     "source_transform",
@@ -58,6 +59,21 @@ class SourceView:
     normal: Path | None = None
 
 
+@dataclass(frozen=True)
+class PoseSource:
+    """Where a reader's poses are written in its source, for the rig checks' messages
+    (`core.data.importers.rig`)."""
+
+    file: Path
+    """The metadata file that holds them."""
+    field: str
+    """The field, as the source names it (``w2c``, ``frames[*].transform_matrix``)."""
+    holds: Literal["world_to_camera", "camera_to_world", "projection"]
+    """What the format says the field holds (a projection cannot be the wrong way round)."""
+    up: tuple[float, float, float] | None = None
+    """The world's up where the format fixes it (transforms.json: +z), else None."""
+
+
 @dataclass
 class ImportedCapture:
     """A source read into canonical terms, ready to be written."""
@@ -77,6 +93,8 @@ class ImportedCapture:
     as capture.json `test_cameras`; None when it has none."""
     masks: str = "matte"
     """What its masks are (`core.data.Capture.masks`)."""
+    poses: PoseSource | None = None
+    """Where the poses come from, for the rig checks (`core.data.importers.rig`)."""
 
 
 def source_transform(camera_axes: np.ndarray, pose: str) -> dict[str, Any]:

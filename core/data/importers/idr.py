@@ -1,5 +1,5 @@
-"""IDR / NeuS captures (``cameras.npz`` or ``cameras_sphere.npz`` + ``image/`` + ``mask/``):
-reader and writer.
+"""IDR / NeuS captures (``cameras.npz`` or ``cameras_sphere.npz`` + ``image/`` + ``mask/``, or
+``images/`` + ``masks/`` as some preparations name them): reader and writer.
 
 As public multi-view surface datasets ship them (DTU and BlendedMVS in IDR's layout, NeuS's
 cases): ``world_mat_i`` is the 3x4 (or 4x4) projection ``K [R | t]`` of the i-th image in sorted
@@ -7,8 +7,12 @@ order, ``scale_mat_i`` (4x4, identity when absent) maps the normalised object sp
 world. The capture's world is the normalised one (``P = world_mat @ scale_mat``, the object
 inside the unit sphere as the datasets intend); the import record's ``source_from_world`` is
 ``scale_mat`` (from the normalised world back to the source's). Each projection is decomposed
-into K and a rigid pose (RQ decomposition). Pixel centres sit at integer coordinates in these
-datasets (rays through ``K^-1 [u, v, 1]`` for integer u, v), so 0.5 is added to cx and cy.
+into K and a rigid pose (RQ decomposition); of the two poses a projection allows (it is
+defined up to a scale of either sign), the one with the normalised world's centre, the object,
+in front of the camera is taken, so a mirrored world keeps its determinant -1 for the rig
+checks (`core.data.importers.rig`) instead of putting the object behind every camera. Pixel
+centres sit at integer coordinates in these datasets (rays through ``K^-1 [u, v, 1]`` for
+integer u, v), so 0.5 is added to cx and cy.
 A decomposed K has rounding-level skew: below ``SKEW_TOLERANCE`` of fx it is dropped and the
 import record notes it; a larger skew is refused (our cameras have none).
 """
@@ -26,6 +30,7 @@ from core.data.capture import Camera, Capture, CaptureError, Problem
 from core.data.images import ImageReadError, image_size
 from core.data.importers.common import (
     ImportedCapture,
+    PoseSource,
     SourceView,
     safe_name,
     source_transform,
@@ -40,6 +45,8 @@ __all__ = ["SKEW_TOLERANCE", "decompose_projection", "drop_skew", "export_idr",
 SKEW_TOLERANCE = 1e-3
 """Largest |skew| / fx dropped on import (a decomposed K's rounding is ~1e-7 of fx)."""
 _NPZ_NAMES = ("cameras.npz", "cameras_sphere.npz")
+_FOLDERS = (("image", "mask"), ("images", "masks"))
+"""IDR's and NeuS's folder names, and the plural ones of other preparations."""
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg")
 
 
@@ -55,11 +62,13 @@ def find_cameras_npz(src: Path) -> Path | None:
 
 
 def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """K (3, 3) with K[2, 2] = 1 and positive focal lengths, and the rigid world-to-camera
-    (4, 4), of a 3x4 projection P = s K [R | t] (any scale s != 0)."""
+    """K (3, 3) with K[2, 2] = 1 and positive focal lengths, and the world-to-camera (4, 4) of
+    a 3x4 projection P = s K [R | t] (any scale s != 0): of the two (R, t) and (-R, -t) that
+    s allows, the one with the world's origin in front of the camera (R of determinant -1
+    when that world is mirrored), the proper one when the origin is on the camera's plane."""
     P = np.asarray(P, dtype=np.float64)[:3, :4]
     M, p4 = P[:, :3], P[:, 3]
-    if np.linalg.det(M) < 0:  # a projection is defined up to scale; keep det(R) = +1
+    if np.linalg.det(M) < 0:  # start from det(R) = +1, then let the origin decide
         M, p4 = -M, -p4
     # RQ decomposition from QR of the row-reversed transpose: M = K R, K upper triangular.
     flip = np.eye(3)[::-1]
@@ -69,6 +78,8 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     K, R = K @ signs, signs @ R
     w2c = np.eye(4)
     w2c[:3, :3], w2c[:3, 3] = R, np.linalg.solve(K, p4)
+    if w2c[2, 3] < 0:  # the origin behind: the other sign of s is the camera
+        w2c[:3, :4] *= -1.0
     return K / K[2, 2], w2c
 
 
@@ -123,11 +134,12 @@ def _projection(i: int, name: str, mats: dict[str, np.ndarray], where: Path,
     return P, np.asarray(scale, np.float64)
 
 
-def _camera(i: int, name: str, mats: dict[str, np.ndarray], size: tuple[int, int],
+def _camera(i: int, image: Path, mats: dict[str, np.ndarray], size: tuple[int, int],
             where: Path, problems: list[Problem]) -> tuple[Camera, np.ndarray, str | None] | None:
+    name = image.name
     problem = name_problem(Path(name).stem)
     if problem is not None:
-        problems.append(Problem(str(where.parent / "image" / name), f"image name {problem}"))
+        problems.append(Problem(str(image), f"image name {problem}"))
         return None
     made = _projection(i, name, mats, where, problems)
     if made is None:
@@ -143,7 +155,7 @@ def _camera(i: int, name: str, mats: dict[str, np.ndarray], size: tuple[int, int
     K[0, 2] += 0.5  # integer pixel centres in the source, +0.5 in ours (docs/design.md 3.1)
     K[1, 2] += 0.5
     K[1, 0] = K[2, 0] = K[2, 1] = 0.0
-    bad = intrinsics_problems(K) + extrinsics_problems(w2c)
+    bad = intrinsics_problems(K) + extrinsics_problems(w2c, proper=False)  # rig checks: det -1
     problems.extend(Problem(str(where), f"camera {i} ({name}): {m}") for m in bad)
     return Camera(safe_name(Path(name).stem), size[0], size[1], K, w2c), scale, note
 
@@ -155,16 +167,18 @@ def read_idr(src: str | Path) -> ImportedCapture:
     if npz is None:
         raise CaptureError([Problem(str(src), f"no {' or '.join(_NPZ_NAMES)} found")])
     root = npz.parent
-    images, masks = _sorted_files(root / "image"), _sorted_files(root / "mask")
+    image_dir, mask_dir = _folders(root)
+    images, masks = _sorted_files(image_dir), _sorted_files(mask_dir)
     problems: list[Problem] = []
     if not images:
-        problems.append(Problem(str(root / "image"), "no images (image/*.png or .jpg) found"))
+        problems.append(Problem(str(image_dir), "no images (image/*.png or .jpg, or images/) "
+                                                "found"))
     if len(images) > MAX_CAMERAS:
-        raise CaptureError([Problem(str(root / "image"), f"holds {len(images)} images; a "
+        raise CaptureError([Problem(str(image_dir), f"holds {len(images)} images; a "
                                     f"capture may have {MAX_CAMERAS} cameras")])
     if masks and len(masks) != len(images):
-        problems.append(Problem(str(root / "mask"), f"{len(masks)} masks for {len(images)} "
-                                                    "images; expected one per image"))
+        problems.append(Problem(str(mask_dir), f"{len(masks)} masks for {len(images)} "
+                                               "images; expected one per image"))
     mats = load_npz(npz)
     cameras, views, notes, scales = [], [], {}, []
     for i, image in enumerate(images):
@@ -173,7 +187,7 @@ def read_idr(src: str | Path) -> ImportedCapture:
         except ImageReadError as exc:
             problems.append(Problem(str(exc.path), exc.message))
             continue
-        made = _camera(i, image.name, mats, size, npz, problems)
+        made = _camera(i, image, mats, size, npz, problems)
         if made is None:
             continue
         cam, scale, note = made
@@ -183,7 +197,7 @@ def read_idr(src: str | Path) -> ImportedCapture:
             notes[cam.id] = note
         views.append(SourceView("000000", cam.id, image, masks[i] if masks else None))
     if len({c.id for c in cameras}) != len(cameras):
-        problems.append(Problem(str(root / "image"), "image names collide once made ids"))
+        problems.append(Problem(str(image_dir), "image names collide once made ids"))
     if scales and any(not np.allclose(s, scales[0]) for s in scales):
         problems.append(Problem(str(npz), "scale_mat differs between cameras; expected one "
                                           "normalisation for the whole capture"))
@@ -196,7 +210,19 @@ def read_idr(src: str | Path) -> ImportedCapture:
                               "to_source": to_source, "pixel_centres": "integer in the source",
                               "notes": notes}
     up = _estimate_up(cameras)
-    return ImportedCapture(cameras, ["000000"], up, views, record, [npz])
+    return ImportedCapture(cameras, ["000000"], up, views, record, [npz],
+                           poses=PoseSource(npz, "world_mat_i @ scale_mat_i", "projection"))
+
+
+def _folders(root: Path) -> tuple[Path, Path]:
+    """(image folder, mask folder): IDR's ``image/`` + ``mask/``, else ``images/`` +
+    ``masks/``; CaptureError when both image folders hold images (which is the capture?)."""
+    held = [(image, mask) for image, mask in _FOLDERS if _sorted_files(root / image)]
+    if len(held) > 1:
+        raise CaptureError([Problem(str(root), "both image/ and images/ hold images; keep the "
+                                    "one the cameras belong to")])
+    image, mask = held[0] if held else _FOLDERS[0]
+    return root / image, root / mask
 
 
 def _estimate_up(cameras: list[Camera]) -> tuple[float, float, float]:

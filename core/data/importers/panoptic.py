@@ -29,7 +29,13 @@ from pydantic import AfterValidator
 from pydantic_core import PydanticCustomError
 
 from core.data.capture import Camera, Capture, CaptureError, Problem
-from core.data.importers.common import ImportedCapture, SourceView, safe_name, source_transform
+from core.data.importers.common import (
+    ImportedCapture,
+    PoseSource,
+    SourceView,
+    safe_name,
+    source_transform,
+)
 from core.data.importers.records import (
     MAX_CAMERAS,
     MAX_FRAMES,
@@ -176,7 +182,8 @@ def _camera(folder: str, K: np.ndarray, w2c: np.ndarray, w: int, h: int, where: 
     K = K.copy()
     K[0, 2] += 0.5  # integer pixel centres in the source
     K[1, 2] += 0.5
-    bad = intrinsics_problems(K) + extrinsics_problems(w2c)
+    # A mirrored world (det -1) passes here; the rig checks settle it for every camera.
+    bad = intrinsics_problems(K) + extrinsics_problems(w2c, proper=False)
     problems.extend(Problem(where, m) for m in bad)
     return None if bad else Camera(safe_name(folder), w, h, K, w2c, None)
 
@@ -284,7 +291,8 @@ def _imported(root: Path, cameras: dict[str, Camera], frames: list[str],
     up = ups / max(float(np.linalg.norm(ups)), 1e-12)
     return ImportedCapture(cams, [safe_name(f) for f in frames],
                            (float(up[0]), float(up[1]), float(up[2])), views, record, files,
-                           points, test_cameras=test or None, masks="subject")
+                           points, test_cameras=test or None, masks="subject",
+                           poses=PoseSource(files[0], "w2c", "world_to_camera"))
 
 
 def export_panoptic(capture: Capture, dst: str | Path, test_cameras: list[str] | None = None

@@ -32,6 +32,7 @@ from core.data.images import ImageReadError, image_size
 from core.data.importers.common import (
     OPENGL_TO_OPENCV,
     ImportedCapture,
+    PoseSource,
     SourceView,
     safe_name,
     source_transform,
@@ -149,7 +150,8 @@ def read_transforms(src: str | Path) -> ImportedCapture:
     }
     record["points"] = 0 if points is None else len(points)
     return ImportedCapture(cameras, frames[0], (0.0, 0.0, 1.0), views, record, list(files),
-                           points)
+                           points, poses=PoseSource(files[0], "frames[*].transform_matrix",
+                                                    "camera_to_world", up=(0.0, 0.0, 1.0)))
 
 
 def _points(docs: dict[Path, TransformsFile], problems: list[Problem]) -> PointCloud | None:
@@ -242,7 +244,7 @@ def _parse_entry(path: Path, where: str, entry: TransformsEntry, e: dict[str, An
         c2w = np.vstack([c2w, [0, 0, 0, 1]])
     problems.extend(Problem(str(path), f"{where}: {m}") for m in intrinsics_problems(K))
     c2w_cv = c2w @ OPENGL_TO_OPENCV
-    bad = extrinsics_problems(c2w_cv, "transform_matrix")
+    bad = extrinsics_problems(c2w_cv, "transform_matrix", proper=False)  # rig checks: det -1
     problems.extend(Problem(str(path), f"{where}: {m}") for m in bad)
     if len(problems) > n0:
         return None
