@@ -179,3 +179,25 @@ def test_idr_images_and_masks_folders(synth_capture: Path, tmp_path: Path) -> No
     both = write(idr_files(ref), tmp_path / "b")  # image/ beside images/: which is it?
     with pytest.raises(CaptureError, match="both image/ and images/ hold images"):
         import_capture(both, tmp_path / "c-out")
+
+
+def test_a_colmap_model_is_the_solvers_and_never_refused_for_direction(synth_capture: Path,
+                                                                        tmp_path: Path) -> None:
+    """COLMAP writes the poses it solved in its one convention: the rig whose Panoptic `w2c` is
+    refused above (cameras looking away from each other, as in a room scanned from its middle)
+    imports from a COLMAP model as given."""
+    import dataclasses
+
+    from core.data.importers.colmap import export_colmap
+
+    ref = turned(load_capture(synth_capture), Y_DOWN)
+    outward = dataclasses.replace(ref, cameras=tuple(
+        dataclasses.replace(c, world_to_camera=np.linalg.inv(c.world_to_camera))
+        for c in ref.cameras))
+    with pytest.raises(CaptureError):  # the same poses as a hand-written w2c field
+        import_capture(write(panoptic_files(outward), tmp_path / "p"), tmp_path / "p-out")
+    export_colmap(outward, tmp_path / "src")
+    out = import_capture(tmp_path / "src", tmp_path / "out")
+    for cam in outward.cameras:
+        np.testing.assert_allclose(out.camera(cam.id).world_to_camera, cam.world_to_camera,
+                                   atol=1e-6)

@@ -137,7 +137,8 @@ def read_colmap(src: str | Path) -> ImportedCapture:
     record["points"] = 0 if points is None else len(points)
     frames = sorted({v.frame for v in views})
     cam_list = list(cameras.values())
-    poses = PoseSource(model / f"images{ext}", "qvec, tvec", "world_to_camera")
+    poses = PoseSource(model / f"images{ext}", "qvec, tvec", "world_to_camera",
+                       solved=True)
     return ImportedCapture(cam_list, frames, _estimate_up(cam_list), views, record, meta, points,
                            poses=poses)
 

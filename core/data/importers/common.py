@@ -72,6 +72,11 @@ class PoseSource:
     """What the format says the field holds (a projection cannot be the wrong way round)."""
     up: tuple[float, float, float] | None = None
     """The world's up where the format fixes it (transforms.json: +z), else None."""
+    solved: bool = False
+    """The poses were written by the program that solved them (COLMAP's model), in its one
+    convention: never checked for the wrong direction, since no hand conversion stands between
+    the solver and the file, and a room scanned from its middle (cameras looking outward, which
+    the direction rule may take for an inverted rig) is an ordinary COLMAP capture."""
 
 
 @dataclass

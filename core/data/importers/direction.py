@@ -174,7 +174,7 @@ def check_direction(imported: ImportedCapture) -> None:
     """CaptureError naming the pose field and the fix when `imported`'s poses look the other
     way round (:func:`looks_inverted`); nothing when they do not, or cannot (projections)."""
     poses = imported.poses
-    if poses is None or poses.holds not in _OTHER:
+    if poses is None or poses.holds not in _OTHER or poses.solved:
         return
     if len(imported.cameras) < DIRECTION_MIN_CAMERAS:
         return
