@@ -57,7 +57,7 @@ _DROPPED = {
               "duplicate message is dropped",
     "terminal": "it has ended ({job.state}); this duplicate message is dropped",
     "missing": "it was deleted; its message is dropped",
-    "exhausted": "its worker was lost {job.attempts} times; it failed (worker_lost)",
+    "exhausted": "its worker was lost {job.redeliveries} times; it failed (worker_lost)",
     "waiting": "its parts are queued or running (it is assembled after them); this message "
                "is dropped",
 }

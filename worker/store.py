@@ -185,7 +185,7 @@ class JobStore(Housekeeping):
                 jobrows.state_event(s, job)
             elif job.state in ("failed", "cancelled"):
                 job.state, job.stage, job.error, job.message = "queued", "queued", None, ""
-                job.attempts, job.cancel_requested, job.finished_at = 0, False, None
+                job.redeliveries, job.cancel_requested, job.finished_at = 0, False, None
                 job.lease_owner = job.lease_expires_at = job.eta_s = None
                 jobrows.state_event(s, job)
             return job
@@ -220,14 +220,15 @@ class JobStore(Housekeeping):
                 holder = Owner.parse(job.lease_owner)
                 if holder is None or not holder.is_dead_here():
                     return Claim("leased", job, (job.lease_expires_at - now).total_seconds())
-            if job.attempts >= max_attempts:
+            if job.redeliveries >= max_attempts:
                 jobrows.finish(s, job, "failed", {
                     "code": "worker_lost", "retryable": True,
-                    "message": f"the worker running this job was lost {job.attempts} times "
-                               f"(redelivery cap {max_attempts}); retry resumes from the last "
-                               "checkpoint"}, "")
+                    "message": f"the worker running this job was lost {job.redeliveries} "
+                               f"times (redelivery cap {max_attempts}); retry resumes from the "
+                               "last checkpoint"}, "")
                 return Claim("exhausted", job)
             job.attempts += 1
+            job.redeliveries += 1
             run_started(job, owner, now)
             job.lease_owner, job.lease_expires_at = str(owner), now + dt.timedelta(
                 seconds=lease_seconds)
@@ -289,7 +290,7 @@ class JobStore(Housekeeping):
             job.state, job.stage, job.message = "queued", "queued", message[:512]
             run_ended(job, "released", utcnow())
             job.lease_owner = job.lease_expires_at = job.eta_s = job.dispatched_at = None
-            job.attempts = max(job.attempts - 1, 0)
+            job.redeliveries = max(job.redeliveries - 1, 0)
             jobrows.state_event(s, job)
             return True
 

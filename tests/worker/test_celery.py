@@ -217,7 +217,7 @@ def test_stopping_a_worker_hands_its_job_to_the_next(stack, tiny_capture: Path, 
     back = h.store.get(job_id)
     assert back.state == "queued" and "shut down at step" in back.message
     stopped_at = int(back.message.rsplit(" ", 1)[1])
-    assert stopped_at >= 50 and back.attempts == 0 and back.lease_owner is None
+    assert stopped_at >= 50 and back.redeliveries == 0 and back.lease_owner is None
     worker_factory(env).start()
     done = h.wait_state(job_id, ("succeeded", "failed"))
     assert done.state == "succeeded", h.log(job_id)
