@@ -26,6 +26,17 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _worker(args: argparse.Namespace) -> int:
     # lazy: `dgs` starts without the worker extra installed
+    from pydantic import ValidationError
+
+    # lazy: as above
+    from worker.settings import describe, get_settings
+
+    try:  # before anything that reads the settings (worker.app reads them at import)
+        get_settings()
+    except ValidationError as exc:
+        print(f"dgs worker: {describe(exc)}", file=sys.stderr)
+        return 2
+    # lazy: after the settings are known good
     from worker.supervise import run_gpu_workers, run_worker
 
     if args.gpus is not None:
