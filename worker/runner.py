@@ -28,6 +28,7 @@ from worker.assemble_job import AssembleJob
 from worker.blobs import BlobStore, open_store
 from worker.execution import Execution, JobStopped
 from worker.export_job import ExportJob
+from worker.faults import hang_if_asked
 from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
@@ -140,6 +141,7 @@ class Runner:
 
     def _execute(self, job: Job, link: JobLink) -> Outcome:
         link.log(f"attempt {job.attempts} on {link.owner.host} (pid {link.owner.pid})")
+        hang_if_asked("claimed")
         execution = None
         try:
             execution = self._execution(job, link)

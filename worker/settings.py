@@ -84,6 +84,10 @@ class WorkerSettings(BaseSettings):
     dead and the job is handed to another worker (resuming from its checkpoint)."""
     heartbeat_seconds: float = Field(1.0, gt=0)
     """How often a worker writes progress, logs and its lease renewal to the job store."""
+    stall_seconds: float = Field(300.0, gt=0)
+    """A pool process that runs a task but has held no live lease for this long (stuck
+    before its claim, or after its job ended) is killed by its worker's watchdog, as is one
+    whose lease lapsed (worker.watchdog); its job goes back to the queue."""
     max_attempts: int = Field(3, ge=1)
     """Redelivery cap: a job whose worker was lost this many times fails (retryable)."""
     cancel_grace_seconds: float = Field(5.0, gt=0)

@@ -57,6 +57,25 @@ class Claim:
     retry_in: float = 0.0
 
 
+def _nothing_to_run(s: Session, job: Job | None, now: dt.datetime) -> Claim | None:
+    """A message for `job` that finds nothing to run: it was deleted, has ended, is a parted
+    job waiting for its parts, or a live worker holds its lease; None otherwise (a cancel
+    requested is left to the claim, which records it)."""
+    if job is None:
+        return Claim("missing")
+    if job.state in TERMINAL:
+        return Claim("terminal", job)
+    if job.cancel_requested:
+        return None
+    if job.parts and s.scalar(select(active_parts(job.id))):
+        return Claim("waiting", job)
+    if job.lease_owner is not None and job.lease_expires_at and job.lease_expires_at > now:
+        holder = Owner.parse(job.lease_owner)
+        if holder is None or not holder.is_dead_here():
+            return Claim("leased", job, (job.lease_expires_at - now).total_seconds())
+    return None
+
+
 class JobStore(Housekeeping):
     """Job lifecycle operations on the database at `url`, each in its own transaction (the
     changes to the rows, those of jobs run as parts included, in `worker.jobrows`; the
@@ -207,19 +226,12 @@ class JobStore(Housekeeping):
         now = utcnow()
         with self.session() as s:
             job = jobrows.lock(s, job_id)
-            if job is None:
-                return Claim("missing")
-            if job.state in TERMINAL:
-                return Claim("terminal", job)
+            refused = _nothing_to_run(s, job, now)
+            if refused is not None:
+                return refused
             if job.cancel_requested:
                 jobrows.finish(s, job, "cancelled", None, "cancelled before it resumed")
                 return Claim("terminal", job)
-            if job.parts and s.scalar(select(active_parts(job.id))):
-                return Claim("waiting", job)
-            if job.lease_owner is not None and job.lease_expires_at and job.lease_expires_at > now:
-                holder = Owner.parse(job.lease_owner)
-                if holder is None or not holder.is_dead_here():
-                    return Claim("leased", job, (job.lease_expires_at - now).total_seconds())
             if job.redeliveries >= max_attempts:
                 jobrows.finish(s, job, "failed", {
                     "code": "worker_lost", "retryable": True,
@@ -240,6 +252,12 @@ class JobStore(Housekeeping):
             if job.parent_id is not None:
                 jobrows.part_claimed(s, job)
             return Claim("claimed", job)
+
+    def peek(self, job_id: str) -> Claim | None:
+        """What `claim` would answer for a job with nothing to run (missing, terminal, waiting
+        or leased), reading only; None when a claim may run it (or must record its cancel)."""
+        with self.session(write=False) as s:
+            return _nothing_to_run(s, s.get(Job, job_id), utcnow())
 
     def heartbeat(self, job_id: str, owner: Owner, lease_seconds: float,
                   progress: dict[str, Any] | None = None, *,
