@@ -47,17 +47,21 @@ def _fork_all(ctx, db: str, children: int, batch: int, wait: float, out: dict) -
     for first in range(0, children, batch):
         procs = [ctx.Process(target=_child, args=(db,)) for _ in range(min(batch,
                                                                            children - first))]
-        for p in procs:
-            p.start()
-        deadline = time.monotonic() + wait
-        for p in procs:
-            p.join(max(0.0, deadline - time.monotonic()))
-            if p.is_alive():
-                out["hung"] += 1
-                os.kill(p.pid, signal.SIGKILL)
-                p.join()
-            elif p.exitcode != 0:
-                out["failed"] += 1
+        try:
+            for p in procs:
+                p.start()
+            deadline = time.monotonic() + wait
+            for p in procs:
+                p.join(max(0.0, deadline - time.monotonic()))
+                if p.is_alive():
+                    out["hung"] += 1
+                elif p.exitcode != 0:
+                    out["failed"] += 1
+        finally:  # a hung child never outlives the run, whatever ended it
+            for p in procs:
+                if p.pid is not None and p.is_alive():
+                    os.kill(p.pid, signal.SIGKILL)
+                    p.join()
 
 
 def main(argv: list[str] | None = None) -> int:
