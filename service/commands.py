@@ -89,12 +89,22 @@ def _settings(args: argparse.Namespace):
 
 def _serve(args: argparse.Namespace) -> int:
     # lazy: `dgs` starts without the service extra installed
-    from service.serve import serve
+    from pydantic import ValidationError
+    # lazy: as above
+    from worker.settings import describe
 
     if args.workers < 1:
         print(f"dgs serve: --workers: expected at least 1, got {args.workers}", file=sys.stderr)
         return 2
-    return serve(_settings(args), worker=not args.no_worker, workers=args.workers)
+    try:  # before anything that reads the settings (worker.app reads them at import)
+        settings = _settings(args)
+    except ValidationError as exc:
+        print(f"dgs serve: {describe(exc)}", file=sys.stderr)
+        return 2
+    # lazy: after the settings are known good
+    from service.serve import serve
+
+    return serve(settings, worker=not args.no_worker, workers=args.workers)
 
 
 def _database(args: argparse.Namespace) -> str:

@@ -199,6 +199,8 @@ class RunOut(BaseModel):
 
 
 WORKER = "host/pid of the worker that runs it, or ran it last (kept after it ends)."
+ATTEMPTS = ("How many times a worker took it, every run counted (retries too): the number of "
+            "its latest run in `runs`.")
 RUNS = "Each worker that took it, oldest first (at most the last 20)."
 
 
@@ -210,7 +212,7 @@ class PartOut(BaseModel):
     state: JobState
     worker: str | None = Field(description=WORKER)
     runs: list[RunOut] = Field(description=RUNS)
-    attempts: int
+    attempts: int = Field(description=ATTEMPTS)
     stage: str
     frame: int = Field(description="Its frame being made (1-based, within the part).")
     iteration: int
@@ -233,7 +235,7 @@ class JobOut(BaseModel):
     state: JobState
     progress: ProgressOut
     error: ErrorInfo | None
-    attempts: int
+    attempts: int = Field(description=ATTEMPTS)
     worker: str | None = Field(None, description=WORKER + " A job run as parts: null (see "
                                                           "its parts').")
     runs: list[RunOut] = Field(default_factory=list, description=RUNS)

@@ -4,8 +4,9 @@ listens and the limits it enforces on what clients send. Limits are published in
 from __future__ import annotations
 
 import functools
+from urllib.parse import urlsplit
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from core.data.rules import MAX_METADATA_BYTES
 from worker.settings import WorkerSettings
@@ -86,6 +87,16 @@ class ServiceSettings(WorkerSettings):
     upload_sync_bytes: int = Field(64 * MiB, ge=MiB)
     """A long tus PATCH makes its progress durable (fsync, then the offset in the job store)
     every this many bytes, so a crash of the API process loses at most this much."""
+
+    @field_validator("public_url")
+    @classmethod
+    def _public_url(cls, value: str | None) -> str | None:
+        # Without a scheme the base would make relative Location headers and links.
+        parts = urlsplit(value) if value is not None else None
+        if parts is not None and (parts.scheme not in ("http", "https") or not parts.netloc):
+            raise ValueError(f"expected the base URL clients reach the service at, such as "
+                             f"https://dgs.example.com; got {value[:200]!r}")
+        return value
 
 
 @functools.lru_cache(maxsize=1)

@@ -19,7 +19,8 @@ TASK_NAME = "dgs.run_job"
 def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> Celery:
     """A Celery app on the settings' broker: acks late, requeue when the worker process is lost
     (the redelivery cap is counted in the job store), one task prefetched, one task per child
-    process, no result backend (the job store holds every outcome)."""
+    process, each a fresh interpreter, no result backend (the job store holds every
+    outcome)."""
     app = Celery("dgs", broker=settings.broker, include=list(include))
     transport: dict = {}
     if settings.broker.startswith(("redis://", "rediss://")):
@@ -34,6 +35,11 @@ def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> C
         task_reject_on_worker_lost=True,
         worker_prefetch_multiplier=1,
         worker_max_tasks_per_child=1,
+        # Each pool process starts as a fresh interpreter: a forked one inherited the locks
+        # another thread of this process held in SQLite at the fork, and hung in gc (issue 42).
+        worker_pool_start_method="spawn",
+        # ... which, on a busy machine, takes longer than Celery's 4 s to report for work.
+        worker_proc_alive_timeout=120.0,
         task_default_queue=settings.queue,
         task_ignore_result=True,
         task_serializer="json",

@@ -21,13 +21,29 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--gpus", default=None, metavar="0,1,...",
                    help="one worker per GPU on this machine (each sees only its GPU and its "
                         "share of the cores; logs in <data_dir>/logs/worker-gpu<N>.log)")
+    # Set by a supervisor (`dgs serve`, `dgs worker --gpus`) for the worker it starts.
+    p.add_argument("--parent-pid", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--nice", type=int, default=0, help=argparse.SUPPRESS)
     p.set_defaults(func=_worker)
 
 
 def _worker(args: argparse.Namespace) -> int:
     # lazy: `dgs` starts without the worker extra installed
-    from worker.supervise import run_gpu_workers, run_worker
+    from pydantic import ValidationError
+    # lazy: as above
+    from worker.settings import describe, get_settings
 
+    try:  # before anything that reads the settings (worker.app reads them at import)
+        get_settings()
+    except ValidationError as exc:
+        print(f"dgs worker: {describe(exc)}", file=sys.stderr)
+        return 2
+    # lazy: after the settings are known good
+    from worker.supervise import run_gpu_workers, run_worker, supervised
+
+    if args.parent_pid is not None and not supervised(args.parent_pid, args.nice):
+        print(f"dgs worker: its supervisor (pid {args.parent_pid}) is gone", file=sys.stderr)
+        return 1
     if args.gpus is not None:
         gpus = [g.strip() for g in args.gpus.split(",") if g.strip()]
         if not gpus or not all(g.isdigit() for g in gpus):

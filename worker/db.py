@@ -42,11 +42,19 @@ def _sqlite_begin(conn) -> None:
 _ENGINES: dict[str, Engine] = {}
 
 
+_INHERITED: list[object] = []
+"""In a forked child: the connection pools inherited from the parent, kept referenced."""
+
+
 def _forget_parent_connections() -> None:
-    """In a forked child (Celery's prefork pool), drop the pooled connections inherited from
-    the parent without closing them: two processes talking over one PostgreSQL connection
-    corrupt each other's transactions (SQLAlchemy's documented fork recipe)."""
+    """In a child forked by Python code (the workers' pools start fresh interpreters; this is
+    for anything else that forks), give each engine a new pool: two processes talking over one
+    PostgreSQL connection corrupt each other's transactions (SQLAlchemy's fork recipe). The
+    inherited pools stay referenced, never freed: freeing a SQLite connection takes SQLite's
+    global mutexes, which another thread of the parent may have held at the fork (the pool
+    process that hung in gc, issue 42)."""
     for engine in _ENGINES.values():
+        _INHERITED.append(engine.pool)
         engine.dispose(close=False)
 
 

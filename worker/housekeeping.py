@@ -49,6 +49,17 @@ class Housekeeping:
                                    "(this broker cannot be inspected)")
         return out
 
+    def leases_of(self, prefix: str) -> list[tuple[str, float]]:
+        """(job id, seconds its lease has left, negative once lapsed) of every running job
+        whose lease owner begins with `prefix` (one worker process: worker.owner.lease_prefix),
+        for its worker's watchdog (worker.watchdog)."""
+        now = utcnow()
+        with self.session(write=False) as s:  # type: ignore[attr-defined]
+            rows = s.execute(select(Job.id, Job.lease_expires_at).where(
+                Job.state == "running", Job.lease_owner.startswith(prefix, autoescape=True)))
+            return [(job_id, (expires - now).total_seconds() if expires else 0.0)
+                    for job_id, expires in rows]
+
     def redispatch_stranded(self, send: Callable[[str], None], *, min_gap: float,
                             **stranded: Any) -> dict[str, str]:
         """Send every stranded job (`stranded(**stranded)`) to the broker again, at most once

@@ -12,7 +12,7 @@ import socket
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["MAX_RUNS", "Owner", "run_ended", "run_started"]
+__all__ = ["MAX_RUNS", "Owner", "lease_prefix", "run_ended", "run_started"]
 
 MAX_RUNS = 20
 """Runs (claims) a job row keeps, the newest."""
@@ -64,6 +64,15 @@ class Owner:
         if self.host != socket.gethostname() or self.started == "?":
             return False
         return _process_start(self.pid) != self.started
+
+
+def lease_prefix(pid: int) -> str | None:
+    """How every lease owner of process `pid` of this machine begins (host/pid/start/), or None
+    when that process is gone."""
+    started = _process_start(pid)
+    if started is None and os.path.isdir("/proc"):
+        return None
+    return f"{socket.gethostname()}/{pid}/{started or '?'}/"
 
 
 def _ended(run: dict[str, Any], outcome: str, now: dt.datetime) -> dict[str, Any]:

@@ -175,7 +175,10 @@ class Job(Base):
     error: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     """{"code", "message", "retryable"} when failed."""
     attempts: Mapped[int] = mapped_column(Integer, default=0)
-    """Times a worker claimed the job since it was queued (the redelivery cap counts these)."""
+    """Times a worker claimed the job, retries included: the number of its latest run."""
+    redeliveries: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
+    """Claims since the job was last queued by a retry, less those given back by a worker
+    shutting down: what the redelivery cap (DGS_MAX_ATTEMPTS) counts (migration 0008)."""
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     lease_owner: Mapped[str | None] = mapped_column(String(256), default=None)
     worker: Mapped[str | None] = mapped_column(String(256), default=None)

@@ -28,6 +28,7 @@ from core.rundir import classify
 from worker.assemble_job import AssembleJob
 from worker.blobs import BlobStore, open_store
 from worker.execution import Execution, JobStopped
+from worker.faults import hang_if_asked
 from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
@@ -55,7 +56,7 @@ _DROPPED = {
               "duplicate message is dropped",
     "terminal": "it has ended ({job.state}); this duplicate message is dropped",
     "missing": "it was deleted; its message is dropped",
-    "exhausted": "its worker was lost {job.attempts} times; it failed (worker_lost)",
+    "exhausted": "its worker was lost {job.redeliveries} times; it failed (worker_lost)",
     "waiting": "its parts are queued or running (it is assembled after them); this message "
                "is dropped",
 }
@@ -138,6 +139,7 @@ class Runner:
 
     def _execute(self, job: Job, link: JobLink) -> Outcome:
         link.log(f"attempt {job.attempts} on {link.owner.host} (pid {link.owner.pid})")
+        hang_if_asked("claimed")
         execution = None
         try:
             execution = self._execution(job, link)

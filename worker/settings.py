@@ -14,7 +14,7 @@ import os
 import re
 from pathlib import Path
 
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationError, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from core.config import DEVICE_PATTERN
@@ -23,7 +23,24 @@ from core.data.headers import DEFAULT_MAX_PIXELS
 # A model the operator offers by name (not an asset id, which starts with "ast_").
 MODEL_NAME = r"^(?!ast_)[A-Za-z0-9][A-Za-z0-9_.\-]{0,63}$"
 
-__all__ = ["WorkerSettings", "get_settings"]
+__all__ = ["WorkerSettings", "describe", "get_settings"]
+
+
+DATABASES = ("sqlite", "postgresql")
+"""The job store's backends (SQLAlchemy dialect names)."""
+
+
+def _backend(url: str) -> str:
+    """The SQLAlchemy backend of `url` ("postgresql" for postgresql+psycopg://...)."""
+    scheme = url.split("://", 1)[0] if "://" in url else ""
+    if url.startswith("sqlite:") and not url.startswith("sqlite://"):
+        return ""
+    return scheme.split("+", 1)[0].lower()
+
+
+def _scheme_of(url: str) -> str:
+    """What an error shows of a URL: its scheme only (the rest may hold a password)."""
+    return f"scheme {url.split('://', 1)[0][:40]!r}" if "://" in url else "no scheme (no '://')"
 
 
 def _default_data_dir() -> Path:
@@ -67,6 +84,10 @@ class WorkerSettings(BaseSettings):
     dead and the job is handed to another worker (resuming from its checkpoint)."""
     heartbeat_seconds: float = Field(1.0, gt=0)
     """How often a worker writes progress, logs and its lease renewal to the job store."""
+    stall_seconds: float = Field(300.0, gt=0)
+    """A pool process that runs a task but has held no live lease for this long (stuck
+    before its claim, or after its job ended) is killed by its worker's watchdog, as is one
+    whose lease lapsed (worker.watchdog); its job goes back to the queue."""
     max_attempts: int = Field(3, ge=1)
     """Redelivery cap: a job whose worker was lost this many times fails (retryable)."""
     cancel_grace_seconds: float = Field(5.0, gt=0)
@@ -110,6 +131,38 @@ class WorkerSettings(BaseSettings):
     DGS_NORMAL_ESTIMATORS='{"omnidata": "/models/omnidata_normal.pt"}'); a job names one as
     `normal_estimator`, or names a model asset of its own tenant. A path is never taken from a
     request."""
+
+    @field_validator("database_url")
+    @classmethod
+    def _database_url(cls, value: str | None) -> str | None:
+        if value is not None and _backend(value) not in DATABASES:
+            raise ValueError(f"expected a job store URL sqlite:///path or "
+                             f"postgresql+psycopg://user@host/db; got {_scheme_of(value)}")
+        return value
+
+    @field_validator("broker_url")
+    @classmethod
+    def _broker_url(cls, value: str | None) -> str | None:
+        if value is None:
+            return value
+        scheme = value.split("://", 1)[0].lower() if "://" in value else ""
+        inner = scheme.split("+", 1)[1] if scheme.startswith("sqla+") else None
+        if scheme not in ("redis", "rediss") and (inner is None or _backend(
+                value[len("sqla+"):]) not in DATABASES):
+            raise ValueError(f"expected a broker URL redis://host:6379/0, rediss://... or "
+                             f"sqla+sqlite:///path; got {_scheme_of(value)}")
+        return value
+
+    @field_validator("storage_url")
+    @classmethod
+    def _storage_url(cls, value: str | None) -> str | None:
+        if value is None:
+            return value
+        scheme, _, rest = value.partition("://")
+        if scheme.lower() not in ("file", "s3") or not rest.strip("/"):
+            raise ValueError(f"expected an artifact store URL s3://bucket/prefix or "
+                             f"file:///folder; got {_scheme_of(value)}")
+        return value
 
     @field_validator("devices")
     @classmethod
@@ -185,3 +238,9 @@ class WorkerSettings(BaseSettings):
 def get_settings() -> WorkerSettings:
     """The process's settings (read once from the environment)."""
     return WorkerSettings()
+
+
+def describe(exc: ValidationError) -> str:
+    """Settings refused, as the operator set them: `DGS_BROKER_URL: expected ...; ...`."""
+    return "; ".join(f"DGS_{'_'.join(map(str, e['loc'])).upper()}: "
+                     f"{e['msg'].removeprefix('Value error, ')}" for e in exc.errors())

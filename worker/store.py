@@ -58,6 +58,25 @@ class Claim:
     retry_in: float = 0.0
 
 
+def _nothing_to_run(s: Session, job: Job | None, now: dt.datetime) -> Claim | None:
+    """A message for `job` that finds nothing to run: it was deleted, has ended, is a parted
+    job waiting for its parts, or a live worker holds its lease; None otherwise (a cancel
+    requested is left to the claim, which records it)."""
+    if job is None:
+        return Claim("missing")
+    if job.state in TERMINAL:
+        return Claim("terminal", job)
+    if job.cancel_requested:
+        return None
+    if job.parts and s.scalar(select(active_parts(job.id))):
+        return Claim("waiting", job)
+    if job.lease_owner is not None and job.lease_expires_at and job.lease_expires_at > now:
+        holder = Owner.parse(job.lease_owner)
+        if holder is None or not holder.is_dead_here():
+            return Claim("leased", job, (job.lease_expires_at - now).total_seconds())
+    return None
+
+
 class JobStore(ApiQueries, Housekeeping):
     """Job lifecycle operations on the database at `url`, each in its own transaction (the
     changes to the rows, those of jobs run as parts included, in `worker.transitions`; the API's
@@ -211,7 +230,7 @@ class JobStore(ApiQueries, Housekeeping):
                 transitions.state_event(s, job)
             elif job.state in ("failed", "cancelled"):
                 job.state, job.stage, job.error, job.message = "queued", "queued", None, ""
-                job.attempts, job.cancel_requested, job.finished_at = 0, False, None
+                job.redeliveries, job.cancel_requested, job.finished_at = 0, False, None
                 job.lease_owner = job.lease_expires_at = job.eta_s = None
                 transitions.state_event(s, job)
             return job
@@ -233,27 +252,21 @@ class JobStore(ApiQueries, Housekeeping):
         now = utcnow()
         with self.session() as s:
             job = transitions.lock(s, job_id)
-            if job is None:
-                return Claim("missing")
-            if job.state in TERMINAL:
-                return Claim("terminal", job)
+            refused = _nothing_to_run(s, job, now)
+            if refused is not None:
+                return refused
             if job.cancel_requested:
                 transitions.finish(s, job, "cancelled", None, "cancelled before it resumed")
                 return Claim("terminal", job)
-            if job.parts and s.scalar(select(active_parts(job.id))):
-                return Claim("waiting", job)
-            if job.lease_owner is not None and job.lease_expires_at and job.lease_expires_at > now:
-                holder = Owner.parse(job.lease_owner)
-                if holder is None or not holder.is_dead_here():
-                    return Claim("leased", job, (job.lease_expires_at - now).total_seconds())
-            if job.attempts >= max_attempts:
+            if job.redeliveries >= max_attempts:
                 transitions.finish(s, job, "failed", {
                     "code": "worker_lost", "retryable": True,
-                    "message": f"the worker running this job was lost {job.attempts} times "
-                               f"(redelivery cap {max_attempts}); retry resumes from the last "
-                               "checkpoint"}, "")
+                    "message": f"the worker running this job was lost {job.redeliveries} "
+                               f"times (redelivery cap {max_attempts}); retry resumes from the "
+                               "last checkpoint"}, "")
                 return Claim("exhausted", job)
             job.attempts += 1
+            job.redeliveries += 1
             run_started(job, owner, now)
             job.lease_owner, job.lease_expires_at = str(owner), now + dt.timedelta(
                 seconds=lease_seconds)
@@ -265,6 +278,12 @@ class JobStore(ApiQueries, Housekeeping):
             if job.parent_id is not None:
                 transitions.part_claimed(s, job)
             return Claim("claimed", job)
+
+    def peek(self, job_id: str) -> Claim | None:
+        """What `claim` would answer for a job with nothing to run (missing, terminal, waiting
+        or leased), reading only; None when a claim may run it (or must record its cancel)."""
+        with self.session(write=False) as s:
+            return _nothing_to_run(s, s.get(Job, job_id), utcnow())
 
     def heartbeat(self, job_id: str, owner: Owner, lease_seconds: float,
                   progress: dict[str, Any] | None = None, *,
@@ -315,7 +334,7 @@ class JobStore(ApiQueries, Housekeeping):
             job.state, job.stage, job.message = "queued", "queued", message[:512]
             run_ended(job, "released", utcnow())
             job.lease_owner = job.lease_expires_at = job.eta_s = job.dispatched_at = None
-            job.attempts = max(job.attempts - 1, 0)
+            job.redeliveries = max(job.redeliveries - 1, 0)
             transitions.state_event(s, job)
             return True
 

@@ -17,6 +17,7 @@ from pathlib import Path
 
 from celery import Celery
 from celery.signals import worker_shutting_down
+from celery.worker import state as worker_state
 
 from worker.app import app
 from worker.broker import BrokerInspector
@@ -25,9 +26,10 @@ from worker.db import migrate
 from worker.settings import WorkerSettings, get_settings
 from worker.store import JobStore
 from worker.sweeper import Sweeper
+from worker.watchdog import Watchdog
 
-__all__ = ["EmbeddedWorker", "job_sender", "make_sweeper", "run_gpu_workers", "run_worker",
-           "stop_all", "worker_env"]
+__all__ = ["EmbeddedWorker", "busy_pool_processes", "job_sender", "make_sweeper",
+           "run_gpu_workers", "run_worker", "stop_all", "supervised", "worker_env"]
 
 log = logging.getLogger("dgs.worker")
 
@@ -53,13 +55,16 @@ def job_sender(app: Celery, settings: WorkerSettings) -> Callable[[str], None]:
 
 def run_worker(*, concurrency: int = 1, loglevel: str = "INFO", hostname: str | None = None,
                sweeper: bool = True) -> int:
-    """Migrate the job store, start the sweeper thread, run the Celery worker (blocks)."""
+    """Migrate the job store, start the sweeper and watchdog threads, run the Celery worker
+    (blocks)."""
     settings = get_settings()
     logging.basicConfig(level=loglevel.upper(), format="%(asctime)s %(name)s %(message)s")
     migrate(settings.database)
 
     if sweeper:
         _RUNNING["sweeper"] = make_sweeper(app, settings).start()
+    # It outlives a warm shutdown: a stuck pool process would otherwise hold it forever.
+    Watchdog(settings, busy_pool_processes).start()
 
     worker_shutting_down.connect(_drain, weak=False)
     # Gossip, mingle and worker heartbeats need broadcast, which the SQLite transport lacks;
@@ -71,16 +76,16 @@ def run_worker(*, concurrency: int = 1, loglevel: str = "INFO", hostname: str | 
     return 0
 
 
-def _children(pid: int) -> list[int]:
-    """Process ids whose parent is `pid` (Linux /proc; empty elsewhere)."""
-    out = []
-    for entry in Path("/proc").glob("[0-9]*"):
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        if int(stat.rsplit(")", 1)[1].split()[1]) == pid:
-            out.append(int(entry.name))
+def busy_pool_processes() -> dict[int, str]:
+    """{pid: job id} of this Celery worker's pool processes that run a task now."""
+    out: dict[int, str] = {}
+    try:
+        requests = list(worker_state.active_requests)
+    except RuntimeError:  # changed while being read: the watchdog looks again soon
+        return out
+    for request in requests:
+        if request.worker_pid and request.args:
+            out[request.worker_pid] = str(request.args[0])
     return out
 
 
@@ -91,13 +96,15 @@ def _drain(sig=None, how=None, exitcode=None, **_) -> None:
     """A warm shutdown (SIGTERM to the worker) waits for running tasks; tell each task process
     to stop at its next step, checkpoint and put its job back in the queue, so the shutdown
     takes seconds and another worker resumes the job (worker.runner). This worker's sweeper
-    stops first: the job must be sent by someone else, not taken back by this worker."""
+    stops first: the job must be sent by someone else, not taken back by this worker. Idle
+    pool processes are left alone: the pool ends them as it closes (killed now, the pool
+    would start new ones during the shutdown)."""
     sweeper = _RUNNING.pop("sweeper", None)
     if sweeper is not None:
         sweeper.stop()
-    for child in _children(os.getpid()):
+    for pid in busy_pool_processes():
         try:
-            os.kill(child, signal.SIGTERM)
+            os.kill(pid, signal.SIGTERM)
         except ProcessLookupError:
             pass
 
@@ -107,28 +114,29 @@ def _node_name(settings: WorkerSettings) -> str:
     return f"dgs{suffix}@{socket.gethostname()}"
 
 
-def _die_with_parent() -> None:
-    """In the embedded worker (before exec): receive SIGTERM when `dgs serve` dies, however it
-    dies, so no orphaned worker keeps consuming the queue (Linux prctl PR_SET_PDEATHSIG; a
-    no-op elsewhere). SIGTERM drains the worker: its job goes back to the queue."""
+def supervised(parent_pid: int, nice: int) -> bool:
+    """In a worker that `EmbeddedWorker` started: receive SIGTERM when its supervisor dies,
+    however it dies, so no orphaned worker keeps consuming the queue (Linux prctl
+    PR_SET_PDEATHSIG; a no-op elsewhere), and add `nice` to its niceness. False when the
+    supervisor is already gone. Done here, not in a preexec function between fork and exec:
+    Python code in the child of a process with threads may wait forever on a lock that a
+    thread held at the fork (the API's SQLite connections), as the pool processes did."""
     try:
         libc = ctypes.CDLL(None, use_errno=True)
         libc.prctl(1, signal.SIGTERM, 0, 0, 0)  # 1 = PR_SET_PDEATHSIG
     except (OSError, AttributeError):
         pass
+    if nice:
+        try:
+            os.nice(nice)
+        except OSError:
+            pass
+    return os.getppid() == parent_pid
 
 
 WORKER_NICE = 5
 """Niceness added to the embedded worker: on the machine it shares with `dgs serve`, the API
 keeps answering (polls, progress, downloads) while a job trains on every core."""
-
-
-def _embedded_child(nice: int) -> None:
-    _die_with_parent()
-    try:
-        os.nice(nice)
-    except OSError:
-        pass
 
 
 def worker_env(settings: WorkerSettings, index: int, count: int,
@@ -179,10 +187,11 @@ class EmbeddedWorker:
     def _spawn(self) -> subprocess.Popen:
         out = open(self.log_path, "ab")
         try:
-            return subprocess.Popen([sys.executable, "-m", "core.cli", "worker", *self.args],
+            return subprocess.Popen([sys.executable, "-m", "core.cli", "worker",
+                                     f"--parent-pid={os.getpid()}", f"--nice={self.nice}",
+                                     *self.args],
                                     env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                                    start_new_session=True,
-                                    preexec_fn=lambda: _embedded_child(self.nice))
+                                    start_new_session=True)
         finally:
             out.close()
 

@@ -12,17 +12,13 @@ waits behind others is never sent twice. The lease makes any duplicate harmless 
 that receives it drops it, worker.runner). Any number of sweepers may run (API processes,
 workers): `JobStore.mark_dispatched` lets one of them send.
 
-A worker's sweeper thread lives in the Celery parent, which forks a fresh pool child for every
-task. A fork copies only the forking thread: a lock that the sweeper held inside a library at
-that moment (SQLite's global mutexes, a connection pool's) stays held in the child forever, and
-the child hangs at its first query. So a pass and a fork never overlap (`_PASS`): a fork waits
-for the pass under way to end, and a pass cannot start while a fork is being made.
+A worker's sweeper thread lives in the Celery parent, whose pool processes start as fresh
+interpreters (worker.celery_app): none inherits a lock the sweeper held in SQLite.
 """
 
 from __future__ import annotations
 
 import logging
-import os
 import shutil
 import threading
 import time
@@ -42,13 +38,6 @@ __all__ = ["Sweeper"]
 
 log = logging.getLogger("dgs.sweeper")
 HeldJobs = Callable[[float], "set[str] | None"]
-
-_PASS = threading.RLock()
-"""Held by a sweeper's pass and by every fork of this process (module docstring). Reentrant: a
-pass that forked (a subprocess with a preexec function) would otherwise wait for itself."""
-os.register_at_fork(before=_PASS.acquire, after_in_parent=_PASS.release,
-                    after_in_child=_PASS.release)
-
 
 class Sweeper:
     """`sweep()` once, or `start()` a daemon thread that sweeps every `interval` seconds.
@@ -161,8 +150,7 @@ class Sweeper:
         jobs to send), then every `interval`."""
         while True:
             try:
-                with _PASS:
-                    self.sweep()
+                self.sweep()
             except Exception:  # the database is briefly away: try at the next pass
                 log.exception("sweep failed; retrying in %.0f s", self.interval)
             if self._stop.wait(self.interval):

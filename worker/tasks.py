@@ -7,6 +7,7 @@ import logging
 
 from worker.app import app
 from worker.celery_app import TASK_NAME
+from worker.faults import hang_if_asked
 from worker.settings import get_settings
 
 __all__ = ["run_job"]
@@ -14,13 +15,15 @@ __all__ = ["run_job"]
 log = logging.getLogger("dgs.worker")
 
 
-@app.task(name=TASK_NAME, acks_late=True, reject_on_worker_lost=True)
+@app.task(name=TASK_NAME, acks_late=True, reject_on_worker_lost=True,
+          Request="worker.gate:JobRequest")
 def run_job(job_id: str) -> str:
     """Run job `job_id` to its end (idempotent: a message for a job that has ended, was
     deleted or runs on another live worker finds nothing to do, says so in the log and is
-    acknowledged; no retry, no traceback)."""
-    # lazy: the runner loads torch, which the Celery parent process must not hold before it
-    # forks the child that runs this task
+    acknowledged; no retry, no traceback). Most such messages never get here: the Celery
+    parent drops them (worker.gate)."""
+    hang_if_asked("start")
+    # lazy: the Celery parent, which only hands tasks to its pool, never loads torch
     from worker.runner import Runner
 
     outcome = Runner(get_settings()).run(job_id)

@@ -164,11 +164,11 @@ def retry_parts(s: Session, parent: Job) -> None:
     again = [p for p in parts_of(s, parent.id, lock=True) if p.state in ("failed", "cancelled")]
     for part in again:
         part.state, part.stage, part.error, part.message = "queued", "queued", None, ""
-        part.attempts, part.cancel_requested, part.finished_at = 0, False, None
+        part.redeliveries, part.cancel_requested, part.finished_at = 0, False, None
         part.lease_owner = part.lease_expires_at = part.eta_s = part.dispatched_at = None
         state_event(s, part)
     parent.state, parent.error, parent.message = "queued", None, ""
-    parent.attempts, parent.cancel_requested, parent.finished_at = 0, False, None
+    parent.redeliveries, parent.cancel_requested, parent.finished_at = 0, False, None
     parent.lease_owner = parent.lease_expires_at = parent.eta_s = None
     parent.stage = "queued" if again else "assembling"
     if not again:

@@ -139,3 +139,47 @@ def test_a_part_keeps_the_worker_that_ran_it_and_each_attempts(store: JobStore):
               and e.data.get("event") == "state" and "runs" in e.data]
     assert events[-1]["state"] == "succeeded" and events[-1]["worker"] == "gpu-c/102"
     assert [r["worker"] for r in events[-1]["runs"]] == ["gpu-a/100", "gpu-b/101", "gpu-c/102"]
+
+
+def test_attempt_numbers_go_up_across_a_retry(store: JobStore):
+    """A part cancelled while running and retried runs as attempt 2, not as attempt 1 again
+    (issue 42: its runs read (1, cancelled) then (1, succeeded)); the redelivery cap still
+    counts from the retry, and the assembly's attempts go up the same way."""
+    parent, parts = make(store)
+    owner = Owner.current()
+    assert claim(store, parts[0].id, owner).status == "claimed"
+    store.request_cancel(parent.id, "t1")
+    assert store.finish(parts[0].id, owner, "cancelled")
+    assert store.get(parent.id).state == "cancelled"
+    store.retry(parent.id, "t1")
+    again = claim(store, parts[0].id, owner).job
+    assert (again.attempts, again.redeliveries) == (2, 1)
+    assert store.finish(parts[0].id, owner, "succeeded")
+    part = store.parts(parent.id)[0]
+    assert [(r["attempt"], r["outcome"]) for r in part.runs] == [(1, "cancelled"),
+                                                                 (2, "succeeded")]
+    for other in parts[1:]:
+        claim(store, other.id, owner)
+        assert store.finish(other.id, owner, "succeeded")
+    assembly = claim(store, parent.id, owner).job  # every part done: the assembly
+    assert store.finish(parent.id, owner, "failed", {"code": "internal"}, "boom")
+    store.retry(parent.id, "t1")  # only the assembly is left to run
+    assert claim(store, parent.id, owner).job.attempts == assembly.attempts + 1
+    runs = store.get(parent.id).runs
+    assert [r["attempt"] for r in runs] == [1, 2] and runs[0]["outcome"] == "failed"
+
+
+def test_a_job_retried_runs_its_next_attempt(store: JobStore):
+    job = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=None)
+    owner = Owner.current()
+    for outcome in ("cancelled", "failed", "succeeded"):
+        assert claim(store, job.id, owner).status == "claimed"
+        assert store.finish(job.id, owner, outcome)
+        if outcome != "succeeded":
+            assert store.retry(job.id, "t1").state == "queued"
+    done = store.get(job.id)
+    assert done.attempts == 3 and done.redeliveries == 1
+    assert [(r["attempt"], r["outcome"]) for r in done.runs] == [
+        (1, "cancelled"), (2, "failed"), (3, "succeeded")]
+    state = [e.data for e in store.events_after(job.id, 0) if e.kind == "state"][-1]
+    assert state["attempts"] == 3

@@ -11,7 +11,6 @@ import os
 import secrets
 import subprocess
 import sys
-import threading
 from pathlib import Path
 
 import pytest
@@ -94,37 +93,6 @@ def test_the_broker_says_which_queued_jobs_it_still_holds(stack):
     assert store.get(waiting).dispatches == 1  # waited ten hours, its message is there: kept
 
 
-def test_a_fork_never_lands_inside_a_sweep(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
-    """A worker's Celery parent forks a pool child for every task while its sweeper thread
-    runs. A fork made during a pass would copy the locks the pass held inside SQLite into the
-    child, which then hangs at its first query (seen once in a suite: a part never started).
-    A fork waits for the pass under way: the child always sees the pass ended."""
-    monkeypatch.setenv("DGS_DATA_DIR", str(tmp_path / "data"))
-    settings = WorkerSettings()
-    migrate(settings.database)
-    sweeper = Sweeper(settings, lambda job_id: None, interval=3600)
-    state = {"pass": "not started"}
-    inside, forking = threading.Event(), threading.Event()
-
-    def a_pass() -> None:
-        state["pass"] = "under way"
-        inside.set()
-        forking.wait()
-        state["pass"] = "ended"
-
-    sweeper.sweep = a_pass
-    sweeper.start()
-    try:
-        assert inside.wait(60)
-        forking.set()
-        pid = os.fork()  # without the guard this thread forks at once, mid-pass
-        if pid == 0:
-            os._exit(0 if state["pass"] == "ended" else 1)
-        assert os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1]) == 0
-    finally:
-        sweeper.stop()
-
-
 def test_job_of_message_reads_only_our_task():
     import base64
     import json
@@ -185,7 +153,10 @@ def test_lost_messages_are_sent_again_and_duplicates_dropped_quietly(stack, tiny
     except BaseException:
         print(worker.log.read_text(errors="replace")[-6000:])
         raise
-    assert "this duplicate message is dropped" in log
+    # Dropped in the Celery parent (worker.gate), or, when it came in before the job's claim,
+    # by the pool process's own claim.
+    assert "its message is dropped (no pool process started)" in log \
+        or "this duplicate message is dropped" in log, log[-4000:]
     assert f"job {waiting}: sent to the queue again" not in log
     for noise in ("Traceback", "MaxRetriesExceeded", "Retry in", "its worker is gone"):
         assert noise not in log, log[-4000:]

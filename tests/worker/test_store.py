@@ -89,7 +89,8 @@ def test_redelivery_cap_fails_the_job(store: JobStore):
     assert failed.state == "failed" and failed.error["code"] == "worker_lost"
     assert failed.error["retryable"] is True and "2 times" in failed.error["message"]
     assert store.retry(job, "t1").state == "queued"
-    assert store.claim(job, Owner.current(), 30, 2).job.attempts == 1  # the cap counts anew
+    again = store.claim(job, Owner.current(), 30, 2).job
+    assert (again.attempts, again.redeliveries) == (3, 1)  # the cap counts anew
 
 
 def test_progress_never_goes_back_and_events_follow(store: JobStore):
@@ -128,7 +129,8 @@ def test_cancel_queued_and_running(store: JobStore):
     assert store.heartbeat(running, owner, 30) == (True, True)  # the worker learns of it
     assert store.finish(running, owner, "cancelled")
     retried = store.retry(running, "t1")
-    assert retried.state == "queued" and not retried.cancel_requested and retried.attempts == 0
+    assert retried.state == "queued" and not retried.cancel_requested
+    assert (retried.attempts, retried.redeliveries) == (1, 0)  # the cap counts anew
 
 
 def test_cancel_reaches_a_job_between_two_workers(store: JobStore):
@@ -212,12 +214,14 @@ def test_release_puts_the_job_back_for_another_worker(store: JobStore):
     assert store.release(job, Owner.current(), "not mine") is False  # only the holder may
     assert store.release(job, owner, "back in the queue: its worker shut down at step 7")
     back = store.get(job)
-    assert (back.state, back.lease_owner, back.dispatched_at, back.attempts) == (
-        "queued", None, None, 0)
+    assert (back.state, back.lease_owner, back.dispatched_at, back.redeliveries) == (
+        "queued", None, None, 0)  # a run given back does not count towards the cap
     assert "step 7" in back.message
     sent: list[str] = []
     assert list(store.redispatch_stranded(sent.append, min_gap=60)) == [job]
-    assert store.claim(job, Owner.current(), 30, 3).job.attempts == 1
+    again = store.claim(job, Owner.current(), 30, 3).job
+    assert (again.attempts, again.redeliveries) == (2, 1)
+    assert [(r["attempt"], r.get("outcome")) for r in again.runs] == [(1, "released"), (2, None)]
 
 
 def test_a_render_is_made_only_from_a_succeeded_job_of_its_tenant(store: JobStore):
