@@ -51,7 +51,7 @@ class Housekeeping:
 
     def leases_of(self, prefix: str) -> list[tuple[str, float]]:
         """(job id, seconds its lease has left, negative once lapsed) of every running job
-        whose lease owner begins with `prefix` (one worker process: worker.owner.lease_prefix),
+        whose lease owner begins with `prefix` (one worker process: worker.lease.lease_prefix),
         for its worker's watchdog (worker.watchdog)."""
         now = utcnow()
         with self.session(write=False) as s:  # type: ignore[attr-defined]

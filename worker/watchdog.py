@@ -14,7 +14,7 @@ silent when
 The watchdog kills a silent process (SIGKILL: a stuck one answers nothing else). Celery then
 sees its pool process lost and puts the message back in the queue (acks late, reject on a lost
 worker); the next pool process claims the job (a lease of a dead process on this machine is
-taken over at once, worker.owner) and resumes it from its checkpoint. Only a lease holder may
+taken over at once, worker.lease) and resumes it from its checkpoint. Only a lease holder may
 write, so the killed attempt records nothing and the job succeeds once.
 """
 
@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Callable
 
-from worker.owner import lease_prefix
+from worker.lease import lease_prefix
 from worker.settings import WorkerSettings
 from worker.store import JobStore
 

@@ -15,7 +15,7 @@ from service.auth import TenantDep, has_active_key
 from service.body import JsonRoute
 from service.deps import Services, ServicesDep
 from service.errors import error_responses
-from service.schemas import HealthOut, InfoOut, LimitsOut, PipelineOut, ReadyOut, TusOut
+from service.server_info import HealthOut, InfoOut, LimitsOut, PipelineOut, ReadyOut, TusOut
 from service.upload.tus import ALGORITHMS, EXTENSIONS, TUS_VERSION
 from worker.models import Job
 from worker.pipelines import PIPELINES

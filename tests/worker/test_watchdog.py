@@ -19,7 +19,7 @@ from test_celery import Harness, s3_server, stack  # noqa: F401  (fixtures)
 from worker_harness import wait_for
 
 from worker.models import Job, utcnow
-from worker.owner import lease_prefix
+from worker.lease import lease_prefix
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
 from worker.watchdog import Watchdog
