@@ -4,12 +4,9 @@ answer to a deletion the job store made or refused."""
 
 from __future__ import annotations
 
-from sqlalchemy import select
-from sqlalchemy.orm import defer
-
 from service.errors import ApiError
-from worker.models import Asset, Capture, Job, Upload
 from worker.api_queries import Deleted
+from worker.models import Asset, Capture, Job, Upload
 from worker.store import JobStore
 
 __all__ = ["deleted", "get_asset", "get_capture", "get_job", "get_upload", "missing"]
@@ -31,9 +28,7 @@ def deleted(done: Deleted, kind: str, ident: str) -> list[str]:
 
 def get_capture(store: JobStore, capture_id: str, tenant: str) -> Capture:
     """The capture (its manifest not loaded: see staging.ManifestCache)."""
-    with store.session(write=False) as s:
-        row = s.scalar(select(Capture).options(defer(Capture.manifest))
-                       .where(Capture.id == capture_id, Capture.tenant == tenant))
+    row = store.capture(capture_id, tenant)
     if row is None:
         raise missing("capture", capture_id)
     return row
@@ -47,16 +42,14 @@ def get_job(store: JobStore, job_id: str, tenant: str) -> Job:
 
 
 def get_upload(store: JobStore, upload_id: str, tenant: str) -> Upload:
-    with store.session(write=False) as s:
-        row = s.scalar(select(Upload).where(Upload.id == upload_id, Upload.tenant == tenant))
+    row = store.upload(upload_id, tenant)
     if row is None or row.state == "terminated":
         raise missing("upload", upload_id)
     return row
 
 
 def get_asset(store: JobStore, asset_id: str, tenant: str) -> Asset:
-    with store.session(write=False) as s:
-        row = s.scalar(select(Asset).where(Asset.id == asset_id, Asset.tenant == tenant))
+    row = store.asset(asset_id, tenant)
     if row is None:
         raise missing("asset", asset_id)
     return row
