@@ -32,48 +32,39 @@ from core.config.resolved import ResolvedRun, read_run
 from core.files import atomic_path, write_json
 
 __all__ = ["ARTIFACT_KINDS", "CONTENT_TYPES", "ArtifactKind", "RunDir", "classify",
-           "kinds_written_by", "save_array"]
+           "save_array"]
 
 CONTENT_TYPES = {".png": "image/png", ".json": "application/json", ".ply": "application/x-ply",
                  ".npy": "application/x-npy", ".mp4": "video/mp4", ".exr": "image/x-exr",
                  ".obj": "model/obj", ".glb": "model/gltf-binary", ".jpg": "image/jpeg",
                  ".dgss": "application/octet-stream", ".spz": "application/octet-stream"}
 
-# (pattern on the path relative to the run directory, kind, the pipeline whose job writes it);
-# the first match wins.
-_RULES: tuple[tuple[str, str, str], ...] = (
-    (r"frames/(?P<frame>[^/]+)/gaussians\.ply", "ply", "reconstruct"),
-    (r"meshes/(?P<frame>[^/]+)\.(ply|obj|glb)", "mesh", "reconstruct"),
-    (r"renders/(?P<frame>[^/]+)/[^/]+_rgb\.png", "render", "reconstruct"),
-    (r"renders/(?P<frame>[^/]+)/[^/]+_normal\.png", "normal", "reconstruct"),
-    (r"renders/(?P<frame>[^/]+)/[^/]+_ao\.png", "ao", "reconstruct"),
-    (r"renders/(?P<frame>[^/]+)/[^/]+_depth\.npy", "depth", "reconstruct"),
+# (pattern on the path relative to the run directory, kind); the first match wins. Which
+# pipeline writes each kind is the pipeline registry's to say (`worker.pipelines.PIPELINES`).
+_RULES: tuple[tuple[str, str], ...] = (
+    (r"frames/(?P<frame>[^/]+)/gaussians\.ply", "ply"),
+    (r"meshes/(?P<frame>[^/]+)\.(ply|obj|glb)", "mesh"),
+    (r"renders/(?P<frame>[^/]+)/[^/]+_rgb\.png", "render"),
+    (r"renders/(?P<frame>[^/]+)/[^/]+_normal\.png", "normal"),
+    (r"renders/(?P<frame>[^/]+)/[^/]+_ao\.png", "ao"),
+    (r"renders/(?P<frame>[^/]+)/[^/]+_depth\.npy", "depth"),
     # the evaluation's relit held-out views (a synthetic capture's second light)
-    (r"renders/(?P<frame>[^/]+)/[^/]+_relit\.png", "relit", "reconstruct"),
-    (r"relit/(?P<frame>[^/]+)/[^/]+\.(png|exr)", "relit", "relight"),
-    (r"relit/(?P<frame>[^/]+)\.mp4", "video", "relight"),
-    (r"relit/videos/[^/]+\.mp4", "video", "relight"),
-    (r"relit/relight\.json", "relight", "relight"),
-    (r"export/stream\.dgss", "stream", "export"),
-    (r"export/spz/(?P<frame>[^/]+)\.spz", "spz", "export"),
-    (r"export/ply/(?P<frame>[^/]+)\.ply", "ply", "export"),
-    (r"export/export\.json", "export", "export"),
-    (r"plots/[^/]+\.png", "plot", "reconstruct"),
-    (r"config\.json", "config", "reconstruct"),
-    (r"(metrics|sequence)\.json", "metrics", "reconstruct"),
-    (r"eval\.json", "eval", "reconstruct"),
-    (r"[^/]+\.png", "image", "reconstruct"),  # the contact sheet
+    (r"renders/(?P<frame>[^/]+)/[^/]+_relit\.png", "relit"),
+    (r"relit/(?P<frame>[^/]+)/[^/]+\.(png|exr)", "relit"),
+    (r"relit/(?P<frame>[^/]+)\.mp4", "video"),
+    (r"relit/videos/[^/]+\.mp4", "video"),
+    (r"relit/relight\.json", "relight"),
+    (r"export/stream\.dgss", "stream"),
+    (r"export/spz/(?P<frame>[^/]+)\.spz", "spz"),
+    (r"export/ply/(?P<frame>[^/]+)\.ply", "ply"),
+    (r"export/export\.json", "export"),
+    (r"plots/[^/]+\.png", "plot"),
+    (r"config\.json", "config"),
+    (r"(metrics|sequence)\.json", "metrics"),
+    (r"eval\.json", "eval"),
+    (r"[^/]+\.png", "image"),  # the contact sheet
 )
-ARTIFACT_KINDS = tuple(dict.fromkeys(kind for _, kind, _ in _RULES))
-
-
-def kinds_written_by(pipeline: str) -> tuple[str, ...]:
-    """The artifact kinds of the files a job of `pipeline` (reconstruct, relight, export)
-    writes, in the order of the rules."""
-    kinds = tuple(dict.fromkeys(kind for _, kind, by in _RULES if by == pipeline))
-    if not kinds:
-        raise ValueError(f"pipeline: no artifact is written by {pipeline!r}")
-    return kinds
+ARTIFACT_KINDS = tuple(dict.fromkeys(kind for _, kind in _RULES))
 
 
 @dataclass(frozen=True)
@@ -90,7 +81,7 @@ def classify(rel: str) -> ArtifactKind | None:
     (checkpoints, temporary files)."""
     if rel.startswith("checkpoints/") or rel.endswith((".tmp", ".part")):
         return None
-    for pattern, kind, _ in _RULES:
+    for pattern, kind in _RULES:
         m = re.fullmatch(pattern, rel)
         if m:
             ext = rel[rel.rfind("."):].lower()

@@ -12,14 +12,13 @@ from pathlib import Path
 from typing import Any
 
 from pydantic import BaseModel
-from sqlalchemy import select
 
 from core.config import ConfigError, ResolvedRun, parse_frames
 from core.data.capture import Capture as CaptureLayout
 from core.data.schema import parse_capture_json
 from service.deps import Services
 from service.errors import ApiError
-from worker.models import Asset, Capture, Job
+from worker.models import Capture, Job
 from worker.pipelines import (
     MODEL_KIND,
     ExportJobParams,
@@ -110,8 +109,7 @@ def _check_model(services: Services, tenant: str, name: str) -> None:
     allowed = services.settings.normal_estimators
     if name in allowed:
         return
-    with services.store.session(write=False) as s:
-        asset = s.scalar(select(Asset).where(Asset.id == name, Asset.tenant == tenant))
+    asset = services.store.asset(name, tenant)
     if asset is not None and asset.kind == MODEL_KIND:
         return
     served = ", ".join(sorted(allowed)) or "none configured"
@@ -127,9 +125,7 @@ def _source_summary(services: Services, source: Job) -> dict[str, Any]:
     """The summary of the capture a reconstruction was made from (empty once deleted)."""
     if source.capture_id is None:
         return {}
-    with services.store.session(write=False) as s:
-        capture = s.get(Capture, source.capture_id)
-    return (capture.summary or {}) if capture is not None else {}
+    return services.store.capture_summary(source.capture_id)
 
 
 def _check_source_frames(source: Job, summary: dict[str, Any], spec: str | None) -> None:

@@ -4,15 +4,16 @@ answer to a deletion the job store made or refused."""
 
 from __future__ import annotations
 
-from sqlalchemy import select
-from sqlalchemy.orm import defer
+from typing import TypeVar
 
 from service.errors import ApiError
-from worker.models import Asset, Capture, Job, Upload
 from worker.api_queries import Deleted
+from worker.models import Asset, Capture, Job, Upload
 from worker.store import JobStore
 
 __all__ = ["deleted", "get_asset", "get_capture", "get_job", "get_upload", "missing"]
+
+T = TypeVar("T")
 
 
 def missing(kind: str, ident: str) -> ApiError:
@@ -29,34 +30,27 @@ def deleted(done: Deleted, kind: str, ident: str) -> list[str]:
     return done.ids
 
 
+def _found(row: T | None, visible: bool, kind: str, ident: str) -> T:
+    """`row` when the store found it and it is `visible` to the caller; else 404."""
+    if row is None or not visible:
+        raise missing(kind, ident)
+    return row
+
+
 def get_capture(store: JobStore, capture_id: str, tenant: str) -> Capture:
     """The capture (its manifest not loaded: see staging.ManifestCache)."""
-    with store.session(write=False) as s:
-        row = s.scalar(select(Capture).options(defer(Capture.manifest))
-                       .where(Capture.id == capture_id, Capture.tenant == tenant))
-    if row is None:
-        raise missing("capture", capture_id)
-    return row
+    return _found(store.capture(capture_id, tenant), True, "capture", capture_id)
 
 
 def get_job(store: JobStore, job_id: str, tenant: str) -> Job:
-    job = store.get(job_id, tenant)
-    if job is None or job.parent_id is not None:  # a part is reached through its job
-        raise missing("job", job_id)
-    return job
+    job = store.get(job_id, tenant)  # a part is reached through its job
+    return _found(job, job is not None and job.parent_id is None, "job", job_id)
 
 
 def get_upload(store: JobStore, upload_id: str, tenant: str) -> Upload:
-    with store.session(write=False) as s:
-        row = s.scalar(select(Upload).where(Upload.id == upload_id, Upload.tenant == tenant))
-    if row is None or row.state == "terminated":
-        raise missing("upload", upload_id)
-    return row
+    row = store.upload(upload_id, tenant)
+    return _found(row, row is not None and row.state != "terminated", "upload", upload_id)
 
 
 def get_asset(store: JobStore, asset_id: str, tenant: str) -> Asset:
-    with store.session(write=False) as s:
-        row = s.scalar(select(Asset).where(Asset.id == asset_id, Asset.tenant == tenant))
-    if row is None:
-        raise missing("asset", asset_id)
-    return row
+    return _found(store.asset(asset_id, tenant), True, "asset", asset_id)

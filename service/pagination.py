@@ -9,13 +9,10 @@ import datetime as dt
 import json
 from typing import Any
 
-from sqlalchemy import Select
-
 from service.errors import ApiError
 from worker.api_queries import Key
-from worker.api_queries import newest_page as worker_page
 
-__all__ = ["after", "decode_cursor", "encode_cursor", "newest_page", "next_cursor"]
+__all__ = ["after", "decode_cursor", "encode_cursor", "next_cursor"]
 
 
 def encode_cursor(*key: Any) -> str:
@@ -57,10 +54,3 @@ def next_cursor(last: Key | None) -> str | None:
     """The cursor of the page after the one that ended at `last` (None: it was the last)."""
     return None if last is None else encode_cursor(*last)
 
-
-def newest_page(session, query: Select, created_col, id_col, cursor: str | None,
-                limit: int) -> tuple[list, str | None]:
-    """One page of `query`'s rows, newest first after `cursor`, and the cursor of the next page
-    (None on the last): `worker.api_queries.newest_page` under cursors."""
-    rows, last = worker_page(session, query, created_col, id_col, after(cursor), limit)
-    return rows, next_cursor(last)

@@ -14,7 +14,8 @@ from core.config.base import AsTuple, StrictModel
 from core.data.importers import FORMATS
 from core.data.rules import unprintable_at
 from service.errors import ErrorInfo
-from worker.pipelines import ExportJobParams, Light, ReconstructParams, RelightJobParams
+from worker.pipelines import (DEFAULT_PIPELINE, ExportJobParams, Light, ReconstructParams,
+                              RelightJobParams)
 
 __all__ = [
     "ArtifactOut", "ArtifactPage", "AssetOut", "AssetPage", "CaptureFilesOut", "CaptureIn",
@@ -163,7 +164,7 @@ class FilePage(BaseModel):
 # -- jobs ----------------------------------------------------------------------------------------
 class JobIn(_In):
     capture_id: str = Field(min_length=1, max_length=64)
-    pipeline: str = Field("reconstruct", min_length=1, max_length=32,
+    pipeline: str = Field(DEFAULT_PIPELINE, min_length=1, max_length=32,
                           description="A pipeline of GET /v1/pipelines.")
     params: Annotated[dict[str, Any], WithJsonSchema(schema(ReconstructParams, inline=True))] = \
         Field(default_factory=dict, description=(

@@ -49,3 +49,27 @@ def test_checker_sees_violations(tmp_path):
     probe = tmp_path / "probe.py"
     probe.write_text("import torch\nfrom core.model import x\nfrom . import sibling\n")
     assert _imports(probe) == {"torch", "core"}
+
+
+# Queries live in the job store (`worker.api_queries`), never in the routers nor in the lookups
+# and checks they call (issue 40): no SQLAlchemy, no session of the store's.
+NO_QUERIES = ("service/routers", "service/lookups.py", "service/checks.py",
+              "service/pagination.py")
+
+
+def _runs_queries(path: Path) -> bool:
+    return "sqlalchemy" in _imports(path) or ".session(" in path.read_text()
+
+
+def test_routers_run_no_queries():
+    paths = [p for where in NO_QUERIES for p in
+             ((ROOT / where).rglob("*.py") if (ROOT / where).is_dir() else [ROOT / where])]
+    assert len(paths) > 10
+    bad = [str(p.relative_to(ROOT)) for p in paths if _runs_queries(p)]
+    assert not bad, f"queries outside the job store (move them to worker/api_queries.py): {bad}"
+
+
+def test_query_check_sees_a_query(tmp_path):
+    for code in ("from sqlalchemy import select\n", "with store.session() as s:\n    pass\n"):
+        (probe := tmp_path / "probe.py").write_text(code)
+        assert _runs_queries(probe)

@@ -1,8 +1,10 @@
 """The pipelines a job can run, each registered here once (`PIPELINES`): its parameters as a
 pydantic model (published as JSON Schema by `GET /v1/pipelines`), the request that submits it,
-the execution that runs it on a worker, the artifacts it writes and its time limits.
-Torch-free: the API validates a job's parameters here before it is queued; the worker runs it
-(`worker.runner`).
+what it runs on, the execution that runs it on a worker, the artifact kinds it writes and its
+time limits. Nothing else in the code names a pipeline: the routers find theirs by endpoint
+(`submitted_at`), a source job is judged by `makes_results`, and `core.rundir` classifies files
+by kind only (`tests/worker/test_pipelines.py` holds both to it). Torch-free: the API
+validates a job's parameters here before it is queued; the worker runs it (`worker.runner`).
 
 `reconstruct` runs on a capture (POST /v1/jobs), which the API resolves into the run the job
 stores (`core.config.ResolvedRun`); `relight` and `export` on the results of a succeeded
@@ -31,11 +33,11 @@ from core.config import (
 from core.config.base import FrameSlice, StrictModel
 from core.data.capture import Capture
 from core.config.relight import BUILTIN_ENVMAPS, Light, RelightSettings
-from core.rundir import kinds_written_by
 from worker.settings import WorkerSettings
 
-__all__ = ["BUILTIN_ENVMAPS", "ExportJobParams", "Light", "MODEL_KIND", "PIPELINES",
-           "Pipeline", "ReconstructParams", "RelightJobParams", "get_pipeline"]
+__all__ = ["BUILTIN_ENVMAPS", "DEFAULT_PIPELINE", "ExportJobParams", "Light", "MODEL_KIND",
+           "PIPELINES", "Pipeline", "ReconstructParams", "RelightJobParams", "get_pipeline",
+           "makes_results", "submitted_at"]
 
 # The asset kind of a tenant's own normal-prior model (TorchScript or ONNX), which a
 # reconstruction names by id as `config.normal_estimator`.
@@ -145,12 +147,12 @@ class Pipeline:
     endpoint: str
     """The request that submits a job of it (POST)."""
     artifacts: tuple[str, ...]
-    """Kinds of artifact the pipeline produces (`core.rundir`'s rules name their writer)."""
+    """Kinds of artifact the pipeline writes (`core.rundir.classify` names a file's kind)."""
     soft_limit: str
     """The WorkerSettings field that holds the soft time limit in seconds."""
     source: Literal["capture", "job"] = "capture"
     """What a job of it runs on: a capture (whose run the API resolves and stores with the job)
-    or a succeeded reconstruction."""
+    or the succeeded job of a pipeline that runs on a capture (`makes_results`)."""
     check: Callable[[Any], Any] | None = None
     """Checks across the parameters beyond their schema (ValueError with `details`)."""
 
@@ -176,7 +178,8 @@ PIPELINES: dict[str, Pipeline] = {
         params=ReconstructParams,
         execution="worker.reconstruct_job:ReconstructJob",
         endpoint="/v1/jobs",
-        artifacts=kinds_written_by("reconstruct"),
+        artifacts=("ply", "mesh", "render", "normal", "ao", "depth", "relit", "plot", "config",
+                   "metrics", "eval", "image"),
         soft_limit="reconstruct_soft_limit_seconds",
         check=ReconstructParams.run_config,
     ),
@@ -189,7 +192,7 @@ PIPELINES: dict[str, Pipeline] = {
         params=RelightJobParams,
         execution="worker.relight_job:RelightJob",
         endpoint="/v1/renders",
-        artifacts=kinds_written_by("relight"),
+        artifacts=("relit", "video", "relight"),
         soft_limit="relight_soft_limit_seconds",
         source="job",
     ),
@@ -201,14 +204,33 @@ PIPELINES: dict[str, Pipeline] = {
         params=ExportJobParams,
         execution="worker.export_job:ExportJob",
         endpoint="/v1/exports",
-        artifacts=kinds_written_by("export"),
+        artifacts=("stream", "spz", "ply", "export"),
         soft_limit="export_soft_limit_seconds",
         source="job",
     ),
 }
 
 
+DEFAULT_PIPELINE = "reconstruct"
+"""What POST /v1/jobs runs when its body names no pipeline."""
+
+
 def get_pipeline(name: str) -> Pipeline:
     if name not in PIPELINES:
         raise ValueError(f"pipeline: expected one of {sorted(PIPELINES)}, got {name!r}")
     return PIPELINES[name]
+
+
+def submitted_at(endpoint: str) -> Pipeline:
+    """The pipeline whose jobs the request POST `endpoint` submits (the first registered, when
+    several are: `pipeline` in the request picks another)."""
+    for pipeline in PIPELINES.values():
+        if pipeline.endpoint == endpoint:
+            return pipeline
+    raise ValueError(f"endpoint: no pipeline is submitted at {endpoint!r}")
+
+
+def makes_results(name: str) -> bool:
+    """Whether a job of pipeline `name` is a reconstruction: one run on a capture, whose
+    succeeded results the pipelines run on a job (`Pipeline.source` "job") take."""
+    return name in PIPELINES and PIPELINES[name].source == "capture"

@@ -24,7 +24,7 @@ from core.files import write_json
 from core.relight.run import RelightParams, RelightStopped, run_params
 from worker.execution import Host, JobStopped
 from worker.models import Asset, Job
-from worker.pipelines import RelightJobParams
+from worker.pipelines import RelightJobParams, makes_results
 from worker.progress import JobLink
 
 __all__ = ["RelightJob"]
@@ -83,7 +83,7 @@ class RelightJob:
         if source is None:
             raise ValueError("job_id: the reconstruction this render needs was deleted; "
                              "request a render of another reconstruction")
-        if source.pipeline != "reconstruct" or source.state != "succeeded":
+        if not makes_results(source.pipeline) or source.state != "succeeded":
             raise ValueError(f"job_id: job {source.id} is a {source.state} {source.pipeline} "
                              "job, not a succeeded reconstruction")
         return source

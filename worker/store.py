@@ -13,7 +13,8 @@ that the API serves as server-sent events.
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -38,11 +39,16 @@ __all__ = [
     "CapReached",
     "Claim",
     "JobStore",
+    "NotCreated",
     "Owner",
     "new_id",
     "progress_of",
 ]
 
+
+class NotCreated(Exception):
+    """A job was not made, and nothing of it kept: a live submit holds its Idempotency-Key
+    (`worker.idempotency`), or the capture it names was deleted meanwhile."""
 
 
 @dataclass(frozen=True)
@@ -89,15 +95,15 @@ class JobStore(ApiQueries, Housekeeping):
     def session(self, write: bool = True):
         return session_scope(self.url, write)
 
-    @staticmethod
-    def asset_users(s: Session, tenant: str, asset_id: str) -> list[str]:
-        """Queued or running jobs of `tenant` that use asset `asset_id`: a render's envmap or
-        a reconstruction's normal estimator."""
-        rows = s.execute(select(Job.id, Job.params).where(
-            Job.tenant == tenant, Job.state.in_(ACTIVE)))
-        return [job_id for job_id, params in rows
-                if asset_id in ((params or {}).get("envmap"),
-                                ((params or {}).get("config") or {}).get("normal_estimator"))]
+    @contextmanager
+    def _creating(self) -> Iterator[Session]:
+        """A write session whose constraint failures (on flush or commit) raise NotCreated,
+        so callers need not know the database's exceptions."""
+        try:
+            with self.session() as s:
+                yield s
+        except IntegrityError as exc:
+            raise NotCreated(str(exc.orig).splitlines()[0]) from exc
 
     @staticmethod
     def active_jobs(s: Session, tenant: str, cap: int | None = None) -> int:
@@ -119,10 +125,10 @@ class JobStore(ApiQueries, Housekeeping):
                idempotency: Idempotency | None = None, cap: int | None = None,
                resolved_run: dict[str, Any] | None = None) -> Job:
         """A queued job (`resolved_run`: a reconstruction's run, resolved at submit); with
-        `idempotency`, its key is kept with it in the same transaction (IntegrityError, and
-        no job, when a live row has the key: `worker.idempotency`). `cap`: CapReached, and no
+        `idempotency`, its key is kept with it in the same transaction (NotCreated, and no
+        job, when a live row has the key: `worker.idempotency`). `cap`: CapReached, and no
         job, when the tenant has that many active (`active_jobs`)."""
-        with self.session() as s:
+        with self._creating() as s:
             self.active_jobs(s, tenant, cap)
             job = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
                       params=params, name=name, state="queued", stage="queued",
@@ -133,7 +139,8 @@ class JobStore(ApiQueries, Housekeeping):
             transitions.state_event(s, job)
             return job
 
-    def create_parted(self, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
+    def create_parted(self, tenant: str, pipeline: str, params: dict[str, Any],
+                      groups: list[list[str]], *,
                       capture_id: str | None, name: str = "",
                       expires_at: dt.datetime | None = None,
                       idempotency: Idempotency | None = None,
@@ -143,11 +150,12 @@ class JobStore(ApiQueries, Housekeeping):
         dispatches the parts (the parent itself is dispatched when they have succeeded).
         `idempotency`, `cap`, `resolved_run`: as `create` (the key names the parent; the job
         counts once; every part runs the same run)."""
-        with self.session() as s:
+        with self._creating() as s:
             self.active_jobs(s, tenant, cap)
-            return transitions.create_parted(s, tenant, params, groups, capture_id=capture_id,
-                                         name=name, expires_at=expires_at,
-                                         idempotency=idempotency, resolved_run=resolved_run)
+            return transitions.create_parted(s, tenant, pipeline, params, groups,
+                                             capture_id=capture_id, name=name,
+                                             expires_at=expires_at, idempotency=idempotency,
+                                             resolved_run=resolved_run)
 
     def create_render(self, tenant: str, source_job_id: str, pipeline: str,
                       params: dict[str, Any], *, name: str = "",
@@ -159,7 +167,7 @@ class JobStore(ApiQueries, Housekeeping):
         while the job is added, so a concurrent delete of the source either happens first
         (None here) or waits and then sees this job (and refuses). `idempotency`, `cap`: as
         `create`."""
-        with self.session() as s:
+        with self._creating() as s:
             self.active_jobs(s, tenant, cap)
             source = s.get(Job, source_job_id, with_for_update=True)
             if source is None or source.tenant != tenant or source.state != "succeeded":

@@ -26,6 +26,7 @@ from collections.abc import Callable
 
 from sqlalchemy import select, update
 
+from worker.api_queries import assets_named
 from worker.blobs import BlobStore, open_store
 from worker.idempotency import forget_expired
 from worker.models import Asset, Capture, Job, utcnow
@@ -92,24 +93,23 @@ class Sweeper:
 
     def expire(self) -> dict[str, list[str]]:
         """Delete jobs (finished ones no active job renders from), captures (no active job on
-        them) and assets (no active job renders with them) whose expires_at has passed, with
-        their files."""
+        them) and assets (no active job uses them: a render's envmap, a reconstruction's
+        normal model) whose expires_at has passed, with their files."""
         now = utcnow()
         out: dict[str, list[str]] = {"jobs": [], "captures": [], "assets": []}
         with self.store.session() as s:
-            active = list(s.execute(select(Job.capture_id, Job.source_job_id, Job.pipeline,
-                                           Job.params).where(Job.state.in_(ACTIVE))))
+            active = list(s.execute(select(Job.capture_id, Job.source_job_id, Job.params)
+                                    .where(Job.state.in_(ACTIVE))))
             busy = {row.capture_id for row in active}
             needed = {row.source_job_id for row in active}
-            envmaps = {(row.params or {}).get("envmap") for row in active
-                       if row.pipeline == "relight"}
+            used = {asset for row in active for asset in assets_named(row.params)}
             jobs = [j for j in s.scalars(select(Job).where(Job.expires_at < now,
                                                            Job.state.in_(TERMINAL)))
                     if j.id not in needed]
             captures = [c for c in s.scalars(select(Capture).where(Capture.expires_at < now))
                         if c.id not in busy]
             assets = [a for a in s.scalars(select(Asset).where(Asset.expires_at < now))
-                      if a.id not in envmaps]
+                      if a.id not in used]
             for job in jobs:
                 for each in [job.id, *delete_parts(s, job.id)]:
                     self.blobs.delete_prefix(f"jobs/{each}")

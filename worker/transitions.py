@@ -85,7 +85,8 @@ def finish(s: Session, job: Job, state: JobState, error: dict[str, Any] | None,
 
 
 # -- jobs run as parts ----------------------------------------------------------------------
-def create_parted(s: Session, tenant: str, params: dict[str, Any], groups: list[list[str]], *,
+def create_parted(s: Session, tenant: str, pipeline: str, params: dict[str, Any],
+                  groups: list[list[str]], *,
                   capture_id: str | None, name: str = "",
                   expires_at: dt.datetime | None = None,
                   idempotency: Idempotency | None = None,
@@ -94,14 +95,14 @@ def create_parted(s: Session, tenant: str, params: dict[str, Any], groups: list[
     dispatches the parts (the parent itself is dispatched when they have succeeded).
     `idempotency`, `resolved_run`: as `JobStore.create` (the key names the parent; every
     part runs the same run)."""
-    parent = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline="reconstruct",
+    parent = Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
                  params=params, name=name, state="queued", stage="queued",
                  expires_at=expires_at, parts=len(groups), frames=sum(map(len, groups)),
                  resolved_run=resolved_run)
     s.add(parent)
     s.flush()
     remember(s, idempotency, parent.id)
-    parts = [Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline="reconstruct",
+    parts = [Job(id=new_id("job"), tenant=tenant, capture_id=capture_id, pipeline=pipeline,
                  params=params, name=name, state="queued", stage="queued", parent_id=parent.id,
                  part_index=i, part_frames=frames, frames=len(frames),
                  resolved_run=resolved_run)

@@ -128,7 +128,14 @@ def group_quant(frames: list[Splats], config: StreamConfig, sh_dim: int) -> dict
             v = allv[name]
             lo, hi = (v.min(), v.max()) if v.size else (0.0, 1.0)
         span = float(np.max(np.asarray(hi) - np.asarray(lo)))
-        step = max(tol[name], span / 65535)  # codes fit 16 bits
+        step = max(tol[name], span / 65534)  # codes fit 16 bits, the grid's shift below too
+        if name in DIRECT:
+            # The grid on multiples of the step (0 a code's centre), not on the group's minimum:
+            # values within half a step of 0 (most higher SH) share one code wherever the
+            # minimum falls; on the minimum, a shift of 0.01 split that noise into two codes,
+            # 15 kB of a 6-frame group's key frame (docs/decisions/2026-11-29-stream-size-held.md).
+            lo = np.floor(np.float64(lo) / step) * step
+            span = float(np.max(np.asarray(hi) - lo))
         bits = max(1, math.ceil(math.log2(span / step + 1)))
         quant[name] = {"lo": np.atleast_1d(np.float32(lo)).tolist(), "step": float(np.float32(step)),
                        "tol": float(tol[name]), "bits": int(bits)}

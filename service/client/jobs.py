@@ -23,14 +23,17 @@ class Jobs(Http):
     """Jobs, their events and artifacts."""
 
     def submit(self, capture_id: str, params: dict | None = None, *,
-               pipeline: str = "reconstruct", name: str = "",
+               pipeline: str | None = None, name: str = "",
                idempotency_key: str | None = None) -> dict:
-        """Queue a job (202); returns it (state queued). Sent again on a lost connection, a
-        timeout, a 5xx or a 429 (after its Retry-After) with one Idempotency-Key
-        (`idempotency_key`, else a new UUID), so it makes one job; give your own key to make
-        a submit safe across processes too."""
-        return self._submit("/v1/jobs", {"capture_id": capture_id, "pipeline": pipeline,
-                                         "params": params or {}, "name": name}, idempotency_key)
+        """Queue a job (202); returns it (state queued). `pipeline`: one of GET /v1/pipelines
+        that runs on a capture (None: the server's default, a reconstruction). Sent again on
+        a lost connection, a timeout, a 5xx or a 429 (after its Retry-After) with one
+        Idempotency-Key (`idempotency_key`, else a new UUID), so it makes one job; give your
+        own key to make a submit safe across processes too."""
+        body = {"capture_id": capture_id, "params": params or {}, "name": name}
+        if pipeline is not None:
+            body["pipeline"] = pipeline
+        return self._submit("/v1/jobs", body, idempotency_key)
 
     def job(self, job_id: str) -> dict:
         return self._json("GET", f"/v1/jobs/{job_id}")

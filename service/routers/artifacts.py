@@ -11,7 +11,6 @@ from urllib.parse import quote
 
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import StreamingResponse
-from sqlalchemy import select
 
 from service.auth import TenantDep
 from service.body import JsonRoute
@@ -22,7 +21,6 @@ from service.pagination import decode_cursor, encode_cursor
 from service.ranges import blob_response
 from service.schemas import ArtifactOut, ArtifactPage
 from service.zipstream import ZipEntry, zip_stream
-from worker.models import Artifact
 
 __all__ = ["router"]
 
@@ -45,23 +43,15 @@ def list_artifacts(job_id: str, request: Request, services: ServicesDep, tenant:
     """The job's artifacts by path, optionally of one kind and one frame (also while it runs:
     finished frames are published as they complete)."""
     get_job(services.store, job_id, tenant)
-    q = select(Artifact).where(Artifact.job_id == job_id)
-    if kind is not None:
-        q = q.where(Artifact.kind == kind)
-    if frame is not None:
-        q = q.where(Artifact.frame == frame)
-    if cursor:
-        q = q.where(Artifact.path > decode_cursor(cursor, (str,))[0])
-    with services.store.session(write=False) as s:
-        rows = list(s.scalars(q.order_by(Artifact.path).limit(limit + 1)))
-    more = len(rows) > limit
-    rows = rows[:limit]
+    after = decode_cursor(cursor, (str,))[0] if cursor else None
+    rows, last = services.store.artifact_page(job_id, kind=kind, frame=frame, after=after,
+                                              limit=limit)
     base = f"/v1/jobs/{job_id}/artifacts/"
     items = [ArtifactOut(path=a.path, kind=a.kind, frame=a.frame, size=a.size, sha256=a.sha256,
                          content_type=a.content_type, created_at=a.created_at,
                          url=location(services, base + quote(a.path)))
              for a in rows]
-    return ArtifactPage(items=items, next_cursor=encode_cursor(rows[-1].path) if more else None)
+    return ArtifactPage(items=items, next_cursor=None if last is None else encode_cursor(last))
 
 
 @router.get("/artifacts.zip", response_class=StreamingResponse,
@@ -71,10 +61,8 @@ def list_artifacts(job_id: str, request: Request, services: ServicesDep, tenant:
 def download_all(job_id: str, services: ServicesDep, tenant: TenantDep) -> StreamingResponse:
     """Every artifact of the job in one zip, streamed as it is written."""
     get_job(services.store, job_id, tenant)
-    with services.store.session(write=False) as s:
-        rows = list(s.scalars(select(Artifact).where(Artifact.job_id == job_id)
-                              .order_by(Artifact.path)))
-    entries = [ZipEntry(a.path, _key(job_id, a.path), a.size, a.created_at) for a in rows]
+    entries = [ZipEntry(a.path, _key(job_id, a.path), a.size, a.created_at)
+               for a in services.store.artifacts(job_id)]
     return StreamingResponse(zip_stream(services.blobs, entries), media_type="application/zip",
                              headers={"Content-Disposition":
                                       f'attachment; filename="{job_id}.zip"'})
@@ -89,9 +77,7 @@ def download_artifact(job_id: str, path: str, request: Request, services: Servic
                       tenant: TenantDep) -> Response:
     """One artifact; Range, If-Range and If-None-Match are honoured (ETag: its SHA-256)."""
     get_job(services.store, job_id, tenant)
-    with services.store.session(write=False) as s:
-        row = s.scalar(select(Artifact).where(Artifact.job_id == job_id,
-                                              Artifact.path == path))
+    row = services.store.artifact(job_id, path)
     if row is None:
         raise ApiError(404, f"job {job_id} has no artifact {path!r}")
     return blob_response(request, services.blobs, _key(job_id, row.path), size=row.size,

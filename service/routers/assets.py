@@ -12,7 +12,6 @@ from typing import Annotated, Literal
 from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import AwareDatetime
-from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool as run
 
 from service.auth import TenantDep
@@ -20,15 +19,15 @@ from service.body import JsonRoute
 from service.deps import Services, ServicesDep, default_expiry, location
 from service.envmap import CONTENT_TYPES, EnvmapError, inspect_envmap
 from service.errors import COMMON, ApiError, error_responses
-from service.lookups import get_asset
+from service.lookups import deleted, get_asset
 from service.modelfile import MODEL_CONTENT_TYPES, ModelFileError, inspect_model
-from service.pagination import newest_page
+from service.pagination import after, next_cursor
 from service.ranges import blob_response
 from service.schemas import AssetOut, AssetPage
 from service.upload.archive import spool
 from worker.models import Asset
 from worker.pipelines import MODEL_KIND
-from worker.store import JobStore, new_id
+from worker.store import new_id
 
 __all__ = ["router"]
 
@@ -109,8 +108,7 @@ def _store_asset(services: Services, tenant: str, kind: str, filename: str, suff
     key = f"assets/{asset.id}/{filename}"
     try:
         services.blobs.put_file(key, tmp)
-        with services.store.session() as s:
-            s.add(asset)
+        services.store.add_asset(asset)
     except BaseException:
         services.blobs.delete_prefix(f"assets/{asset.id}")
         raise
@@ -122,10 +120,8 @@ def list_assets(services: ServicesDep, tenant: TenantDep,
                 cursor: Annotated[str | None, Query(max_length=512)] = None,
                 limit: Annotated[int, Query(ge=1, le=200)] = 50) -> AssetPage:
     """The caller's assets, newest first."""
-    q = select(Asset).where(Asset.tenant == tenant)
-    with services.store.session(write=False) as s:
-        rows, after = newest_page(s, q, Asset.created_at, Asset.id, cursor, limit)
-    return AssetPage(items=[asset_out(a) for a in rows], next_cursor=after)
+    rows, last = services.store.asset_page(tenant, after(cursor), limit)
+    return AssetPage(items=[asset_out(a) for a in rows], next_cursor=next_cursor(last))
 
 
 @router.get("/{asset_id}", response_model=AssetOut)
@@ -157,12 +153,6 @@ router.add_api_route("/{asset_id}/content", asset_content, methods=["HEAD"],
                                                           **error_responses(409)})
 def delete_asset(asset_id: str, services: ServicesDep, tenant: TenantDep) -> Response:
     """Delete the asset and its file (409 while a queued or running job uses it)."""
-    a = get_asset(services.store, asset_id, tenant)
-    with services.store.session() as s:
-        users = JobStore.asset_users(s, tenant, a.id)
-        if users:
-            raise ApiError(409, f"job {users[0]} uses asset {a.id}; cancel it or wait for it "
-                                "to end, then delete")
-        s.execute(Asset.__table__.delete().where(Asset.id == a.id))
-    services.blobs.delete_prefix(f"assets/{a.id}")
+    for each in deleted(services.store.delete_asset(asset_id, tenant), "asset", asset_id):
+        services.blobs.delete_prefix(f"assets/{each}")
     return Response(status_code=204)

@@ -20,11 +20,13 @@ from service.idempotency import IdempotencyKey, Submit
 from service.lookups import get_job
 from service.routers.jobs import REPLAYED, accepted, queue_on_source
 from service.schemas import ExportIn, JobOut
+from worker.pipelines import makes_results, submitted_at
 
 __all__ = ["router"]
 
 router = APIRouter(prefix="/v1/exports", tags=["exports"], route_class=JsonRoute,
                    responses=error_responses(*COMMON))
+PIPELINE = submitted_at(router.prefix)
 
 
 @router.post("", status_code=202, response_model=JobOut,
@@ -39,7 +41,7 @@ def request_export(body: ExportIn, services: ServicesDep, tenant: TenantDep,
         return accepted(services, first, replayed=True)
     services.limits.admit(tenant)
     source = get_job(services.store, body.job_id, tenant)
-    if source.pipeline == "reconstruct" and source.state == "succeeded":
+    if makes_results(source.pipeline) and source.state == "succeeded":
         check_export(services, source, body)
-    return queue_on_source(services, tenant, source, "export", body.params(), "exports", body,
+    return queue_on_source(services, tenant, source, PIPELINE, body.params(), "exports", body,
                            submit)

@@ -8,7 +8,6 @@ from importlib.metadata import PackageNotFoundError, version
 
 from fastapi import APIRouter
 from fastapi.responses import JSONResponse
-from sqlalchemy import func, select, text
 
 from core.data.importers import IMPORTERS
 from service.auth import TenantDep, has_active_key
@@ -17,7 +16,6 @@ from service.deps import Services, ServicesDep
 from service.errors import error_responses
 from service.server_info import HealthOut, InfoOut, LimitsOut, PipelineOut, ReadyOut, TusOut
 from service.upload.tus import ALGORITHMS, EXTENSIONS, TUS_VERSION
-from worker.models import Job
 from worker.pipelines import PIPELINES
 
 __all__ = ["router"]
@@ -41,8 +39,7 @@ def healthz() -> HealthOut:
 
 
 def _database(services: Services) -> None:
-    with services.store.session(write=False) as s:
-        s.execute(text("SELECT 1"))
+    services.store.ping()
 
 
 def _broker(services: Services) -> None:
@@ -72,9 +69,7 @@ def readyz(services: ServicesDep) -> JSONResponse:
 def info(services: ServicesDep, tenant: TenantDep) -> InfoOut:
     """Version, limits, the tus endpoint, pipelines, and the caller's jobs per state."""
     s = services.settings
-    with services.store.session(write=False) as db:
-        counts = dict(db.execute(select(Job.state, func.count()).where(Job.tenant == tenant)
-                                 .group_by(Job.state)).all())
+    counts = services.store.job_counts(tenant)
     return InfoOut(
         version=package_version(), tenant=tenant,
         keys_required=has_active_key(services.store.url),

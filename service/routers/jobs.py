@@ -10,7 +10,6 @@ from typing import Annotated
 from fastapi import APIRouter, Header, Query, Response
 from fastapi.responses import JSONResponse, StreamingResponse
 from pydantic import BaseModel
-from sqlalchemy.exc import IntegrityError
 
 from core.config import ConfigError
 from service.auth import TenantDep
@@ -28,8 +27,8 @@ from service.schemas import JobIn, JobOut, JobPage, JobState, LogsOut, ProgressO
 from worker.celery_app import dispatch
 from worker.models import Job
 from worker.parts import worker_of
-from worker.pipelines import get_pipeline
-from worker.store import ACTIVE, TERMINAL, CapReached, progress_of
+from worker.pipelines import Pipeline, get_pipeline, makes_results
+from worker.store import ACTIVE, TERMINAL, CapReached, NotCreated, progress_of
 
 __all__ = ["REPLAYED", "accepted", "job_out", "queue_on_source", "router", "send"]
 
@@ -81,13 +80,13 @@ def send(services: Services, job: Job) -> None:
         services.store.undispatch(job.id)
 
 
-def queue_on_source(services: Services, tenant: str, source: Job, pipeline: str, params: dict,
-                    what: str, body, submit: Submit) -> JSONResponse:
-    """Queue a `pipeline` job on the results of `source`, a succeeded reconstruction of
+def queue_on_source(services: Services, tenant: str, source: Job, pipeline: Pipeline,
+                    params: dict, what: str, body, submit: Submit) -> JSONResponse:
+    """Queue a job of `pipeline` on the results of `source`, a succeeded reconstruction of
     `tenant` (409 otherwise, retryable while it runs; 404 when it is deleted meanwhile):
     renders and exports (`what`: "renders", "exports"), kept with `submit`'s key; 429 past
     the tenant's active-jobs cap."""
-    if get_pipeline(source.pipeline).source != "capture":  # a run of a capture: a reconstruction
+    if not makes_results(source.pipeline):
         raise ApiError(409, f"job {source.id} is a {source.pipeline} job; {what} are made from "
                             "a reconstruct job")
     if source.state != "succeeded":
@@ -97,11 +96,12 @@ def queue_on_source(services: Services, tenant: str, source: Job, pipeline: str,
                                                           else ""), retryable=running)
     services.limits.change(tenant)
     try:
-        job = services.store.create_render(tenant, source.id, pipeline, params, name=body.name,
+        job = services.store.create_render(tenant, source.id, pipeline.name, params,
+                                           name=body.name,
                                            expires_at=default_expiry(services, body.expires_at),
                                            idempotency=submit.idempotency,
                                            cap=services.settings.max_active_jobs)
-    except (IntegrityError, CapReached) as exc:  # a submit with the same key made its job first
+    except (NotCreated, CapReached) as exc:  # a submit with the same key made its job first
         if (first := submit.first()) is not None:
             return accepted(services, first, replayed=True)
         if isinstance(exc, CapReached):
@@ -160,12 +160,12 @@ def create_job(body: JobIn, services: ServicesDep, tenant: TenantDep,
     try:
         if groups:
             job, sent = services.store.create_parted(
-                tenant, params.model_dump(mode="json"), groups, **kept)
+                tenant, body.pipeline, params.model_dump(mode="json"), groups, **kept)
         else:
             job = services.store.create(tenant, body.pipeline, params.model_dump(mode="json"),
                                         **kept)
             sent = [job]
-    except (IntegrityError, CapReached) as exc:  # a submit with the same key won, the cap
+    except (NotCreated, CapReached) as exc:  # a submit with the same key won, the cap
         if (first := submit.first()) is not None:  # was reached or the capture was deleted
             return accepted(services, first, replayed=True)
         if isinstance(exc, CapReached):

@@ -20,11 +20,13 @@ from service.idempotency import IdempotencyKey, Submit
 from service.lookups import get_asset, get_job
 from service.routers.jobs import REPLAYED, accepted, queue_on_source
 from service.schemas import JobOut, RenderIn
+from worker.pipelines import makes_results, submitted_at
 
 __all__ = ["router"]
 
 router = APIRouter(prefix="/v1/renders", tags=["renders"], route_class=JsonRoute,
                    responses=error_responses(*COMMON))
+PIPELINE = submitted_at(router.prefix)
 
 
 @router.post("", status_code=202, response_model=JobOut,
@@ -45,7 +47,7 @@ def request_render(body: RenderIn, services: ServicesDep, tenant: TenantDep,
         if asset.kind != "envmap":
             raise ApiError(422, f"envmap: asset {asset.id} is a {asset.kind}, not an envmap",
                            details=[{"path": "envmap", "message": "not an envmap asset"}])
-    if source.pipeline == "reconstruct" and source.state == "succeeded":
+    if makes_results(source.pipeline) and source.state == "succeeded":
         check_render(services, source, body)
-    return queue_on_source(services, tenant, source, "relight", body.params(), "renders", body,
+    return queue_on_source(services, tenant, source, PIPELINE, body.params(), "renders", body,
                            submit)

@@ -9,12 +9,12 @@ import json
 
 import pytest
 from sqlalchemy import func, select, update
-from sqlalchemy.exc import IntegrityError
 from service_harness import submit_together
 from test_api_renders import finished
 
 from worker.idempotency import Idempotency, forget_expired
 from worker.models import IdempotencyKey, Job, utcnow
+from worker.store import NotCreated
 
 BOTH = pytest.mark.parametrize("database_url", ["sqlite", "postgres"], indirect=True)
 TEST = {"preset": "test"}
@@ -122,7 +122,7 @@ def test_the_constraint_makes_one_job_of_two_inserts(services):
     kept (what `Submit.first` then reads is the winner's)."""
     key = Idempotency("t", "race", "0" * 64, utcnow().replace(year=utcnow().year + 1))
     first = services.store.create("t", "reconstruct", {}, capture_id=None, idempotency=key)
-    with pytest.raises(IntegrityError):
+    with pytest.raises(NotCreated):
         services.store.create("t", "reconstruct", {}, capture_id=None, idempotency=key)
     assert _count(services) == 1
     with services.store.session(write=False) as s:

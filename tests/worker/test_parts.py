@@ -17,7 +17,8 @@ GROUPS = [FRAMES[0:3], FRAMES[3:6], FRAMES[6:7]]
 
 
 def make(store: JobStore):
-    return store.create_parted("t1", {"preset": "test", "gop": 3}, GROUPS, capture_id=None)
+    return store.create_parted("t1", "reconstruct", {"preset": "test", "gop": 3}, GROUPS,
+                               capture_id=None)
 
 
 def claim(store: JobStore, job_id: str, owner: Owner | None = None):

@@ -60,8 +60,8 @@ def test_parts_through_redis_and_s3(tmp_path: Path, monkeypatch, pg_url, redis_b
         cap = add_capture(store, blobs, capture4, capture_id=f"cap_{secrets.token_hex(4)}")
         config = {**tiny_config(30), "sequence": {"num_nodes": 32}, "mesh": {"enabled": False}}
         parent, parts = store.create_parted(
-            "t1", {"preset": "test", "gop": 2, "config": config}, [FRAMES[:2], FRAMES[2:]],
-            capture_id=cap)
+            "t1", "reconstruct", {"preset": "test", "gop": 2, "config": config},
+            [FRAMES[:2], FRAMES[2:]], capture_id=cap)
         worker_factory({**os.environ, **env}).start()
         celery = make_celery(settings)
         for part in parts:

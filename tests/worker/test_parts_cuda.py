@@ -48,7 +48,8 @@ def test_a_part_runs_on_a_cuda_worker(tmp_path: Path):
     cap = add_capture(store, blobs, capture)
     config = {**tiny_config(30), "sequence": {"num_nodes": 32}, "mesh": {"enabled": False}}
     config["train"]["device"] = "cuda"
-    parent, parts = store.create_parted("t1", {"preset": "test", "gop": 2, "config": config},
+    parent, parts = store.create_parted("t1", "reconstruct",
+                                        {"preset": "test", "gop": 2, "config": config},
                                         [list(FRAMES[:2]), list(FRAMES[2:])], capture_id=cap)
     runner = Runner(settings, store, blobs)
     assert runner.run(parts[0].id).status == "succeeded", [

@@ -45,8 +45,8 @@ def test_parts_assemble_into_the_run_made_in_one_piece(tmp_path: Path, capture4:
     config = {**tiny_config(30), "sequence": {"num_nodes": 32}}
     config["mesh"] = {"enabled": False}
     params = {"preset": "test", "gop": 2, "config": config}
-    parent, parts = store.create_parted("t1", params, [list(FRAMES[:2]), list(FRAMES[2:])],
-                                        capture_id=cap)
+    parent, parts = store.create_parted("t1", "reconstruct", params,
+                                        [list(FRAMES[:2]), list(FRAMES[2:])], capture_id=cap)
     runner = Runner(settings, store, blobs)
     assert runner.run(parts[1].id).status == "succeeded"  # in any order
     assert store.get(parent.id).state == "running"

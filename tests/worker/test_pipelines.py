@@ -3,10 +3,13 @@ will run with (the same `core.config.load_config` the CLI uses)."""
 
 from __future__ import annotations
 
+import ast
+from pathlib import Path
+
 import pytest
 
 from core.config import CameraSplit, ResolvedRun, Views, load_config, validate
-from worker.pipelines import PIPELINES, ReconstructParams
+from worker.pipelines import PIPELINES, ReconstructParams, submitted_at
 
 
 def test_top_level_parameters_and_config_agree():
@@ -73,16 +76,83 @@ def test_each_pipeline_lists_the_kinds_of_what_it_writes():
     assert {"mesh", "normal", "ao"} <= set(PIPELINES["reconstruct"].artifacts)
 
 
+def _named(tree: ast.AST, names: set[str], anywhere: set[str]) -> list[int]:
+    """Lines where code names one of `names` as a pipeline: compared with, passed as, assigned
+    to or the default of something called *pipeline, or looked up in the registry; and any
+    string constant of `anywhere` (docstrings aside)."""
+    def const(node) -> bool:
+        if isinstance(node, (ast.Tuple, ast.List, ast.Set)):
+            return any(const(e) for e in node.elts)
+        return isinstance(node, ast.Constant) and node.value in names
+
+    def piped(node) -> bool:
+        name = getattr(node, "attr", None) or getattr(node, "id", None) or ""
+        return name.lower().endswith("pipeline")
+
+    docs = {id(n.body[0].value) for n in ast.walk(tree)
+            if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef, ast.AsyncFunctionDef))
+            and n.body and isinstance(n.body[0], ast.Expr)}
+    hits = []
+    for n in ast.walk(tree):
+        sides = [n.left, *n.comparators] if isinstance(n, ast.Compare) else []
+        args = n.args if isinstance(n, (ast.FunctionDef, ast.AsyncFunctionDef)) else None
+        defaults = list(zip((args.posonlyargs + args.args)[::-1], args.defaults[::-1])) + \
+            list(zip(args.kwonlyargs, args.kw_defaults)) if args else []
+        value = getattr(n, "value", None)
+        first = value.args[0] if isinstance(value, ast.Call) and value.args else value
+        if (any(map(const, sides)) and any(map(piped, sides))
+                or isinstance(n, ast.keyword) and piped(ast.Name(n.arg or "")) and const(n.value)
+                or any(piped(ast.Name(a.arg)) and d is not None and const(d) for a, d in defaults)
+                or isinstance(n, (ast.Assign, ast.AnnAssign)) and const(first)
+                and any(piped(x) for x in getattr(n, "targets", [getattr(n, "target", None)]))
+                or isinstance(n, ast.Subscript) and getattr(n.value, "id", "") == "PIPELINES"
+                and const(n.slice)
+                or isinstance(n, ast.Call) and getattr(n.func, "id", "") == "get_pipeline"
+                and any(map(const, n.args))
+                or isinstance(n, ast.Constant) and n.value in anywhere and id(n) not in docs):
+            hits.append(n.lineno)
+    return hits
+
+
 def test_a_pipeline_is_registered_in_one_place():
-    """What submits a job of each pipeline and what runs it on a worker are its `PIPELINES`
-    entry's: the router and the runner name no pipeline."""
+    """Only `worker/pipelines.py` names a pipeline (issue 40): what submits, runs and is run on
+    is its `PIPELINES` entry's (routers find theirs by endpoint, a source is judged by
+    `makes_results`); `core.rundir` says what kind a file is, the registry which pipeline
+    writes each kind. A name that is no artifact kind ("reconstruct") appears nowhere else in
+    the service, the worker or `core/rundir.py`."""
     import importlib
-    from pathlib import Path
+
+    from core.rundir import ARTIFACT_KINDS
 
     root = Path(__file__).resolve().parents[2]
+    names = set(PIPELINES)
+    bad = {}
+    for path in sorted(p for d in ("service", "worker", "core") for p in (root / d).rglob("*.py")):
+        rel = path.relative_to(root).as_posix()
+        if rel == "worker/pipelines.py":
+            continue
+        strict = rel == "core/rundir.py" or not rel.startswith("core/")
+        hits = _named(ast.parse(path.read_text()), names,
+                      names - set(ARTIFACT_KINDS) if strict else set())
+        if hits:
+            bad[rel] = hits
+    assert not bad, f"pipelines named outside worker/pipelines.py (file: lines): {bad}"
     for pipeline in PIPELINES.values():
         module, name = pipeline.execution.split(":")
         assert callable(getattr(importlib.import_module(module), name).run), pipeline.name
-        assert pipeline.endpoint.startswith("/v1/"), pipeline.name
-        for where in ("worker/runner.py", "service/routers/jobs.py"):
-            assert f'"{pipeline.name}"' not in (root / where).read_text(), (where, pipeline.name)
+        assert submitted_at(pipeline.endpoint).endpoint == pipeline.endpoint, pipeline.name
+    assert set(ARTIFACT_KINDS) == {k for p in PIPELINES.values() for k in p.artifacts}
+
+
+@pytest.mark.parametrize("code", [
+    'if job.pipeline == "relight": pass', 'ok = source.pipeline in ("export", "x")',
+    'store.create_render(t, s, pipeline="relight")', 'def f(pipeline="export"): pass',
+    'pipeline: str = Field("relight", max_length=32)', 'p = PIPELINES["export"]',
+    'p = get_pipeline("relight")', 'RULES = (("frames/x", "ply", "reconstruct"),)'])
+def test_the_naming_check_sees_each_way_of_naming(code):
+    assert _named(ast.parse(code), set(PIPELINES), {"reconstruct"}) == [1]
+
+
+def test_the_naming_check_passes_kinds_and_messages():
+    code = 'kind = "relight"\nout = work / "export"\nmsg = f"a {x} reconstruct job"\n'
+    assert _named(ast.parse(code), set(PIPELINES), {"reconstruct"}) == []

@@ -19,7 +19,8 @@ def _active(store: JobStore, tenant: str) -> int:
 
 
 def test_a_job_run_as_parts_counts_once_and_ended_jobs_not_at_all(store: JobStore):
-    store.create_parted("a", {}, [["000000"], ["000001"], ["000002"]], capture_id=None)
+    store.create_parted("a", "reconstruct", {}, [["000000"], ["000001"], ["000002"]],
+                        capture_id=None)
     done = store.create("a", "reconstruct", {}, capture_id=None)
     store.request_cancel(done.id, "a")
     store.create("b", "reconstruct", {}, capture_id=None)

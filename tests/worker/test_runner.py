@@ -199,7 +199,9 @@ def test_sweeper_deletes_what_expired_and_nothing_else(setup, tiny_capture: Path
     assert store.get(kept.id).capture_id is None  # its capture went; the job stays
 
 
-def test_sweeper_keeps_what_an_active_render_needs(setup, tiny_capture: Path):
+def test_sweeper_keeps_what_an_active_job_needs(setup, tiny_capture: Path):
+    """A render's source and envmap, a reconstruction's normal model (deleted before, as the
+    sweeper looked at renders only)."""
     settings, store, blobs = setup
     sweeper = Sweeper(settings, lambda job_id: None, store=store, blobs=blobs)
     past = utcnow() - dt.timedelta(days=1)
@@ -211,10 +213,13 @@ def test_sweeper_keeps_what_an_active_render_needs(setup, tiny_capture: Path):
         store.finish(job.id, owner, "succeeded")
         sources.append(job.id)
     with store.session() as s:
-        for asset in ("ast_used", "ast_free"):
-            s.add(Asset(id=asset, tenant="t1", kind="envmap", filename="env.exr", size=1,
+        for asset, kind in (("ast_used", "envmap"), ("ast_free", "envmap"),
+                            ("ast_model", "normal_model")):
+            s.add(Asset(id=asset, tenant="t1", kind=kind, filename="env.exr", size=1,
                         sha256="0" * 64, content_type="image/x-exr", expires_at=past))
     active = store.create_render("t1", sources[0], "relight", {"envmap": "ast_used"})
+    store.create("t1", "reconstruct", {"config": {"normal_estimator": "ast_model"}},
+                 capture_id=None)
     ended = store.create_render("t1", sources[1], "relight", {"envmap": "ast_free"})
     store.claim(ended.id, owner, 5, 3)
     store.finish(ended.id, owner, "failed")
