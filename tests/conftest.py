@@ -7,7 +7,14 @@ import os
 
 import pytest
 
-import core  # noqa: F401  (before any test module loads torch: OpenMP's passive wait)
+# `make test` runs the suite in pytest-xdist processes (one a core): each keeps to its share of
+# the cores, so that two processes' OpenMP threads do not fight over them (set before anything
+# loads torch; a value the user set is kept).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    _share = (os.cpu_count() or 1) // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, _share)))
+
+import core  # noqa: E402,F401  (before any test module loads torch: OpenMP's passive wait)
 import real_services as services
 
 # Training's device `auto` means the CPU in the tests, also in the processes they start (workers,

@@ -2,7 +2,7 @@
 // ValueError naming the argument; these TORCH_CHECKs guard direct calls into the extension.
 #pragma once
 
-#include <torch/extension.h>
+#include <ATen/ATen.h>
 
 #include <initializer_list>
 #include <vector>

@@ -1,7 +1,7 @@
 // Tile binning and depth sort: which Gaussians touch which 16x16 tile, front to back.
 #pragma once
 
-#include <torch/extension.h>
+#include <ATen/ATen.h>
 
 #include <tuple>
 

@@ -2,7 +2,7 @@
 // mixing of the two opacities, screen rectangle. One thread of work per Gaussian.
 #pragma once
 
-#include <torch/extension.h>
+#include <ATen/ATen.h>
 
 #include <tuple>
 

@@ -3,7 +3,7 @@
 // false only the appearance branch runs (a plain single-opacity RGB pass; G must then be 0).
 #pragma once
 
-#include <torch/extension.h>
+#include <ATen/ATen.h>
 
 #include <tuple>
 

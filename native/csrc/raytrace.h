@@ -3,7 +3,7 @@
 // transmittance T = prod (1 - alpha at each Gaussian's closest approach).
 #pragma once
 
-#include <torch/extension.h>
+#include <ATen/ATen.h>
 
 namespace dgs {
 
