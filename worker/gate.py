@@ -28,9 +28,9 @@ from celery.worker.request import Request
 from celery.worker.state import task_ready
 
 from worker.settings import get_settings
-from worker.store import JobStore
+from worker.store import Claim, JobStore
 
-__all__ = ["JobRequest"]
+__all__ = ["JobRequest", "nothing_to_run"]
 
 log = logging.getLogger("dgs.worker")
 
@@ -39,6 +39,15 @@ _DROPPED = {
     "terminal": "it has ended ({job.state})",
     "missing": "it was deleted",
     "waiting": "its parts are queued or running (it is assembled after them)",
+}
+_NOTES = {
+    "leased": "it is running on {job.lease_owner} (lease renewed, {left:.0f} s left); this "
+              "duplicate message is dropped",
+    "terminal": "it has ended ({job.state}); this duplicate message is dropped",
+    "missing": "it was deleted; its message is dropped",
+    "exhausted": "its worker was lost {job.redeliveries} times; it failed (worker_lost)",
+    "waiting": "its parts are queued or running (it is assembled after them); this message "
+               "is dropped",
 }
 _STORES: dict[str, JobStore] = {}
 _DEFERRED: set[str] = set()
@@ -50,6 +59,12 @@ def _store() -> JobStore:
     if url not in _STORES:
         _STORES[url] = JobStore(url)
     return _STORES[url]
+
+
+def nothing_to_run(claim: Claim) -> str:
+    """Why a pool process's message found nothing to run (a claim or peek that refused), for
+    the worker's log."""
+    return _NOTES[claim.status].format(job=claim.job, left=claim.retry_in)
 
 
 class JobRequest(Request):
