@@ -82,11 +82,13 @@ def _submit(h: Harness, tenant: str) -> str:
 def test_another_tenants_job_runs_before_a_tenants_queue(stack, tiny_capture: Path,
                                                           worker_factory):
     """A queues 3 jobs, then B 1, one worker: B's job runs second, not fourth (the queue's
-    order); every job runs once, and a deferred message is neither lost nor an attempt."""
+    order); every job runs once, and a deferred message is neither lost nor an attempt. (The
+    tenants are new: the session's PostgreSQL keeps other tests' picks.)"""
     env, settings = stack
     h = Harness(settings, tiny_capture)
-    a = [_submit(h, "t1") for _ in range(3)]
-    b = _submit(h, "t2")
+    ta, tb = (f"{t}-{secrets.token_hex(3)}" for t in "ab")
+    a = [_submit(h, ta) for _ in range(3)]
+    b = _submit(h, tb)
     worker = worker_factory(env).start()
     jobs = {j: h.wait_state(j, ("succeeded", "failed")) for j in [*a, b]}
     assert {job.error["code"] for job in jobs.values()} == {"invalid_input"}
@@ -94,7 +96,7 @@ def test_another_tenants_job_runs_before_a_tenants_queue(stack, tiny_capture: Pa
     order = sorted(jobs, key=lambda j: jobs[j].started_at)
     text = worker.log.read_text(errors="replace")
     assert order[:2] == [a[0], b], text[-3000:]
-    assert f"tenant t2 has the turn (0 on a worker; job {b} waiting)" in text
+    assert f"tenant {tb} has the turn (0 on a worker; job {b} waiting)" in text
 
 
 def test_a_message_runs_after_one_round_when_the_turn_has_none(stack, tiny_capture: Path,
@@ -103,11 +105,15 @@ def test_a_message_runs_after_one_round_when_the_turn_has_none(stack, tiny_captu
     then lost): another tenant's message goes round the queue once, then runs."""
     env, settings = stack
     h = Harness(settings, tiny_capture)
-    lost = h.store.create("t2", "reconstruct", {"preset": "test"}, capture_id=None)
+    tb = f"b-{secrets.token_hex(3)}"
+    lost = h.store.create(tb, "reconstruct", {"preset": "test"}, capture_id=None)
     h.store.mark_dispatched(lost.id)  # and no message: lost with a worker
-    a = _submit(h, "t1")
+    a = _submit(h, f"a-{secrets.token_hex(3)}")
     worker = worker_factory(env).start()
-    job = h.wait_state(a, ("succeeded", "failed"))
+    try:
+        job = h.wait_state(a, ("succeeded", "failed"))
+    finally:  # no waiting job left in the session's PostgreSQL for the next tests' picks
+        h.store.request_cancel(lost.id, tb)
     assert job.attempts == 1 and job.error["code"] == "invalid_input", h.log(a)
     text = worker.log.read_text(errors="replace")
     assert text.count(f"job {a}: deferred") == 1, text[-3000:]
