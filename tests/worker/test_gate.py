@@ -11,11 +11,14 @@ import secrets
 from pathlib import Path
 
 import pytest
+from sqlalchemy import update
 from test_celery import Harness, s3_server, stack  # noqa: F401  (fixtures)
 from worker_harness import wait_for
 
 from worker.broker import BrokerInspector
 from worker.celery_app import dispatch
+from worker.models import Job
+from worker.store import ACTIVE
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -70,6 +73,13 @@ def test_dead_messages_start_no_pool_process(stack, tiny_capture: Path, worker_f
     assert held is not None and not set(dead) & held
 
 
+def _only_this_tests_jobs(h: Harness) -> None:
+    """Cancel every active job another test left in the session's PostgreSQL (a job store
+    tests share): a waiting one would take part in these tests' picks, and have the turn."""
+    with h.store.session() as s:
+        s.execute(update(Job).where(Job.state.in_(ACTIVE)).values(state="cancelled"))
+
+
 def _submit(h: Harness, tenant: str) -> str:
     """A job that fails at once in its pool process (its capture is gone): the order in which
     jobs start is what these tests look at, not training."""
@@ -86,6 +96,7 @@ def test_another_tenants_job_runs_before_a_tenants_queue(stack, tiny_capture: Pa
     tenants are new: the session's PostgreSQL keeps other tests' picks.)"""
     env, settings = stack
     h = Harness(settings, tiny_capture)
+    _only_this_tests_jobs(h)
     ta, tb = (f"{t}-{secrets.token_hex(3)}" for t in "ab")
     a = [_submit(h, ta) for _ in range(3)]
     b = _submit(h, tb)
@@ -105,6 +116,7 @@ def test_a_message_runs_after_one_round_when_the_turn_has_none(stack, tiny_captu
     then lost): another tenant's message goes round the queue once, then runs."""
     env, settings = stack
     h = Harness(settings, tiny_capture)
+    _only_this_tests_jobs(h)
     tb = f"b-{secrets.token_hex(3)}"
     lost = h.store.create(tb, "reconstruct", {"preset": "test"}, capture_id=None)
     h.store.mark_dispatched(lost.id)  # and no message: lost with a worker
