@@ -1,4 +1,5 @@
-"""Messages with nothing to run are dropped in the Celery parent, before they reach the pool.
+"""The Celery parent's look at a message before a pool process starts: one with nothing to run
+is dropped, one whose tenant has not the turn is deferred.
 
 Every pool process is a fresh interpreter that imports torch (seconds), and each runs one task
 (worker.celery_app). A message whose job was cancelled, has ended, was deleted, waits for its
