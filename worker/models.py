@@ -191,13 +191,17 @@ class Job(Base):
     dispatches: Mapped[int] = mapped_column(Integer, default=0)
     run_started_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     run_start_fraction: Mapped[float] = mapped_column(Float, default=0.0)
+    picked_at: Mapped[dt.datetime | None] = mapped_column(default=None)
+    """When a free worker's fair pick (`worker.fair`) last gave it a worker; None if never
+    (migration 0009)."""
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[dt.datetime] = mapped_column(default=utcnow, onupdate=utcnow)
     started_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     finished_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     expires_at: Mapped[dt.datetime | None] = mapped_column(default=None, index=True)
 
-    __table_args__ = (Index("ix_jobs_tenant_created", "tenant", "created_at", "id"),)
+    __table_args__ = (Index("ix_jobs_tenant_created", "tenant", "created_at", "id"),
+                      Index("ix_jobs_tenant_picked", "tenant", "picked_at"))
 
 
 class JobEvent(Base):

@@ -29,6 +29,7 @@ from worker.assemble_job import AssembleJob
 from worker.blobs import BlobStore, open_store
 from worker.execution import Execution, JobStopped
 from worker.faults import hang_if_asked
+from worker.gate import nothing_to_run
 from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink
@@ -49,17 +50,6 @@ class Outcome:
     exhausted (the redelivery cap was reached: the job failed)."""
     note: str = ""
     """Why nothing was done, for the worker's log."""
-
-
-_DROPPED = {
-    "leased": "it is running on {job.lease_owner} (lease renewed, {left:.0f} s left); this "
-              "duplicate message is dropped",
-    "terminal": "it has ended ({job.state}); this duplicate message is dropped",
-    "missing": "it was deleted; its message is dropped",
-    "exhausted": "its worker was lost {job.redeliveries} times; it failed (worker_lost)",
-    "waiting": "its parts are queued or running (it is assembled after them); this message "
-               "is dropped",
-}
 
 
 @contextmanager
@@ -105,8 +95,7 @@ class Runner:
         owner = Owner.current()
         claim = self.store.claim(job_id, owner, s.lease_seconds, s.max_attempts)
         if claim.status != "claimed":
-            return Outcome(claim.status, _DROPPED[claim.status].format(
-                job=claim.job, left=claim.retry_in))
+            return Outcome(claim.status, nothing_to_run(claim))
         mark(s.scratch, job_id, owner)
         link = JobLink(self.store, claim.job, owner, s).start()
         try:

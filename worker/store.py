@@ -25,6 +25,7 @@ from sqlalchemy.orm import Session
 from worker import transitions
 from worker.api_queries import ApiQueries
 from worker.db import session_scope
+from worker.fair import FairPick, Pick
 from worker.housekeeping import Housekeeping
 from worker.idempotency import Idempotency, remember
 from worker.lease import Owner, run_ended, run_started
@@ -41,6 +42,7 @@ __all__ = [
     "JobStore",
     "NotCreated",
     "Owner",
+    "Pick",
     "new_id",
     "progress_of",
 ]
@@ -83,11 +85,11 @@ def _nothing_to_run(s: Session, job: Job | None, now: dt.datetime) -> Claim | No
     return None
 
 
-class JobStore(ApiQueries, Housekeeping):
+class JobStore(ApiQueries, Housekeeping, FairPick):
     """Job lifecycle operations on the database at `url`, each in its own transaction (the
     changes to the rows, those of jobs run as parts included, in `worker.transitions`; the API's
     pages and deletions in `worker.api_queries.ApiQueries`; the sweepers' questions in
-    `worker.housekeeping.Housekeeping`)."""
+    `worker.housekeeping.Housekeeping`; whose turn a free worker gives, `worker.fair`)."""
 
     def __init__(self, url: str):
         self.url = url

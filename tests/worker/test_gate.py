@@ -1,7 +1,9 @@
 """Messages with nothing to run are dropped in the Celery parent (worker.gate, issue 42): a flood
 of messages for cancelled, finished and deleted jobs starts no pool process (each used to cost
 a fresh one, torch imported, before the next job could run), and the live job behind them runs
-without waiting for one per message."""
+without waiting for one per message. A message whose tenant has not the turn (worker.fair) goes
+back to the queue from the parent: another tenant's job runs before a tenant's queue, and each
+job still runs once."""
 
 from __future__ import annotations
 
@@ -9,11 +11,14 @@ import secrets
 from pathlib import Path
 
 import pytest
+from sqlalchemy import update
 from test_celery import Harness, s3_server, stack  # noqa: F401  (fixtures)
 from worker_harness import wait_for
 
 from worker.broker import BrokerInspector
 from worker.celery_app import dispatch
+from worker.models import Job
+from worker.store import ACTIVE
 
 pytestmark = pytest.mark.timeout(600)
 
@@ -66,3 +71,61 @@ def test_dead_messages_start_no_pool_process(stack, tiny_capture: Path, worker_f
     grace = 0 if settings.embedded_broker else 3600
     held = BrokerInspector(h.celery, settings).held_jobs(grace)
     assert held is not None and not set(dead) & held
+
+
+def _only_this_tests_jobs(h: Harness) -> None:
+    """Cancel every active job another test left in the session's PostgreSQL (a job store
+    tests share): a waiting one would take part in these tests' picks, and have the turn."""
+    with h.store.session() as s:
+        s.execute(update(Job).where(Job.state.in_(ACTIVE)).values(state="cancelled"))
+
+
+def _submit(h: Harness, tenant: str) -> str:
+    """A job that fails at once in its pool process (its capture is gone): the order in which
+    jobs start is what these tests look at, not training."""
+    job = h.store.create(tenant, "reconstruct", {"preset": "test"}, capture_id=None)
+    h.store.mark_dispatched(job.id)
+    dispatch(h.celery, h.settings, job.id, "reconstruct")
+    return job.id
+
+
+def test_another_tenants_job_runs_before_a_tenants_queue(stack, tiny_capture: Path,
+                                                          worker_factory):
+    """A queues 3 jobs, then B 1, one worker: B's job runs second, not fourth (the queue's
+    order); every job runs once, and a deferred message is neither lost nor an attempt. (The
+    tenants are new: the session's PostgreSQL keeps other tests' picks.)"""
+    env, settings = stack
+    h = Harness(settings, tiny_capture)
+    _only_this_tests_jobs(h)
+    ta, tb = (f"{t}-{secrets.token_hex(3)}" for t in "ab")
+    a = [_submit(h, ta) for _ in range(3)]
+    b = _submit(h, tb)
+    worker = worker_factory(env).start()
+    jobs = {j: h.wait_state(j, ("succeeded", "failed")) for j in [*a, b]}
+    assert {job.error["code"] for job in jobs.values()} == {"invalid_input"}
+    assert [(job.attempts, len(job.runs)) for job in jobs.values()] == [(1, 1)] * 4
+    order = sorted(jobs, key=lambda j: jobs[j].started_at)
+    text = worker.log.read_text(errors="replace")
+    assert order[:2] == [a[0], b], text[-3000:]
+    assert f"tenant {tb} has the turn (0 on a worker; job {b} waiting)" in text
+
+
+def test_a_message_runs_after_one_round_when_the_turn_has_none(stack, tiny_capture: Path,
+                                                               worker_factory):
+    """The tenant with the turn has a waiting job whose message is not in the queue (sent,
+    then lost): another tenant's message goes round the queue once, then runs."""
+    env, settings = stack
+    h = Harness(settings, tiny_capture)
+    _only_this_tests_jobs(h)
+    tb = f"b-{secrets.token_hex(3)}"
+    lost = h.store.create(tb, "reconstruct", {"preset": "test"}, capture_id=None)
+    h.store.mark_dispatched(lost.id)  # and no message: lost with a worker
+    a = _submit(h, f"a-{secrets.token_hex(3)}")
+    worker = worker_factory(env).start()
+    try:
+        job = h.wait_state(a, ("succeeded", "failed"))
+    finally:  # no waiting job left in the session's PostgreSQL for the next tests' picks
+        h.store.request_cancel(lost.id, tb)
+    assert job.attempts == 1 and job.error["code"] == "invalid_input", h.log(a)
+    text = worker.log.read_text(errors="replace")
+    assert text.count(f"job {a}: deferred") == 1, text[-3000:]

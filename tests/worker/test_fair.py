@@ -1,0 +1,98 @@
+"""The fair pick (worker.fair, issue 42) on SQLite and PostgreSQL: whose job a free worker runs
+when several tenants wait. The tenant with the fewest jobs on a worker goes first, then the one
+served longest ago, then the oldest waiting job; a picked job holds its worker until claimed;
+only waiting jobs take part; racing picks are serialized."""
+
+from __future__ import annotations
+
+import threading
+
+from worker.store import JobStore, Owner
+
+STARTING = 300.0
+
+
+def _queued(store: JobStore, tenant: str, *, sent: bool = True) -> str:
+    job = store.create(tenant, "reconstruct", {}, capture_id=None)
+    if sent:
+        store.mark_dispatched(job.id)
+    return job.id
+
+
+def test_a_tenant_served_last_waits_for_one_never_served(store: JobStore):
+    """A queues 3 jobs, then B 1: with one worker B's job runs second, not fourth."""
+    a1, a2, a3 = (_queued(store, "a") for _ in range(3))
+    b1 = _queued(store, "b")
+    assert store.pick(a1, STARTING).status == "run"  # both unserved: A's job is older
+    assert store.claim(a1, Owner.current(), 60, 3).status == "claimed"
+    deferred = store.pick(a2, STARTING)  # A holds the worker: B's turn
+    assert deferred.status == "defer" and (deferred.first.tenant, deferred.first.job) == ("b", b1)
+    store.finish(a1, Owner.parse(store.get(a1).lease_owner), "succeeded")
+    # Nothing on a worker either side now: B has not been served, A has.
+    assert store.pick(a3, STARTING).status == "defer"
+    assert store.pick(b1, STARTING).status == "run"
+    assert store.get(b1).picked_at is not None and store.get(a2).picked_at is None
+    # B's job is starting (picked, not yet claimed): it holds the worker, so A goes next.
+    assert store.pick(a2, STARTING).status == "run"
+
+
+def test_fewest_on_a_worker_goes_first(store: JobStore):
+    b0 = _queued(store, "b")
+    store.claim(b0, Owner.current(), 60, 3)  # B runs one (never picked: a claim without a pick)
+    b1, a1 = _queued(store, "b"), _queued(store, "a")
+    deferred = store.pick(b1, STARTING)
+    assert deferred.status == "defer" and deferred.first.tenant == "a"
+    assert deferred.first.on_worker == 0
+    assert store.pick(a1, STARTING).status == "run"
+    # A's picked job counts as on a worker: one each now, and B (never picked) was served
+    # longest ago.
+    a2 = _queued(store, "a")
+    assert store.pick(a2, STARTING).status == "defer"
+    assert store.pick(b1, STARTING).status == "run"
+
+
+def test_only_waiting_jobs_take_part(store: JobStore):
+    """A tenant whose only jobs cannot run now (never sent, cancelled, a job waiting for its
+    parts, a cancel asked for) has no turn; a part is a waiting job."""
+    _queued(store, "c", sent=False)
+    store.request_cancel(_queued(store, "c"), "c")
+    parent, parts = store.create_parted("d", "reconstruct", {}, [["000000"], ["000001"]],
+                                        capture_id=None)
+    store.mark_dispatched(parent.id)
+    a1 = _queued(store, "a")
+    assert store.pick(a1, STARTING).status == "run"
+    a2 = _queued(store, "a")
+    store.mark_dispatched(parts[0].id)  # a part sent to the broker waits like any job
+    deferred = store.pick(a2, STARTING)
+    assert deferred.status == "defer" and deferred.first.job == parts[0].id
+
+
+def test_a_forced_pick_runs_and_a_stale_pick_frees_its_worker(store: JobStore):
+    a1, b1 = _queued(store, "a"), _queued(store, "b")
+    assert store.pick(a1, STARTING).status == "run"
+    a2 = _queued(store, "a")
+    assert store.pick(a2, STARTING).status == "defer"
+    assert store.pick(a2, STARTING, force=True).status == "run"
+    # Picked longer ago than the starting window, never claimed (its process died): A's two
+    # jobs wait again, and B, never served, goes first.
+    assert store.pick(a1, 0.0).first.tenant == "b"
+    assert store.pick(b1, 0.0).status == "run"
+
+
+def test_racing_picks_give_the_tenant_one_worker(store: JobStore):
+    """Eight free workers pick A's jobs at once while B waits: exactly one of A's runs (each
+    pick sees the picks before it)."""
+    a_jobs = [_queued(store, "a") for _ in range(8)]
+    _queued(store, "b")
+    start, outcomes = threading.Barrier(8), []
+
+    def pick(job_id: str) -> None:
+        start.wait()
+        outcomes.append(store.pick(job_id, STARTING).status)
+
+    threads = [threading.Thread(target=pick, args=(j,)) for j in a_jobs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert sorted(outcomes) == ["defer"] * 7 + ["run"]
