@@ -187,3 +187,18 @@ def test_the_rigs_near_plane_is_resolved_into_the_record_and_travels(tmp_path: P
     del old["config"]["train"]["near"]
     assert upgrade({**old, "version": 2})["config"]["train"]["near"] == 0.01
     assert ResolvedRun.from_json({**old, "version": 2}).config.train.near == 0.01
+
+
+def test_the_stages_after_training_render_at_the_runs_near_plane(v1_capture: Path,
+                                                                   tmp_path: Path):
+    from core.data import load_capture
+    from core.relight.gbuffer import run_render
+
+    capture = load_capture(v1_capture)
+    config = load_config("test")
+    run = resolve_run(capture, config, preset="test")
+    assert config.train.near is None and run.config.train.near > 0.01
+    (tmp_path / "config.json").write_text(json.dumps(run.to_json()))
+    settings = run_render(tmp_path, v1_capture)
+    assert settings.near == run.config.train.near
+    assert settings.camera(capture.cameras[0]).near == settings.near
