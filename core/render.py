@@ -148,9 +148,8 @@ def render(
     appearance opacity for the geometry one too (opacity_g tied to opacity_c, so that beta mixing
     leaves the appearance opacity unchanged). The defaults eps2d 0.1, antialiased follow the
     Mip-Splatting 2D filter of docs/design.md section 5; nothing nearer than the camera's
-    `near` is drawn. Renders on the model's device; a camera or
-    background elsewhere is copied there (give a trainer's cameras that device once, so no
-    step pays for the copy). `validate=False` skips the rasterizer's per-element checks of the
+    `near` is drawn. Renders on the model's device; a camera or background elsewhere is copied
+    there (give a trainer's cameras that device once, so no step pays for the copy). `validate=False` skips the rasterizer's per-element checks of the
     values (a training loop's later steps: the model's activations keep them valid).
     """
     if not 0 <= sh_degree <= 3:

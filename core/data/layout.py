@@ -45,13 +45,18 @@ def common_radius(cameras: Sequence[Camera], center: np.ndarray) -> float:
 
 def near_plane(cameras: Sequence[Camera], fraction: float = NEAR_FRACTION) -> float:
     """The near plane (camera depth) of renders of a rig: `fraction` of the median distance
-    from the cameras' centres to the point they look at (`look_at_center`)."""
+    from the cameras' centres to the point they look at (`look_at_center`), at most twice the
+    median distance from their centroid: axes that barely meet (a forward-facing rig) put
+    that point far beyond the scene, while a dome's or a ring's spread is about its radius."""
     if not cameras:
         raise ValueError("cameras: expected at least one camera")
     if not 0 < fraction < 1:
         raise ValueError(f"fraction: expected 0 < fraction < 1, got {fraction}")
-    center = look_at_center(cameras)
-    distance = float(np.median([np.linalg.norm(c.center - center) for c in cameras]))
+    centers = np.array([c.center for c in cameras])
+    distance = float(np.median(np.linalg.norm(centers - look_at_center(cameras), axis=1)))
+    spread = float(np.median(np.linalg.norm(centers - centers.mean(axis=0), axis=1)))
+    if spread > 0:
+        distance = min(distance, 2.0 * spread)
     if not np.isfinite(distance) or distance <= 0:
         raise ValueError("cameras: their centres all sit on the point they look at; give "
                          "train.near")

@@ -168,6 +168,22 @@ def _ring(cameras: int, radius: float) -> Capture:
     return Capture(Path("/nowhere"), tuple(cams), ("000000",), (0.0, 1.0, 0.0))
 
 
+def test_a_forward_facing_rig_keeps_its_near_plane_within_its_spread():
+    # Five cameras 0.5 apart on a line, toed in to meet 100 away: the point they look at is far
+    # beyond any scene they film, so their spread bounds the plane.
+    cams = []
+    for i, x in enumerate(np.linspace(-1.0, 1.0, 5)):
+        z = np.array([-x, 0.0, 100.0]) / np.hypot(x, 100.0)
+        xa = np.cross([0.0, 1.0, 0.0], z)
+        R = np.stack([xa, np.cross(z, xa), z])
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, -R @ np.array([x, 0.0, 0.0])
+        cams.append(Camera(f"cam{i:02d}", 24, 24, np.diag([20.0, 20.0, 1.0]), w2c))
+    capture = Capture(Path("/nowhere"), tuple(cams), ("000000",), (0.0, 1.0, 0.0))
+    near = resolve_run(capture, load_config("test"), preset="test").config.train.near
+    assert near == pytest.approx(0.1 * 2 * 0.5)
+
+
 def test_the_rigs_near_plane_is_resolved_into_the_record_and_travels(tmp_path: Path):
     config = load_config("test")
     assert config.train.near is None  # the rig's, resolved with the run
