@@ -47,8 +47,9 @@ def score(capture_dir: Path, run: Path) -> dict[str, float]:
         for i in range(len(ds)):
             s = ds[i]
             with torch.no_grad():
-                r = render(model, RenderCamera.from_camera(s.camera), sh_degree=p.sh_degree,
-                           beta=p.beta, background=bg, eps2d=resolved.config.train.eps2d,
+                camera = RenderCamera.from_camera(s.camera, near=resolved.config.train.near)
+                r = render(model, camera, sh_degree=p.sh_degree, beta=p.beta, background=bg,
+                           eps2d=resolved.config.train.eps2d,
                            antialiased=resolved.config.train.antialiased)
             rgb = torch.floor(r.rgb.clamp(0, 1) * 255 + 0.5) / 255  # as the 8-bit renders
             target = s.image if s.mask is None else s.image * s.mask + bg * (1 - s.mask)

@@ -196,7 +196,7 @@ def run_ours(capture, frame, views, model0, config, out: Path, args) -> dict:
     bg = trainer.background
 
     def draw(cam):
-        rc = RenderCamera.from_camera(cam, device=trainer.device)
+        rc = RenderCamera.from_camera(cam, device=trainer.device, near=trainer.near)
         r = render(model, rc, sh_degree=p.sh_degree, beta=p.beta, geometry=True,
                    tie_opacity=p.tie_opacity, background=bg, eps2d=config.eps2d,
                    antialiased=config.antialiased)

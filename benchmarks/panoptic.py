@@ -38,7 +38,7 @@ lays such a pack out as OUT/run and continues it; the earlier call's rows come f
         [--preset fast] [--steps N] [--gop 10] [--max-gaussians N] [--mesh-voxels 256]
         [--serve N] [--serve-frames 0:12] [--hdri EXR] [--plain]
         [--deadline S] [--reserve S] [--pack-to DIR] [--resume-from DIR]
-        [--device auto] [--threads N]
+        [--device auto] [--threads N] [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -137,9 +137,32 @@ def overrides(args) -> dict:
              "device": args.device}
     if args.max_gaussians:
         train["densify"] = {"max_gaussians": args.max_gaussians}
-    return {"downscale": args.downscale, "gop": args.gop, "train": train,
+    over = {"downscale": args.downscale, "gop": args.gop, "train": train,
             "mesh": {"enabled": args.mesh_voxels > 0, "subject": True,
                      "resolution": max(args.mesh_voxels, 16)}}
+    for setting in args.set:
+        lay_setting(over, setting)
+    return over
+
+
+def lay_setting(over: dict, setting: str) -> None:
+    """`--set KEY=VALUE` laid on the overrides `over`: KEY a dotted path of RUN/config.json's
+    `config` (train.near), VALUE JSON (a bare word: a string); the run's validation checks
+    it."""
+    key, sep, text = setting.partition("=")
+    if not sep or not key:
+        raise SystemExit(f"--set: expected KEY=VALUE, got {setting!r}")
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError:
+        value = text
+    *path, last = key.split(".")
+    node = over
+    for name in path:
+        node = node.setdefault(name, {})
+        if not isinstance(node, dict):
+            raise SystemExit(f"--set: {key} goes inside {name}, which is not a section")
+    node[last] = value
 
 
 def plain_overrides(args) -> dict:
@@ -375,6 +398,9 @@ def arguments(argv: list[str] | None):
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--plain", action="store_true",
                     help="also a plain 3DGS on every frame independently (OUT/plain)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a setting of RUN/config.json's config, dotted, VALUE JSON (e.g. "
+                         "train.near=0.01; repeat for more)")
     return ap.parse_args(argv)
 
 

@@ -28,12 +28,11 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 def _views(run: Path):
     from core.data import load_capture
     from core.relight.gbuffer import run_render
-    from core.render import RenderCamera
 
     settings = run_render(run)
     capture = load_capture(settings.capture)
     cams = [settings.views.served(c) for c in settings.views.cameras(capture, "scored")]
-    return settings, [RenderCamera.from_camera(c) for c in cams]
+    return settings, [settings.camera(c) for c in cams]
 
 
 def _render(splats, camera, settings):

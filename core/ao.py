@@ -35,7 +35,7 @@ def scaled_camera(camera: RenderCamera, scale: float) -> RenderCamera:
     K = camera.K.clone()
     K[0] *= sx  # rows, as core.data.Camera.scaled does
     K[1] *= sy
-    return RenderCamera(camera.viewmat, K, w, h)
+    return RenderCamera(camera.viewmat, K, w, h, camera.near)
 
 
 def map_scale(camera: RenderCamera, config: AOConfig) -> float:

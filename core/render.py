@@ -18,7 +18,10 @@ import native
 from core.model import GaussianModel
 from native.types import RasterOutput
 
-__all__ = ["Render", "RenderCamera", "eval_sh", "render", "safe_divide", "seen_directions"]
+__all__ = ["NEAR", "Render", "RenderCamera", "eval_sh", "render", "safe_divide", "seen_directions"]
+
+NEAR = 0.01
+"""The rasterizer's near plane, what a camera clips at unless a run gives its own."""
 
 # Real SH constants of the 3DGS implementation (utils/sh_utils.py, after the PlenOctree code).
 SH_C0 = 0.28209479177387814
@@ -70,21 +73,27 @@ class RenderCamera:
     """Image width in pixels."""
     height: int
     """Image height in pixels."""
+    near: float = NEAR
+    """Near plane (camera depth): nothing closer is drawn. A run's cameras take its
+    `TrainConfig.near`, the rig's, resolved with the run."""
 
     @classmethod
-    def from_camera(cls, camera, device: torch.device | str = "cpu") -> RenderCamera:
+    def from_camera(cls, camera, device: torch.device | str = "cpu",
+                    near: float = NEAR) -> RenderCamera:
         """From a `core.data.Camera` (numpy float64), with its tensors on `device`."""
+        if not near > 0:
+            raise ValueError(f"near: expected a positive camera depth, got {near}")
         return cls(torch.from_numpy(np.asarray(camera.world_to_camera, np.float32)).contiguous()
                    .to(device),
                    torch.from_numpy(np.asarray(camera.K, np.float32)).contiguous().to(device),
-                   int(camera.width), int(camera.height))
+                   int(camera.width), int(camera.height), float(near))
 
     def to(self, device: torch.device | str) -> RenderCamera:
         """This camera with its tensors on `device` (itself when they are there already)."""
         viewmat, K = self.viewmat.to(device), self.K.to(device)
         if viewmat is self.viewmat and K is self.K:
             return self
-        return RenderCamera(viewmat, K, self.width, self.height)
+        return RenderCamera(viewmat, K, self.width, self.height, self.near)
 
     @property
     def center(self) -> Tensor:
@@ -138,9 +147,9 @@ def render(
     `geometry=False` runs the appearance branch only (stage 1); `tie_opacity=True` passes the
     appearance opacity for the geometry one too (opacity_g tied to opacity_c, so that beta mixing
     leaves the appearance opacity unchanged). The defaults eps2d 0.1, antialiased follow the
-    Mip-Splatting 2D filter of docs/design.md section 5. Renders on the model's device; a camera or
-    background elsewhere is copied there (give a trainer's cameras that device once, so no
-    step pays for the copy). `validate=False` skips the rasterizer's per-element checks of the
+    Mip-Splatting 2D filter of docs/design.md section 5; nothing nearer than the camera's
+    `near` is drawn. Renders on the model's device; a camera or background elsewhere is copied
+    there (give a trainer's cameras that device once, so no step pays for the copy). `validate=False` skips the rasterizer's per-element checks of the
     values (a training loop's later steps: the model's activations keep them valid).
     """
     if not 0 <= sh_degree <= 3:
@@ -161,7 +170,8 @@ def render(
         means, model.quats.contiguous(), model.scales.contiguous(), opacity_c.contiguous(),
         opacity_g.contiguous(), colors.contiguous(), features, camera.viewmat, camera.K,
         camera.width, camera.height, beta=float(beta), eps2d=eps2d, antialiased=antialiased,
-        background=background.to(means.device, means.dtype), backend=backend, validate=validate)
+        near=camera.near, background=background.to(means.device, means.dtype), backend=backend,
+        validate=validate)
     if geometry:
         normal, visibility = out.geometry[..., :3], out.geometry[..., 3:4]
     else:

@@ -26,9 +26,9 @@ import torch
 
 from core.config import InitConfig
 from core.data.capture import Camera
+from core.data.layout import common_radius, look_at_center
 from core.data.points import PointCloud
 from core.rig.geometry import RigGeometry
-from core.rig.layout import common_radius, look_at_center
 from core.triangulation import in_visual_hull, pixel_indices
 
 __all__ = ["ENCLOSURE_DEPTH", "ENCLOSURE_SPREAD", "SUBJECT_DILATE", "Seed", "encloses",

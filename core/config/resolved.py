@@ -25,13 +25,17 @@ from core.config.run import RunConfig, load_config, parse_frames
 from core.config.train import Preset
 from core.config.views import Views, select_views
 from core.data.capture import Capture
+from core.data.layout import near_plane
 from core.data.schema import load_capture
 
 __all__ = ["CONFIG_VERSION", "ResolvedRun", "read_run", "resolve_run", "upgrade"]
 
-CONFIG_VERSION = 2
+CONFIG_VERSION = 3
 """The version of RUN/config.json this code writes (1: the configuration's fields at the top
-level, without the resolved views)."""
+level, without the resolved views; 2: no train.near, every render clipped at 0.01)."""
+
+OLD_NEAR = 0.01
+"""The near plane every render had before runs recorded theirs (the rasterizer's default)."""
 
 
 @section
@@ -104,6 +108,9 @@ def resolve_run(capture: Capture, config: RunConfig, *, preset: str, frames: str
         raise ConfigError([{"path": "config.mesh.subject", "message": (
             "the capture has no masks, so nothing says where the subject is; mesh the whole "
             "scene (mesh.subject false)")}])
+    if config.train.near is None:
+        train = dataclasses.replace(config.train, near=near_plane(capture.cameras))
+        config = dataclasses.replace(config, train=train)
     return ResolvedRun(preset, capture_name or str(capture.root.resolve()),  # type: ignore
                        tuple(chosen), config, views)
 
@@ -112,15 +119,24 @@ def upgrade(data: Any, capture_dir: str | os.PathLike[str] | None = None) -> dic
     """A RUN/config.json record of any version as the current version's JSON; the one place
     old records are read. Version 1 (the configuration's fields at the top level) gets its
     views resolved against its capture (`capture_dir`, else the folder it names): the same
-    rule its run followed."""
+    rule its run followed. Versions 1 and 2 get train.near 0.01, the plane they rendered at."""
     if not isinstance(data, dict):
         raise ConfigError([{"path": "config.json", "message": "expected a JSON object"}])
     version = data.get("version")
     if version == CONFIG_VERSION:
         return data
-    if version != 1:
+    if version not in (1, 2):
         raise ConfigError([{"path": "config.json", "message": f"version {version!r} is not "
-                            f"one this code reads (1 or {CONFIG_VERSION})"}])
+                            f"one this code reads (1 to {CONFIG_VERSION})"}])
+    record = _from_version_1(data, capture_dir) if version == 1 else data
+    config = record.get("config")
+    train = config.get("train") if isinstance(config, dict) else None
+    if isinstance(train, dict) and train.get("near") is None:
+        record = {**record, "config": {**config, "train": {**train, "near": OLD_NEAR}}}
+    return {**record, "version": CONFIG_VERSION}
+
+
+def _from_version_1(data: dict[str, Any], capture_dir) -> dict[str, Any]:
     keys = [f.name for f in dataclasses.fields(RunConfig)]
     config = load_config(data.get("preset", "fast"), overrides={
         k: data[k] for k in keys if k in data}, where="config.json")
@@ -130,7 +146,7 @@ def upgrade(data: Any, capture_dir: str | os.PathLike[str] | None = None) -> dic
                          "against its capture; pass the capture folder (--capture)")
     views = select_views(load_capture(folder), config.split, config.downscale,
                          config.train.masks)
-    return {"version": CONFIG_VERSION, "preset": data.get("preset", "fast"),
+    return {"version": 1, "preset": data.get("preset", "fast"),
             "capture": data.get("capture"), "frames": data.get("frames"),
             "config": dataclasses.asdict(config), "views": dataclasses.asdict(views)}
 

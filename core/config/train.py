@@ -258,6 +258,11 @@ class TrainConfig:
     """Screen-space blur of the Mip-Splatting 2D filter."""
     antialiased: bool = True
     """Apply the Mip-Splatting opacity compensation."""
+    near: Positive | None = None
+    """Near plane of every render, training and evaluation alike (camera depth, scene units):
+    nothing closer is drawn. None: a tenth of the rig's median camera distance to the point
+    its cameras look at, at most twice their spread (`core.data.layout.near_plane`), resolved
+    against the capture with the run, so RUN/config.json records the number."""
     background: tuple[Color, Color, Color] = (0.0, 0.0, 0.0)
     """Colour behind the Gaussians; masked-out target pixels take it too."""
     masks: Masks = "capture"

@@ -26,11 +26,11 @@ from torch import Tensor
 
 from core.color import linear_to_srgb
 from core.config import MeshConfig
+from core.data.layout import common_radius, look_at_center
 from core.mesh.surface import clean_mesh, extract_surface
 from core.mesh.tsdf import TSDFVolume
 from core.model import SH_C0, GaussianModel
-from core.render import RenderCamera, render, safe_divide
-from core.rig.layout import common_radius, look_at_center
+from core.render import render, safe_divide
 
 __all__ = ["appearance_model", "mesh_model", "scene_box"]
 
@@ -66,7 +66,7 @@ def scene_box(model, cameras, mode: str = "gaussians") -> tuple[np.ndarray, np.n
 def _render(model, cam, settings, beta: float):
     """One view rendered where the model lives (the GPU when it is there)."""
     dev = model.device
-    return render(model, RenderCamera.from_camera(cam, device=dev), sh_degree=settings.sh_degree,
+    return render(model, settings.camera(cam, device=dev), sh_degree=settings.sh_degree,
                   beta=beta, geometry=True, background=torch.zeros(3, device=dev),
                   eps2d=settings.eps2d, antialiased=settings.antialiased)
 

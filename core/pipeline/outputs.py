@@ -41,9 +41,10 @@ def render_heldout(capture, frame: str, fitter: FrameFitter, run: RunDir,
     out, ids = run.renders(frame), []
     served = CaptureDataset(capture, frames=[frame], downscale=views.downscale).served_camera
     for cam in views.cameras(capture, "scored"):
-        r = render(fitter.model, RenderCamera.from_camera(served(cam), device=device),
-                   sh_degree=p.sh_degree, beta=p.beta, geometry=True, tie_opacity=False,
-                   background=bg, eps2d=cfg.eps2d, antialiased=cfg.antialiased)
+        camera = RenderCamera.from_camera(served(cam), device=device, near=fitter.near)
+        r = render(fitter.model, camera, sh_degree=p.sh_degree, beta=p.beta, geometry=True,
+                   tie_opacity=False, background=bg, eps2d=cfg.eps2d,
+                   antialiased=cfg.antialiased)
         rgb = r.rgb.clamp(0, 1).cpu().numpy()
         image = capture.image_path(frame, cam.id)
         if image is not None and image.suffix.lower() == ".exr":

@@ -18,6 +18,8 @@ from torch import Tensor
 
 from core.color import srgb_to_linear
 from core.config import Views, read_run
+from core.data.layout import near_plane
+from core.data.schema import load_capture
 from core.render import RenderCamera, render, safe_divide
 from core.stages import plan
 
@@ -39,6 +41,8 @@ class RunRender:
     """Mip-Splatting screen blur."""
     antialiased: bool
     """Mip-Splatting opacity compensation."""
+    near: float
+    """Near plane of the run's renders (`TrainConfig.near`)."""
     background: tuple[float, float, float]
     """Background colour as stored (sRGB for PNG captures)."""
     views: Views
@@ -51,6 +55,11 @@ class RunRender:
         """The run's image reduction (held-out renders are at this resolution)."""
         return self.views.downscale
 
+    def camera(self, camera, device: torch.device | str = "cpu") -> RenderCamera:
+        """`camera` (a `core.data.Camera`) as the run renders it: on `device`, with its near
+        plane."""
+        return RenderCamera.from_camera(camera, device=device, near=self.near)
+
 
 def run_render(run_dir, capture_dir=None) -> RunRender:
     """How the run in `run_dir` renders (its RUN/config.json, `core.config.read_run`);
@@ -61,7 +70,8 @@ def run_render(run_dir, capture_dir=None) -> RunRender:
     capture = Path(capture_dir if capture_dir is not None else resolved.capture)
     if not (capture / "capture.json").is_file():
         raise ValueError(f"capture_dir: {capture} has no capture.json (pass the capture folder)")
-    return RunRender(p.sh_degree, p.beta, train.eps2d, train.antialiased,
+    near = train.near if train.near is not None else near_plane(load_capture(capture).cameras)
+    return RunRender(p.sh_degree, p.beta, train.eps2d, train.antialiased, near,
                      tuple(train.background), resolved.views, capture)  # type: ignore[arg-type]
 
 

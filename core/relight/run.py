@@ -32,7 +32,6 @@ from core.relight.gbuffer import gbuffer, run_render
 from core.relight.lights import CaptureLight, load_capture_light
 from core.relight.output import Mp4Writer, to_uint8, write_views
 from core.relight.shade import shade
-from core.render import RenderCamera
 
 if TYPE_CHECKING:
     from core.data.capture import Capture
@@ -163,7 +162,7 @@ def frame_cameras(plan: Plan, params: RelightParams, model) -> list:
 def view_gbuffer(model, camera, plan: Plan):
     """The G-buffer of `model` seen by `camera` (core.data.Camera) with the run's settings, on
     the model's device."""
-    return gbuffer(model, RenderCamera.from_camera(camera, device=model.means.device),
+    return gbuffer(model, plan.settings.camera(camera, device=model.means.device),
                    plan.settings, linear_capture=plan.linear)
 
 

@@ -13,10 +13,10 @@ import numpy as np
 
 from core.config.rig import StereoConfig
 from core.data.capture import Camera
+from core.data.layout import look_at_center
 from core.data.points import PointCloud
 from core.rig.depth import rig_depth
 from core.rig.fusion import Fused
-from core.rig.layout import look_at_center
 from core.rig.hull import hull_normals
 from core.rig.normals import depth_normals, resize_prior
 from core.triangulation import TriangulationStats, triangulate_views

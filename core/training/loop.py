@@ -26,6 +26,7 @@ import torch
 from torch import Tensor
 
 from core.config import TrainConfig
+from core.data.layout import near_plane
 from core.device import resolve_device, to_device
 from core.files import atomic_path
 from core.metrics import psnr
@@ -58,7 +59,11 @@ class FrameFitter:
         self.callbacks = list(callbacks)
         self.extent = scene_extent([v.camera for v in self.views])
         self.generator = torch.Generator().manual_seed(config.seed)
-        self.cameras = [RenderCamera.from_camera(v.camera, device=self.device)
+        self.near = config.near if config.near is not None else \
+            near_plane([v.camera for v in self.views])
+        """The near plane of every render of the frame (`TrainConfig.near`; None, as a config
+        not resolved with a run has it: the training cameras' rig's)."""
+        self.cameras = [RenderCamera.from_camera(v.camera, device=self.device, near=self.near)
                         for v in self.views]
         self.background = torch.tensor(config.background, dtype=torch.float32,
                                        device=self.device)

@@ -133,3 +133,22 @@ def test_safe_divide_has_finite_gradients():
     out.sum().backward()
     torch.testing.assert_close(out.detach(), torch.tensor([0.0, 0.5]))
     assert torch.isfinite(num.grad).all() and torch.isfinite(den.grad).all()
+
+
+def test_the_near_plane_hides_a_gaussian_between_the_old_plane_and_the_rigs():
+    # At depth 0.05: past the rasterizer's 0.01, before a rig's plane at 0.1. Close to the
+    # camera it covers the whole view (a dome's wall beside a camera); the rig's plane drops it.
+    m = one_gaussian()
+    with torch.no_grad():
+        m.params["means"].copy_(torch.tensor([[0.0, 0.0, 0.05]]))
+        m.params["scales"].copy_(torch.log(torch.tensor([[0.01, 0.01, 0.001]])))
+    near = camera()
+    assert near.near == 0.01
+    seen = render(m, near, sh_degree=0, antialiased=False)
+    far = RenderCamera(near.viewmat, near.K, near.width, near.height, 0.1)
+    clipped = render(m, far, sh_degree=0, antialiased=False)
+    assert seen.alpha_c[8, 8, 0] > 0.4 and seen.raster.radii[0] > 0  # (0.8 + 0.1) / 2
+    assert torch.all(clipped.alpha_c == 0) and clipped.raster.radii[0] == 0
+    assert far.to("cpu").near == 0.1  # a copy elsewhere keeps it
+    with pytest.raises(ValueError, match="near"):
+        RenderCamera.from_camera(Camera("c", 8, 8, np.eye(3), np.eye(4), None), near=0.0)

@@ -1,6 +1,7 @@
 """core.config.resolved: the record of a resolved run. It round-trips through RUN/config.json,
 a version 1 config.json as the code wrote it before the record existed upgrades to the run it
-described, and resolving it refuses what the capture cannot run (the rules the API's door uses
+described, the rig's near plane is resolved into it and travels with it, and resolving it
+refuses what the capture cannot run (the rules the API's door uses
 too); and the grouping of frames the API splits a job by and the run plans with."""
 
 from __future__ import annotations
@@ -81,14 +82,15 @@ def test_a_version_1_config_json_upgrades_to_the_run_it_described(v1_capture: Pa
     assert (run.preset, run.capture, run.frames) == ("test", old["capture"],
                                                      ("000000", "000001"))
     expected = load_config("test", overrides={"split": "every8", "downscale": 2.0,
-                                              "train": {"seed": 3}}, gop=2)
+                                              "train": {"seed": 3, "near": 0.01}}, gop=2)
     assert run.config == run.on_device("cpu").config and run.config.train.device == "cpu"
     assert dataclasses.replace(expected, train=dataclasses.replace(
         expected.train, device="cpu")) == run.config
     assert run.views.split.rule == "every8" and run.views.split.heldout == ("cam00", "cam08")
     assert run.views.downscale == 2.0 and run.views.masks == "matte"
-    # The run it describes is the one the same request resolves to now: a job stored before
-    # the record existed resumes its old run directory.
+    # The run it describes is the one the same request resolves to now (with the near plane
+    # every render had then): a job stored before the record existed resumes its old run
+    # directory.
     from core.data import load_capture
 
     now = resolve_run(load_capture(v1_capture), expected, preset="test", frames="0:2",
@@ -147,3 +149,72 @@ def test_a_sequence_splits_into_its_groups_of_pictures():
     off = dataclasses.replace(cfg, sequence=dataclasses.replace(cfg.sequence, enabled=False))
     assert [g.frames for g in independent_groups(frames[:3], off)] == [(f,) for f in frames[:3]]
     assert GopPlan(frames[:3], 3, off.sequence, 500).gop == 1
+
+
+def _ring(cameras: int, radius: float) -> Capture:
+    """An in-memory capture of `cameras` cameras on a horizontal circle of `radius` about the
+    origin, each looking at it."""
+    K = np.array([[20.0, 0, 12], [0, 20, 12], [0, 0, 1]])
+    cams = []
+    for i in range(cameras):
+        a = 2 * np.pi * i / cameras
+        centre = radius * np.array([np.cos(a), 0.0, np.sin(a)])
+        z = -centre / radius
+        x = np.cross([0.0, 1.0, 0.0], z)
+        R = np.stack([x, np.cross(z, x), z])
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, -R @ centre
+        cams.append(Camera(f"cam{i:02d}", 24, 24, K, w2c))
+    return Capture(Path("/nowhere"), tuple(cams), ("000000",), (0.0, 1.0, 0.0))
+
+
+def test_a_forward_facing_rig_keeps_its_near_plane_within_its_spread():
+    # Five cameras 0.5 apart on a line, toed in to meet 100 away: the point they look at is far
+    # beyond any scene they film, so their spread bounds the plane.
+    cams = []
+    for i, x in enumerate(np.linspace(-1.0, 1.0, 5)):
+        z = np.array([-x, 0.0, 100.0]) / np.hypot(x, 100.0)
+        xa = np.cross([0.0, 1.0, 0.0], z)
+        R = np.stack([xa, np.cross(z, xa), z])
+        w2c = np.eye(4)
+        w2c[:3, :3], w2c[:3, 3] = R, -R @ np.array([x, 0.0, 0.0])
+        cams.append(Camera(f"cam{i:02d}", 24, 24, np.diag([20.0, 20.0, 1.0]), w2c))
+    capture = Capture(Path("/nowhere"), tuple(cams), ("000000",), (0.0, 1.0, 0.0))
+    near = resolve_run(capture, load_config("test"), preset="test").config.train.near
+    assert near == pytest.approx(0.1 * 2 * 0.5)
+
+
+def test_the_rigs_near_plane_is_resolved_into_the_record_and_travels(tmp_path: Path):
+    config = load_config("test")
+    assert config.train.near is None  # the rig's, resolved with the run
+    run = resolve_run(_ring(8, 5.0), config, preset="test")
+    assert run.config.train.near == pytest.approx(0.5)  # a tenth of the cameras' distance
+    (tmp_path / "config.json").write_text(json.dumps(run.to_json()))
+    back = read_run(tmp_path)
+    assert back.config.train.near == run.config.train.near and back.same_run(run)
+    given = load_config("test", overrides={"train": {"near": 0.2}})
+    assert resolve_run(_ring(8, 5.0), given, preset="test").config.train.near == 0.2
+    assert not resolve_run(_ring(8, 5.0), given, preset="test").same_run(run)
+    with pytest.raises(ConfigError) as err:
+        load_config("test", overrides={"train": {"near": 0}})
+    assert err.value.details[0]["path"] == "config.train.near"
+    # A version 2 record, from before runs recorded it, rendered at the rasterizer's 0.01.
+    old = run.to_json()
+    del old["config"]["train"]["near"]
+    assert upgrade({**old, "version": 2})["config"]["train"]["near"] == 0.01
+    assert ResolvedRun.from_json({**old, "version": 2}).config.train.near == 0.01
+
+
+def test_the_stages_after_training_render_at_the_runs_near_plane(v1_capture: Path,
+                                                                   tmp_path: Path):
+    from core.data import load_capture
+    from core.relight.gbuffer import run_render
+
+    capture = load_capture(v1_capture)
+    config = load_config("test")
+    run = resolve_run(capture, config, preset="test")
+    assert config.train.near is None and run.config.train.near > 0.01
+    (tmp_path / "config.json").write_text(json.dumps(run.to_json()))
+    settings = run_render(tmp_path, v1_capture)
+    assert settings.near == run.config.train.near
+    assert settings.camera(capture.cameras[0]).near == settings.near

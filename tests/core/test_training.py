@@ -75,6 +75,19 @@ def test_from_capture_uses_the_training_cameras(tiny_capture: Path):
         Trainer.from_capture(cap, "999999")
 
 
+def test_every_render_of_a_trainer_clips_at_its_near_plane(views: list[View]):
+    from core.ao import scaled_camera
+    from core.data.layout import near_plane
+
+    model = GaussianModel.from_points(torch.zeros(4, 3), torch.full((4, 3), 0.5))
+    given = Trainer(views, replace(train_config("test"), near=0.3), model=model)
+    assert given.near == 0.3 and all(c.near == 0.3 for c in given.cameras)
+    assert scaled_camera(given.cameras[0], 0.25).near == 0.3  # the AO bake's cameras too
+    rig = Trainer(views, train_config("test"), model=model)  # a config resolved with no run
+    assert rig.near == pytest.approx(near_plane([v.camera for v in views]))
+    assert rig.cameras[0].near == rig.near and 0.01 < rig.near
+
+
 def test_seeding_lands_in_the_visual_hull(views: list[View]):
     cams = [v.camera for v in views]
     center = look_at_center(cams)
