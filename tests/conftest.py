@@ -33,3 +33,26 @@ def pg_url():
 def redis_broker():
     """(Redis URL, key prefix) private to this session."""
     yield from services.redis_namespace()
+
+
+# The files that take longest (each a minute or more of live servers, Celery workers or the
+# browser; CI's --durations), run first: `make test` hands out whole files to its processes, and a
+# long file started last is a tail with one process working.
+LONG_FILES = ("worker/test_celery.py", "worker/test_watchdog.py", "test_docs.py",
+              "worker/test_requeue.py", "service/test_api_parts_live.py", "worker/test_gate.py",
+              "service/test_demo.py", "worker/test_parts_celery.py", "e2e/test_web_parts.py",
+              "core/test_sequence.py", "service/test_api_door_live.py", "e2e/test_player.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONG_FILES)}
+    root = config.rootpath / "tests"
+
+    def key(item):
+        try:
+            name = item.path.relative_to(root).as_posix()
+        except ValueError:
+            return len(LONG_FILES)
+        return rank.get(name, len(LONG_FILES))
+
+    items.sort(key=key)  # stable: the order within each group is kept
