@@ -1,7 +1,7 @@
 """One tenant cannot starve the others (issue 42), measured against a real `dgs serve` with its
-embedded worker (SQLite job store and broker, one worker): tenant A floods while tenant B
-submits a tiny job. Reported for B, idle and under the flood, interleaved in one run: the job's
-start (submit to running: the job store's created_at to started_at) and its reads
+embedded workers (SQLite job store and broker; one worker, or `--workers N`): tenant A floods
+while tenant B submits a tiny job. Reported for B, idle and under the flood, interleaved in one
+run: the job's start (submit to running: the job store's created_at to started_at) and its reads
 (`GET /v1/jobs/{id}` every 0.1 s from submit to end).
 
 A's flood, every second until B's job has ended: `--pairs` retry/cancel pairs on A's own
@@ -253,11 +253,13 @@ def setup(args, data: Path) -> tuple[subprocess.Popen, str, Tenant, Tenant, str,
     keys = {t: dgs(data, "keys", "create", "--tenant", t).strip().splitlines()[-1]
             for t in ("flooder", "victim")}
     port = 8400 + random.randrange(500)
-    server = dgs(data, "serve", "--port", str(port),
+    server = dgs(data, "serve", "--port", str(port), "--workers", str(args.workers),
                  DGS_MAX_ACTIVE_JOBS=str(args.max_active_jobs), DGS_QUEUE=f"fair-{port}")
     url = f"http://127.0.0.1:{port}"
     wait_until(lambda: _ready(url), 120, "dgs serve")
-    wait_until(lambda: " ready." in _text(data / "logs" / "worker.log"), 300, "the worker")
+    for i in range(args.workers):  # worker.log, worker-2.log, ...
+        log = data / "logs" / ("worker.log" if i == 0 else f"worker-{i + 1}.log")
+        wait_until(lambda: " ready." in _text(log), 300, "the workers")
     a, b = Tenant(url, keys["flooder"]), Tenant(url, keys["victim"])
     folder = data.parent / "capture"
     dgs(data, "synth", str(folder), "--frames", "1", "--views", "8", "--size", "32", "32")
@@ -290,6 +292,8 @@ def main() -> None:
     p.add_argument("--submits", type=int, default=10)
     p.add_argument("--streams", type=int, default=200)
     p.add_argument("--max-active-jobs", type=int, default=2)
+    p.add_argument("--workers", type=int, default=1,
+                   help="embedded workers (`dgs serve --workers N`)")
     p.add_argument("--lead", type=float, default=3.0,
                    help="seconds of flood (or idle) before B submits")
     args = p.parse_args()
