@@ -41,6 +41,7 @@ import httpx
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from polling import wait_until  # noqa: E402  (beside this script)
 from service.client import Client  # noqa: E402
 from worker.models import utcnow  # noqa: E402
 
@@ -62,16 +63,6 @@ def dgs(data: Path, *args: str, **env: str) -> subprocess.Popen | str:
         return subprocess.Popen(cmd, cwd=ROOT, env=full, stdout=log, stderr=subprocess.STDOUT)
     return subprocess.run(cmd, cwd=ROOT, env=full, capture_output=True, text=True,
                           check=True).stdout
-
-
-def wait_until(condition, timeout: float, what: str, every: float = 0.2):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if value := condition():
-            return value
-        time.sleep(every)
-    raise TimeoutError(f"{what}: not within {timeout:.0f} s")
-
 
 class Tenant:
     """A tenant's key, its httpx client (answers as they come) and its client library."""

@@ -30,15 +30,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-
-def _wait(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.05)
-    raise SystemExit(f"timed out waiting for {what}")
+from polling import wait_until  # noqa: E402  (beside this script)
 
 
 def main() -> int:
@@ -66,7 +58,8 @@ def main() -> int:
                                *extra], cwd=ROOT, stdout=log, stderr=subprocess.STDOUT,
                               start_new_session=True)
     try:
-        _wait(lambda: b" ready." in (data / "worker.log").read_bytes(), 300, "the worker")
+        wait_until(lambda: b" ready." in (data / "worker.log").read_bytes(), 300, "the worker",
+                   every=0.05)
 
         def submit() -> str:
             job = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=None)
@@ -78,14 +71,15 @@ def main() -> int:
             return job if job.state in ("succeeded", "failed", "cancelled") else None
 
         ids = [submit() for _ in range(args.jobs)]
-        jobs = [_wait(lambda i=i: ended(i), 600, f"job {i}") for i in ids]
+        jobs = [wait_until(lambda i=i: ended(i), 600, f"job {i}", every=0.05) for i in ids]
         first = min(j.started_at for j in jobs)
         last = max(j.finished_at for j in jobs)
         time.sleep(5)  # the next pool process is started and idle before the last job comes
         t0 = time.time()
         idle = submit()
-        claimed = _wait(lambda: store.get(idle).started_at, 300, "the idle job's claim")
-        done = _wait(lambda: ended(idle), 300, "the idle job")
+        claimed = wait_until(lambda: store.get(idle).started_at, 300, "the idle job's claim",
+                             every=0.05)
+        done = wait_until(lambda: ended(idle), 300, "the idle job", every=0.05)
         time.sleep(5)
         for _ in range(args.dead):  # a retry sends a message, the cancel leaves it behind
             job = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=None)
@@ -93,7 +87,8 @@ def main() -> int:
             dispatch(celery, settings, job.id, "reconstruct")
         t1 = time.time()
         last_job = submit()
-        behind = _wait(lambda: ended(last_job), 900, "the job behind the dead messages")
+        behind = wait_until(lambda: ended(last_job), 900, "the job behind the dead messages",
+                            every=0.05)
         print(json.dumps({
             "start": args.start or celery.conf.worker_pool_start_method, "jobs": args.jobs,
             "states": sorted({j.state for j in jobs}),

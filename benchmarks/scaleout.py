@@ -32,6 +32,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from polling import wait_until  # noqa: E402  (beside this script)
+
 
 def config(iterations: int) -> dict:
     """The `test` preset's plan at `iterations` steps a key frame, meshes off."""
@@ -73,17 +75,6 @@ def _free_port() -> int:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
-
-def _wait(condition, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = condition()
-        if value:
-            return value
-        time.sleep(0.3)
-    raise RuntimeError(f"timed out waiting for {what}")
-
-
 def service(capture: Path, out: Path, params: dict, workers: int) -> dict:
     import httpx
 
@@ -103,10 +94,11 @@ def service(capture: Path, out: Path, params: dict, workers: int) -> dict:
             except httpx.TransportError:
                 return False
 
-        _wait(ready, 120, "dgs serve")
+        wait_until(ready, 120, "dgs serve", every=0.3)
         logs = ["worker.log"] + [f"worker-{i + 1}.log" for i in range(1, workers)]
-        _wait(lambda: all((data / "logs" / n).is_file() and " ready." in (
-            data / "logs" / n).read_text(errors="replace") for n in logs), 300, "the workers")
+        wait_until(lambda: all((data / "logs" / n).is_file() and " ready." in (
+            data / "logs" / n).read_text(errors="replace") for n in logs), 300, "the workers",
+            every=0.3)
         with Client(url) as client:
             cap = client.create_capture(capture)
             client.upload_capture(cap["id"], capture)

@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import shutil
-import threading
 import time
 from collections.abc import Callable
 
@@ -31,6 +30,7 @@ from worker.blobs import BlobStore, open_store
 from worker.idempotency import forget_expired
 from worker.models import Asset, Capture, Job, utcnow
 from worker.parts import delete_parts
+from worker.periodic import Periodic
 from worker.scratch import clean_job_folders
 from worker.settings import WorkerSettings
 from worker.store import ACTIVE, TERMINAL, JobStore
@@ -57,8 +57,10 @@ class Sweeper:
         self.interval = interval if interval is not None else max(settings.lease_seconds / 4, 1.0)
         self._next_check = 0.0
         """When (time.monotonic) the broker is looked into next."""
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        # A pass at once (what a worker killed before this start left: scratch folders, jobs
+        # to send), then every `interval`.
+        self._periodic = Periodic(self.sweep, self.interval, name="dgs-sweeper", log=log,
+                                  what="sweep", at_once=True)
 
     def sweep(self) -> dict[str, list[str]]:
         """One pass: re-sent job ids, expired objects, removed scratch folders."""
@@ -136,22 +138,8 @@ class Sweeper:
         return out
 
     def start(self) -> Sweeper:
-        self._thread = threading.Thread(target=self._loop, name="dgs-sweeper", daemon=True)
-        self._thread.start()
+        self._periodic.start()
         return self
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=10)
-
-    def _loop(self) -> None:
-        """A pass at once (what a worker killed before this start left: scratch folders,
-        jobs to send), then every `interval`."""
-        while True:
-            try:
-                self.sweep()
-            except Exception:  # the database is briefly away: try at the next pass
-                log.exception("sweep failed; retrying in %.0f s", self.interval)
-            if self._stop.wait(self.interval):
-                return
+        self._periodic.stop()

@@ -23,11 +23,11 @@ from __future__ import annotations
 import logging
 import os
 import signal
-import threading
 import time
 from collections.abc import Callable
 
 from worker.lease import lease_prefix
+from worker.periodic import Periodic
 from worker.settings import WorkerSettings
 from worker.store import JobStore
 
@@ -52,8 +52,8 @@ class Watchdog:
             min(settings.lease_seconds, settings.stall_seconds) / 4, 0.5)
         self._progress: dict[int, float] = {}
         """When (time.monotonic) each busy process last held a live lease, or was first seen."""
-        self._stop = threading.Event()
-        self._thread: threading.Thread | None = None
+        self._periodic = Periodic(self.check, self.interval, name="dgs-watchdog", log=log,
+                                  what="watchdog check")
 
     def check(self) -> dict[int, str]:
         """One look at every busy pool process; returns {pid: why} of those killed."""
@@ -97,18 +97,8 @@ class Watchdog:
         return None
 
     def start(self) -> Watchdog:
-        self._thread = threading.Thread(target=self._loop, name="dgs-watchdog", daemon=True)
-        self._thread.start()
+        self._periodic.start()
         return self
 
     def stop(self) -> None:
-        self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=10)
-
-    def _loop(self) -> None:
-        while not self._stop.wait(self.interval):
-            try:
-                self.check()
-            except Exception:  # the job store is briefly away: look again at the next check
-                log.exception("watchdog check failed; retrying in %.0f s", self.interval)
+        self._periodic.stop()

@@ -6,7 +6,9 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
+import io
 import threading
+import zipfile
 from pathlib import Path
 
 import httpx
@@ -15,7 +17,18 @@ from fastapi.testclient import TestClient
 from service.settings import ServiceSettings
 
 TUS = {"Tus-Resumable": "1.0.0"}
+ZIP = {"Content-Type": "application/zip"}
 CANONICAL = ("capture.json", "images/", "masks/", "normals/")
+
+
+def make_zip(files: dict[str, bytes], prefix: str = "",
+             method: int = zipfile.ZIP_DEFLATED) -> bytes:
+    """A zip archive of {path: bytes}, each path under `prefix`."""
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", method) as zf:
+        for path, data in files.items():
+            zf.writestr(prefix + path, data)
+    return buf.getvalue()
 
 
 def make_settings(data_dir: Path, **overrides) -> ServiceSettings:

@@ -10,22 +10,13 @@ import zipfile
 
 import pytest
 from fastapi.testclient import TestClient
-from service_harness import capture_files, make_settings
+from service_harness import ZIP, capture_files, make_settings, make_zip
 from sqlalchemy import func, select
 
 from service.app import create_app
 from worker.models import Capture
 
-ZIP = {"Content-Type": "application/zip"}
 
-
-def make_zip(files: dict[str, bytes], prefix: str = "",
-             method: int = zipfile.ZIP_DEFLATED) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", method) as zf:
-        for path, data in files.items():
-            zf.writestr(prefix + path, data)
-    return buf.getvalue()
 
 
 def assert_nothing_left(services) -> None:

@@ -7,31 +7,21 @@ client knows it, never a server folder, and keeps nothing."""
 
 from __future__ import annotations
 
-import io
 import json
 import sys
-import zipfile
 from pathlib import Path
 
 import pytest
 from fastapi.testclient import TestClient
-from service_harness import capture_files, make_settings
+from service_harness import ZIP, capture_files, make_settings, make_zip
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from bad_inputs import EXTS, HUGE, bad_variants, good_image, png_header  # noqa: E402
 
 from service.app import create_app
 
-ZIP = {"Content-Type": "application/zip"}
 CASES = ("truncated header", "truncated pixels", "wrong magic", "empty", "no pixels", "huge")
 
-
-def make_zip(files: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
-        for path, data in files.items():
-            zf.writestr(path, data)
-    return buf.getvalue()
 
 
 def assert_clean(r, settings, status: int = 422) -> dict:

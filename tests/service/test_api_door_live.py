@@ -21,8 +21,10 @@ import httpx
 import pytest
 from service_harness import (
     TUS,
+    ZIP,
     capture_files,
     capture_variant,
+    make_zip,
     manifest_of,
     metadata,
     submit_together,
@@ -37,7 +39,6 @@ from core.rundir import ARTIFACT_KINDS  # noqa: E402
 from service.client import Client  # noqa: E402
 
 pytestmark = pytest.mark.timeout(1200)
-ZIP = {"Content-Type": "application/zip"}
 
 
 @pytest.fixture(scope="module")
@@ -48,13 +49,6 @@ def live(tmp_path_factory):
         yield server, http
     server.stop()
 
-
-def _zip(files: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
-        for path, data in files.items():
-            zf.writestr(path, data)
-    return buf.getvalue()
 
 
 def _refused(r: httpx.Response, server: LiveServer, status: int = 422) -> dict:
@@ -74,7 +68,8 @@ def test_malformed_uploads_answer_422_naming_the_client_file(live, synth_capture
                                        content=hdr), server)["message"]
     files = capture_files(synth_capture)
     files["images/000000/cam01.png"] = png_header(*HUGE)  # 20000 x 20000 inside a zip
-    error = _refused(http.post("/v1/captures/archive", content=_zip(files), headers=ZIP), server)
+    error = _refused(http.post("/v1/captures/archive", content=make_zip(files), headers=ZIP),
+                     server)
     assert error["details"][0]["path"] == "images/000000/cam01.png"
     assert "is 20000x20000 (400000000 pixels); the limit is" in error["message"]
     error = _refused(http.post("/v1/captures", content=b"\x89PNG\r\n\x1a\n",
@@ -137,7 +132,7 @@ def test_hostile_capture_files_answer_422_naming_file_and_field(live, synth_capt
     files = attacked(synth_capture, attack)
     expected = f"{attack.file}: {attack.message}"
     error = _refused(http.post("/v1/captures/archive", params={"format": attack.fmt},
-                               content=_zip(files), headers=ZIP), server)
+                               content=make_zip(files), headers=ZIP), server)
     assert error["code"] == "invalid_capture" and expected in error["message"], error
     assert not error["retryable"]
     capture = http.post("/v1/captures", json={"format": attack.fmt,
@@ -156,7 +151,7 @@ def test_a_failed_job_names_the_capture_file_not_the_server_folder(live, synth_c
     server, http = live
     server.wait_worker()
     files = capture_files(synth_capture)
-    r = http.post("/v1/captures/archive", content=_zip(files), headers=ZIP)
+    r = http.post("/v1/captures/archive", content=make_zip(files), headers=ZIP)
     assert r.status_code == 201, r.text
     capture_id = r.json()["id"]
     stored = server.data_dir / "store" / "captures" / capture_id / "images/000000/cam02.png"
@@ -188,7 +183,7 @@ def test_a_run_the_capture_cannot_follow_is_refused_at_the_door(live, synth_capt
     job."""
     server, http = live
     files = capture_variant(synth_capture, cameras=cameras, masks=masks)
-    r = http.post("/v1/captures/archive", content=_zip(files), headers=ZIP)
+    r = http.post("/v1/captures/archive", content=make_zip(files), headers=ZIP)
     assert r.status_code == 201, r.text
     before = _jobs(http)
     r = http.post("/v1/jobs", json={"capture_id": r.json()["id"], "params": {
@@ -225,7 +220,7 @@ def made(live, tmp_path_factory):
     folder = tmp_path_factory.mktemp("door-two") / "capture"
     synthesize(folder, SynthConfig(frames=2, views=8, width=32, height=32, seed=5,
                                    ao_directions=8))
-    r = http.post("/v1/captures/archive", content=_zip(capture_files(folder)), headers=ZIP)
+    r = http.post("/v1/captures/archive", content=make_zip(capture_files(folder)), headers=ZIP)
     assert r.status_code == 201, r.text
     capture = r.json()["id"]
     job = http.post("/v1/jobs", json={"capture_id": capture, "params": {

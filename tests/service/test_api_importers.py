@@ -9,29 +9,19 @@ from __future__ import annotations
 
 import errno
 import hashlib
-import io
 import logging
 import sys
-import zipfile
 from pathlib import Path
 
 import pytest
-from service_harness import upload_file
+from service_harness import ZIP, make_zip, upload_file
 
 from core.data.importers import IMPORTERS, Importer
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from hostile_sources import ATTACKS, attacked, source_files  # noqa: E402
 
-ZIP = {"Content-Type": "application/zip"}
 
-
-def make_zip(files: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
-        for path, data in files.items():
-            zf.writestr(path, data)
-    return buf.getvalue()
 
 
 def _named(error: dict, attack) -> None:

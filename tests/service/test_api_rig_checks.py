@@ -6,33 +6,23 @@ no 500."""
 
 from __future__ import annotations
 
-import io
 import json
 import sys
-import zipfile
 from pathlib import Path
 
 import pytest
-from service_harness import capture_files
+from service_harness import ZIP, capture_files, make_zip
 
 from core.data import load_capture
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rig_sources import Y_DOWN, idr_files, inverted, mirrored, panoptic_files, turned  # noqa: E402
 
-ZIP = {"Content-Type": "application/zip"}
 
-
-def _zip(files: dict[str, bytes]) -> bytes:
-    buf = io.BytesIO()
-    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
-        for path, data in files.items():
-            zf.writestr(path, data)
-    return buf.getvalue()
 
 
 def test_a_mirrored_world_is_ready_and_says_so(client, services, synth_capture):
-    body = _zip(panoptic_files(mirrored(load_capture(synth_capture))))
+    body = make_zip(panoptic_files(mirrored(load_capture(synth_capture))))
     r = client.post("/v1/captures/archive", params={"format": "panoptic"}, content=body,
                     headers=ZIP)
     assert r.status_code == 201, r.text
@@ -50,7 +40,7 @@ def test_a_mirrored_world_is_ready_and_says_so(client, services, synth_capture):
 def test_camera_to_world_poses_in_w2c_answer_422_naming_field_and_fix(client, synth_capture):
     files = panoptic_files(turned(load_capture(synth_capture), Y_DOWN))
     r = client.post("/v1/captures/archive", params={"format": "panoptic"},
-                    content=_zip(inverted(files)), headers=ZIP)
+                    content=make_zip(inverted(files)), headers=ZIP)
     assert r.status_code == 422, r.text
     error = r.json()["error"]
     assert error["code"] == "invalid_capture" and error["retryable"] is False
@@ -62,7 +52,7 @@ def test_camera_to_world_poses_in_w2c_answer_422_naming_field_and_fix(client, sy
 
 
 def test_an_idr_folder_with_images_and_masks_is_ready(client, synth_capture):
-    body = _zip(idr_files(load_capture(synth_capture), plural=True))
+    body = make_zip(idr_files(load_capture(synth_capture), plural=True))
     r = client.post("/v1/captures/archive", params={"format": "idr"}, content=body, headers=ZIP)
     assert r.status_code == 201, r.text
     summary = r.json()["summary"]
@@ -79,7 +69,7 @@ def test_a_canonical_import_record_of_any_shape_is_no_500(client, synth_capture,
     doc = json.loads(files["capture.json"])
     doc["import"] = record
     files["capture.json"] = json.dumps(doc).encode()
-    r = client.post("/v1/captures/archive", content=_zip(files), headers=ZIP)
+    r = client.post("/v1/captures/archive", content=make_zip(files), headers=ZIP)
     assert r.status_code == 201, r.text
     expected = ["kept"] if isinstance(record, dict) and record["warnings"] == [3, "kept"] else []
     assert r.json()["summary"]["import_warnings"] == expected
