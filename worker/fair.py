@@ -19,6 +19,18 @@ Why rule 2: with one worker every tenant has nothing on a worker whenever it is 
 and 3 alone are the queue's order (a tenant's three queued jobs before another's newer one);
 the latest pick makes tenants take turns.
 
+A tenant that took every worker while alone would keep them until its jobs end: the fair share
+(`FairPick.ask_to_yield`, asked by each running job's heartbeat) asks one of its jobs to give its
+worker up at the next step when another tenant waits with at least two jobs fewer on a worker
+(the shares are then uneven by more than one worker; each tenant ends with its share, and no
+two tenants trade a worker back and forth). The job stops with a checkpoint and goes back to the
+queue (`JobStore.release`, no attempt counted); the freed worker's pick gives the waiting tenant
+the turn. One job is asked at a time, and only after holding its worker `share_after_seconds`
+(every claim makes progress). With fewer workers than tenants the shares cannot be even: time
+slicing (`time_slice_seconds`, off by default) asks a job whenever another tenant waits with
+fewer on a worker, after holding its worker that long; each slice costs a checkpoint and a
+process start.
+
 A waiting job is queued (or a parted job's assembly), sent to the broker, not picked within
 the starting window, with no cancel asked and no parts of its own to wait for. The claim and its
 lease (`JobStore.claim`) stay what keeps a job from running twice: the pick only orders.
@@ -35,7 +47,7 @@ from sqlalchemy.orm import Session
 
 from worker.models import Job, utcnow
 
-__all__ = ["FairPick", "Pick", "Turn", "turns"]
+__all__ = ["FairPick", "Pick", "Turn", "turns", "yield_wait"]
 
 NEVER = dt.datetime.min.replace(tzinfo=dt.timezone.utc)
 
@@ -95,6 +107,14 @@ def turns(s: Session, job: Job, now: dt.datetime, since: dt.datetime) -> list[Tu
                   for t, (created, job_id) in oldest.items())
 
 
+def yield_wait(fewer: int, share_after: float, time_slice: float) -> float | None:
+    """How long a job must have held its worker before it gives it up to a tenant waiting with
+    `fewer` jobs on a worker than its own tenant (None: it keeps it; see the module)."""
+    waits = [wait for wait, gap in ((share_after, 2), (time_slice, 1))
+             if wait > 0 and fewer >= gap]
+    return min(waits, default=None)
+
+
 def _lock_picks(s: Session) -> None:
     """One pick at a time: SQLite's write transactions already run one at a time (BEGIN
     IMMEDIATE, worker.db); PostgreSQL takes a transaction-scoped advisory lock."""
@@ -123,3 +143,45 @@ class FairPick:
                 return Pick("defer", first)
             job.picked_at = now
             return Pick("run")
+
+    def ask_to_yield(self, job_id: str, owner: str, *, share_after: float, time_slice: float,
+                     starting_seconds: float) -> bool:
+        """Whether the running job `job_id` (leased by `owner`) should give its worker up now
+        to a waiting tenant (see the module); when it should, the ask is recorded
+        (`Job.yield_asked_at`) and no other job is asked until this one has left its worker."""
+        now = utcnow()
+        since = now - dt.timedelta(seconds=starting_seconds)
+        with self.session() as s:  # type: ignore[attr-defined]
+            job = s.get(Job, job_id)
+            if (job is None or job.state != "running" or job.lease_owner != owner
+                    or job.cancel_requested or job.yield_asked_at is not None
+                    or job.run_started_at is None):
+                return False
+            others = select(Job.tenant).where(_waiting(since), Job.tenant != job.tenant)
+            if s.scalar(others.limit(1)) is None:  # the usual answer, without the lock
+                return False
+            _lock_picks(s)
+            live = ((Job.state == "running") & (Job.lease_owner.is_not(None))
+                    & (Job.lease_expires_at > now))
+            if s.scalar(select(Job.id).where(live, Job.yield_asked_at.is_not(None))
+                        .limit(1)) is not None:
+                return False  # one ask at a time: the last has not left its worker yet
+            tenants = set(s.scalars(others.distinct())) | {job.tenant}
+            busy = dict(s.execute(select(Job.tenant, func.count()).where(
+                Job.tenant.in_(list(tenants)), _on_worker(now, since)).group_by(Job.tenant)).all())
+            mine = busy.get(job.tenant, 0)
+            fewest = min(busy.get(t, 0) for t in tenants - {job.tenant})
+            wait = yield_wait(mine - fewest, share_after, time_slice)
+            if wait is None:
+                return False
+            held = now - dt.timedelta(seconds=wait)
+            # Of the tenant's jobs that have held a worker that long, the one claimed last
+            # gives way (the least run since its start); the others keep theirs.
+            last = s.scalar(select(Job.id).where(live, Job.tenant == job.tenant,
+                                                 Job.run_started_at <= held,
+                                                 Job.cancel_requested.is_(False))
+                            .order_by(Job.run_started_at.desc(), Job.id.desc()).limit(1))
+            if last != job.id:
+                return False
+            job.yield_asked_at = now
+            return True

@@ -39,7 +39,8 @@ class Housekeeping:
                     Job.state == "queued", Job.lease_owner.is_(None), ~active_parts(Job.id))):
                 if sent is None:
                     out[job_id] = ("it was never sent to the broker (released by a worker that "
-                                   "shut down, or the broker was away)")
+                                   "shut down or gave it up to another tenant, or the broker "
+                                   "was away)")
                 elif held is not None and job_id not in held and \
                         sent < now - dt.timedelta(seconds=grace):
                     out[job_id] = "it is queued, but its message is no longer in the broker"

@@ -194,6 +194,9 @@ class Job(Base):
     picked_at: Mapped[dt.datetime | None] = mapped_column(default=None)
     """When a free worker's fair pick (`worker.fair`) last gave it a worker; None if never
     (migration 0009)."""
+    yield_asked_at: Mapped[dt.datetime | None] = mapped_column(default=None)
+    """When the fair share (`worker.fair`) asked its running job to give its worker up at the
+    next step; cleared by the next claim (migration 0010)."""
     created_at: Mapped[dt.datetime] = mapped_column(default=utcnow)
     updated_at: Mapped[dt.datetime] = mapped_column(default=utcnow, onupdate=utcnow)
     started_at: Mapped[dt.datetime | None] = mapped_column(default=None)

@@ -36,6 +36,12 @@ class JobLink:
         self.cancelled = False
         self.shutdown = False
         """This worker is shutting down: stop, checkpoint, and give the job back."""
+        self.yielding = False
+        """Another tenant's turn (worker.fair): stop, checkpoint, and give the job back."""
+        self._yield_after = min((w for w in (settings.share_after_seconds,
+                                             settings.time_slice_seconds) if w > 0),
+                                default=None)
+        """The least time on this worker after which the job may be asked to give it up."""
         self._lock = threading.Lock()
         self._logs: list[str] = []
         self._pending: dict[str, Any] | None = None
@@ -121,9 +127,28 @@ class JobLink:
                 self._cancel_seen = time.monotonic()
                 self.log("cancel requested: stopping after the current step")
                 self.stop.set()
+            if owned and not (self.cancelled or self.yielding) and self._may_yield():
+                self.yielding = True
+                self.log("another tenant waits with fewer jobs on the workers: stopping after "
+                         "the current step, back in the queue (fair share)")
+                self.stop.set()
             if (self._cancel_seen is not None and not self._done.is_set()
                     and time.monotonic() - self._cancel_seen > self.settings.cancel_grace_seconds):
                 self._kill_self()
+
+    def _may_yield(self) -> bool:
+        """Whether the fair share asks this job to give its worker up now (worker.fair)."""
+        if self._yield_after is None or time.monotonic() - self._start[0] < self._yield_after:
+            return False
+        s = self.settings
+        try:
+            return self.store.ask_to_yield(self.job_id, str(self.owner),
+                                           share_after=s.share_after_seconds,
+                                           time_slice=s.time_slice_seconds,
+                                           starting_seconds=s.stall_seconds)
+        except Exception as exc:  # the database is briefly away: ask at the next beat
+            self.log(f"fair share check failed ({type(exc).__name__}: {exc}); retrying")
+            return False
 
     def _kill_self(self) -> None:
         """The job did not reach a step boundary in time: record the cancel and end this process

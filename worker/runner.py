@@ -149,11 +149,12 @@ class Runner:
             link.log("lease lost to another worker; stopping without writing")
             return Outcome("lost")
         reason = exc.__cause__ or exc  # core's own words: "stopped at step 57 of frame ..."
-        if link.shutdown and not link.cancelled:
-            link.log(f"worker shutting down: {reason}; back in the queue")
+        if (link.shutdown or link.yielding) and not link.cancelled:
+            why = ("its worker shut down" if link.shutdown else
+                   "it gave its worker to another tenant's job (fair share)")
+            link.log(f"{why}: {reason}; back in the queue")
             link.close()
-            self.store.release(job.id, link.owner, "back in the queue: its worker shut "
-                               f"down at {exc.where}")
+            self.store.release(job.id, link.owner, f"back in the queue: {why} at {exc.where}")
             return Outcome("released")
         link.log(f"cancelled: {reason}")
         link.close()

@@ -93,6 +93,16 @@ class WorkerSettings(BaseSettings):
     cancel_grace_seconds: float = Field(5.0, gt=0)
     """After a cancel, how long a worker waits for the job to stop between two steps before it
     ends its own process."""
+    share_after_seconds: float = Field(10.0, ge=0)
+    """Fair share of the workers (worker.fair): a job of a tenant holding at least two workers
+    more than a tenant with a waiting job gives its worker up at its next step (a checkpoint,
+    back in the queue, no attempt counted) once it has held it this long; 0 never. The wait
+    keeps every claim making progress."""
+    time_slice_seconds: float = Field(0.0, ge=0)
+    """Time slicing (worker.fair), for fewer workers than tenants: a job of a tenant holding
+    more workers than one with a waiting job gives its worker up after holding it this long.
+    0 (the default): never; a job then runs to its end and the next turn goes to the waiting
+    tenant. Each slice costs the job a checkpoint and a process start."""
     lost_message_seconds: float = Field(120.0, gt=0)
     """How often the sweepers look into the broker (Redis or the embedded one) for queued jobs
     whose message is gone (lost with a worker that died holding it, or with Redis's data), and

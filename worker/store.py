@@ -283,6 +283,7 @@ class JobStore(ApiQueries, Housekeeping, FairPick):
             job.state = "running"
             job.started_at = job.started_at or now
             job.run_started_at, job.run_start_fraction = now, job.fraction
+            job.yield_asked_at = None
             job.stage, job.eta_s = "starting", None
             transitions.state_event(s, job)
             if job.parent_id is not None:
@@ -331,7 +332,8 @@ class JobStore(ApiQueries, Housekeeping, FairPick):
             return True
 
     def release(self, job_id: str, owner: Owner, message: str) -> bool:
-        """Give the job back to the queue without ending it (its worker is shutting down).
+        """Give the job back to the queue without ending it (its worker is shutting down, or
+        it gave its worker to another tenant: `worker.fair`).
         It is marked as never dispatched, so the next sweeper pass of any other process (the
         API's, another worker's) sends it, and another worker resumes it from its checkpoint;
         the worker going down must not send it itself, or it may take the job back while its

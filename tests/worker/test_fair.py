@@ -5,8 +5,12 @@ only waiting jobs take part; racing picks are serialized."""
 
 from __future__ import annotations
 
+import datetime as dt
 import threading
 
+from sqlalchemy import update
+
+from worker.models import Job, utcnow
 from worker.store import JobStore, Owner
 
 STARTING = 300.0
@@ -96,3 +100,71 @@ def test_racing_picks_give_the_tenant_one_worker(store: JobStore):
     for t in threads:
         t.join(timeout=120)
     assert sorted(outcomes) == ["defer"] * 7 + ["run"]
+
+
+def _running(store: JobStore, tenant: str, held: float) -> str:
+    """A job of `tenant` claimed `held` seconds ago (its run's start moved back)."""
+    job_id = _queued(store, tenant)
+    assert store.claim(job_id, Owner.current(), 600, 3).status == "claimed"
+    with store.session() as s:
+        s.execute(update(Job).where(Job.id == job_id).values(
+            run_started_at=utcnow() - dt.timedelta(seconds=held)))
+    return job_id
+
+
+def _ask(store: JobStore, job_id: str, share_after: float = 10.0,
+         time_slice: float = 0.0) -> bool:
+    return store.ask_to_yield(job_id, store.get(job_id).lease_owner, share_after=share_after,
+                              time_slice=time_slice, starting_seconds=STARTING)
+
+
+def test_a_tenant_two_workers_ahead_gives_one_up(store: JobStore):
+    """A holds both workers, B waits: A's job claimed last gives its worker up once it has
+    held it `share_after` seconds; one ask at a time; the shares then even, nobody is asked."""
+    a_old, a_new = _running(store, "a", 60), _running(store, "a", 30)
+    b1 = _queued(store, "b")
+    assert not _ask(store, a_new, share_after=45)  # not held long enough yet
+    assert not _ask(store, a_old)  # held long enough, but A's other job was claimed last
+    assert _ask(store, a_new)
+    assert store.get(a_new).yield_asked_at is not None
+    assert not _ask(store, a_old)  # the ask before has not left its worker yet
+    owner = Owner.parse(store.get(a_new).lease_owner)
+    assert store.release(a_new, owner, "back in the queue: it gave its worker to another "
+                         "tenant's job (fair share) at step 7")
+    released = store.get(a_new)
+    assert (released.state, released.attempts, released.redeliveries) == ("queued", 1, 0)
+    assert released.runs[-1]["outcome"] == "released"
+    store.mark_dispatched(a_new)
+    assert store.pick(a_new, STARTING).status == "defer"  # B has the turn: 0 on a worker
+    assert store.pick(b1, STARTING).status == "run"
+    store.claim(b1, Owner.current(), 600, 3)
+    assert not _ask(store, a_old)  # one each: even
+    # A's released job resumes later with a new attempt number; its ask is gone.
+    store.finish(b1, Owner.parse(store.get(b1).lease_owner), "succeeded")
+    assert store.pick(a_new, STARTING).status == "run"
+    store.claim(a_new, Owner.current(), 600, 3)
+    resumed = store.get(a_new)
+    assert resumed.attempts == 2 and resumed.yield_asked_at is None
+
+
+def test_one_worker_less_keeps_it_unless_time_sliced(store: JobStore):
+    """With one worker each tenant cannot have its share: A's job keeps the worker (B's turn
+    comes when it ends) unless time slicing is on, then after a slice."""
+    a1 = _running(store, "a", 30)
+    _queued(store, "b")
+    assert not _ask(store, a1)
+    assert not _ask(store, a1, time_slice=60)
+    assert _ask(store, a1, time_slice=20)
+
+
+def test_nobody_is_asked_for_its_own_tenant_or_a_cancelled_job(store: JobStore):
+    a1, a2 = _running(store, "a", 60), _running(store, "a", 60)
+    _queued(store, "a")
+    assert not _ask(store, a1) and not _ask(store, a2)  # only A waits
+    b1 = _queued(store, "b")
+    store.request_cancel(b1, "b")  # B's one job is cancelled: B does not wait
+    assert not _ask(store, a1) and not _ask(store, a2)
+    _queued(store, "c")
+    store.request_cancel(a2, "a")  # a job asked to stop already is not asked again
+    assert not _ask(store, a2)
+    assert _ask(store, a1)

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 from sqlalchemy import update
 from test_celery import Harness, s3_server, stack  # noqa: F401  (fixtures)
-from worker_harness import wait_for
+from worker_harness import add_capture, tiny_config, wait_for
 
 from worker.broker import BrokerInspector
 from worker.celery_app import dispatch
@@ -129,3 +129,48 @@ def test_a_message_runs_after_one_round_when_the_turn_has_none(stack, tiny_captu
     assert job.attempts == 1 and job.error["code"] == "invalid_input", h.log(a)
     text = worker.log.read_text(errors="replace")
     assert text.count(f"job {a}: deferred") == 1, text[-3000:]
+
+
+def _training(h: Harness, tenant: str, iterations: int) -> str:
+    """A real training job of `tenant` on the harness's capture."""
+    job = h.store.create(tenant, "reconstruct", {
+        "preset": "test", "config": tiny_config(iterations), "checkpoint_every": 20},
+        capture_id=h.capture_id)
+    h.store.mark_dispatched(job.id)
+    dispatch(h.celery, h.settings, job.id, "reconstruct")
+    return job.id
+
+
+def test_a_tenant_on_every_worker_gives_one_up(stack, tiny_capture: Path, worker_factory):
+    """A's two long jobs hold both of a worker's pool processes when B submits: one of A's
+    stops at a step and goes back to the queue (not an attempt lost), B's job runs on the freed
+    process and ends while A's other job still runs, and A's job comes back with a new
+    attempt to resume where it stopped."""
+    env, settings = stack
+    h = Harness(settings, tiny_capture)
+    _only_this_tests_jobs(h)
+    ta, tb = (f"{t}-{secrets.token_hex(3)}" for t in "ab")
+    for tenant in (ta, tb):
+        add_capture(h.store, h.blobs, tiny_capture, f"cap_{secrets.token_hex(4)}", tenant)
+    worker = worker_factory({**env, "DGS_SHARE_AFTER_SECONDS": "1"}, "--concurrency=2").start()
+    a = [_training(h, ta, 100_000) for _ in range(2)]
+    try:
+        wait_for(lambda: all(h.state(j) == "running" for j in a), 300, "A's jobs on both")
+        b = _training(h, tb, 20)
+        done = h.wait_state(b, ("succeeded", "failed"), timeout=300)
+        text = worker.log.read_text(errors="replace")
+        assert done.state == "succeeded", h.log(b) + text[-3000:]
+        jobs = [h.store.get(j) for j in a]
+        gave = [j for j in jobs if [r.get("outcome") for r in j.runs][:1] == ["released"]]
+        assert len(gave) == 1, [j.runs for j in jobs]
+        kept = next(j for j in jobs if j is not gave[0])
+        assert (kept.state, len(kept.runs)) == ("running", 1)  # never stopped for B
+        assert "back in the queue" in h.log(gave[0].id) and "fair share" in h.log(gave[0].id)
+        back = wait_for(lambda: (j if (j := h.store.get(gave[0].id)).attempts == 2
+                                 and j.state == "running" else None), 300, "A's job back")
+        assert back.redeliveries <= 1  # the release gave its attempt back
+    finally:
+        for job_id in a:
+            h.store.request_cancel(job_id, ta)
+        for job_id in a:
+            h.wait_state(job_id, ("cancelled", "failed", "succeeded"), timeout=120)
