@@ -11,7 +11,13 @@ again after its Retry-After). Between phases A's jobs are cancelled and a probe 
 to its end, so every message the flood left in the queue is gone before the next phase.
 
     python benchmarks/fairness.py [--rounds 2] [--pairs 15] [--submits 10] [--streams 200]
-                                  [--max-active-jobs 2] [--lead 3]
+                                  [--max-active-jobs 2] [--lead 3] [--workers 1]
+                                  [--flood-steps 40] [--share-after S]
+
+B's start is also given in two: its wait for a worker (submit to the fair pick) and its pool
+process's start (pick to claim), with how many times A's jobs have given a worker up to the
+fair share so far. `--flood-steps 3000` makes A's jobs hold the workers for minutes, as a
+studio's long reconstructions do; `--share-after 0` turns the fair share off.
 
 The server runs the default limits but DGS_MAX_ACTIVE_JOBS (`--max-active-jobs`, small so
 that the flood reaches it). Nothing here depends on how the worker treats the messages of
@@ -24,6 +30,7 @@ from __future__ import annotations
 import argparse
 import collections
 import datetime as dt
+import json
 import os
 import random
 import sqlite3
@@ -45,11 +52,18 @@ from polling import wait_until  # noqa: E402  (beside this script)
 from service.client import Client  # noqa: E402
 from worker.models import utcnow  # noqa: E402
 
-TINY = {"preset": "test", "config": {
-    "train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3_start": 28,
-                           "densify_from": 2, "densify_until": 24, "densify_interval": 4,
-                           "reset_interval": 16, "sh_interval": 4}, "init_points": 300},
-    "sequence": {"enabled": False}}}
+def tiny(steps: int = 40) -> dict:
+    """A tiny job's params: the `test` preset on the 32x32 capture, `steps` steps (B's job and,
+    by default, A's: 40)."""
+    f = steps / 40
+    schedule = {k: max(1, round(v * f)) for k, v in (
+        ("stage2_start", 12), ("stage3_start", 28), ("densify_from", 2), ("densify_until", 24),
+        ("densify_interval", 4), ("reset_interval", 16), ("sh_interval", 4))}
+    return {"preset": "test", "config": {
+        "train": {"schedule": {"iterations": steps, **schedule}, "init_points": 300},
+        "sequence": {"enabled": False}}}
+
+
 ACTIVE = ("queued", "running")
 
 
@@ -76,8 +90,8 @@ class Tenant:
     def job(self, job_id: str) -> dict:
         return self.http.get(f"/v1/jobs/{job_id}").json()
 
-    def submit(self, capture: str) -> httpx.Response:
-        return self.http.post("/v1/jobs", json={"capture_id": capture, "params": TINY})
+    def submit(self, capture: str, steps: int = 40) -> httpx.Response:
+        return self.http.post("/v1/jobs", json={"capture_id": capture, "params": tiny(steps)})
 
     def active(self) -> list[str]:
         return [j["id"] for state in ACTIVE for j in self.http.get(
@@ -118,7 +132,7 @@ class Flood:
             self.stopped.wait(1.0)
 
     def _submit(self) -> None:
-        r = self.count("submit", self.a.submit(self.capture))
+        r = self.count("submit", self.a.submit(self.capture, self.args.flood_steps))
         if r.status_code == 202:
             with self.lock:
                 self.jobs.append(r.json()["id"])
@@ -208,7 +222,7 @@ def run_b(b: Tenant, capture: str, api_pid: int) -> dict:
     assert final["state"] == "succeeded", final
     start = (dt.datetime.fromisoformat(final["started_at"])
              - dt.datetime.fromisoformat(final["created_at"])).total_seconds()
-    return {"start": start, "reads": latencies, "submit_ms": submit_ms,
+    return {"start": start, "reads": latencies, "submit_ms": submit_ms, "job": job,
             "api_cpu": (cpu(api_pid) - cpu0) / (time.monotonic() - t0)}
 
 
@@ -229,12 +243,30 @@ def ms(values: list[float], q: float) -> float:
     return statistics.quantiles(values, n=100)[int(q) - 1] if len(values) > 1 else values[0]
 
 
-def row(phase: str, out: dict, flood: Flood | None) -> str:
+def split(store: Path, job: str) -> tuple[float, float]:
+    """B's start in two: waiting for a worker (created to picked: `worker.fair`) and its pool
+    process's start (picked to claimed), from the job store."""
+    with sqlite3.connect(store, timeout=30) as db:
+        created, picked, started = (dt.datetime.fromisoformat(v) for v in db.execute(
+            "SELECT created_at, picked_at, started_at FROM jobs WHERE id = ?", (job,)).fetchone())
+    return (picked - created).total_seconds(), (started - picked).total_seconds()
+
+
+def gave_up(store: Path) -> int:
+    """How many times A's jobs gave a worker up (a run that ended "released")."""
+    with sqlite3.connect(store, timeout=30) as db:
+        return sum(1 for (runs,) in db.execute("SELECT runs FROM jobs WHERE tenant = 'flooder'")
+                   for run in json.loads(runs or "[]") if run.get("outcome") == "released")
+
+
+def row(phase: str, out: dict, flood: Flood | None, store: Path) -> str:
     r = out["reads"]
+    wait, start = split(store, out["job"])
     attack = "" if flood is None else "; ".join(
         f"{k}: {v}" for k, v in sorted(flood.counts.items())) + \
         f"; streams open at once, most: {flood.most_open}"
-    return (f"| {phase} | {out['start']:.1f} | {out['submit_ms']:.0f} | {len(r)} | "
+    return (f"| {phase} | {out['start']:.1f} | {wait:.1f} | {start:.1f} | {gave_up(store)} | "
+            f"{out['submit_ms']:.0f} | {len(r)} | "
             f"{ms(r, 50):.1f} | {ms(r, 95):.1f} | {max(r):.1f} | {100 * out['api_cpu']:.0f} | "
             f"{attack} |")
 
@@ -244,8 +276,11 @@ def setup(args, data: Path) -> tuple[subprocess.Popen, str, Tenant, Tenant, str,
     keys = {t: dgs(data, "keys", "create", "--tenant", t).strip().splitlines()[-1]
             for t in ("flooder", "victim")}
     port = 8400 + random.randrange(500)
+    share = {} if args.share_after is None else {
+        "DGS_SHARE_AFTER_SECONDS": str(args.share_after)}
     server = dgs(data, "serve", "--port", str(port), "--workers", str(args.workers),
-                 DGS_MAX_ACTIVE_JOBS=str(args.max_active_jobs), DGS_QUEUE=f"fair-{port}")
+                 DGS_MAX_ACTIVE_JOBS=str(args.max_active_jobs), DGS_QUEUE=f"fair-{port}",
+                 **share)
     url = f"http://127.0.0.1:{port}"
     wait_until(lambda: _ready(url), 120, "dgs serve")
     for i in range(args.workers):  # worker.log, worker-2.log, ...
@@ -260,7 +295,7 @@ def setup(args, data: Path) -> tuple[subprocess.Popen, str, Tenant, Tenant, str,
         t.client.upload_capture(cap["id"], folder)
         t.client.commit(cap["id"])
         captures.append(cap["id"])
-    target = a.submit(captures[0]).json()["id"]  # A's job to retry and cancel
+    target = a.submit(captures[0], args.flood_steps).json()["id"]  # to retry and cancel
     a.client.cancel(target)
     return server, url, a, b, captures[0], captures[1], target
 
@@ -285,6 +320,10 @@ def main() -> None:
     p.add_argument("--max-active-jobs", type=int, default=2)
     p.add_argument("--workers", type=int, default=1,
                    help="embedded workers (`dgs serve --workers N`)")
+    p.add_argument("--flood-steps", type=int, default=40,
+                   help="steps of A's jobs (long ones hold the workers)")
+    p.add_argument("--share-after", type=float, default=None, metavar="S",
+                   help="the server's DGS_SHARE_AFTER_SECONDS (default: its own; 0: off)")
     p.add_argument("--lead", type=float, default=3.0,
                    help="seconds of flood (or idle) before B submits")
     args = p.parse_args()
@@ -292,24 +331,25 @@ def main() -> None:
     data.mkdir(parents=True)
     print(f"load before: {os.getloadavg()}; {utcnow():%Y-%m-%d %H:%M} UTC; data {data}")
     server, url, a, b, cap_a, cap_b, target = setup(args, data)
-    broker = data / "broker.sqlite3"
+    broker, store = data / "broker.sqlite3", data / "dgs.sqlite3"
     try:
         pid = server.pid
         drained(b, a, cap_b, broker, pid)  # warms the worker (its native build, the imports)
         rows = []
         for i in range(args.rounds):
             time.sleep(args.lead)
-            rows.append(row(f"idle, round {i + 1}", run_b(b, cap_b, pid), None))
+            rows.append(row(f"idle, round {i + 1}", run_b(b, cap_b, pid), None, store))
             drained(b, a, cap_b, broker, pid)
             flood = Flood(a, url, cap_a, target, args).start()
             time.sleep(args.lead)
             out = run_b(b, cap_b, pid)
             flood.stop()
-            rows.append(row(f"flood, round {i + 1}", out, flood))
+            rows.append(row(f"flood, round {i + 1}", out, flood, store))
             drained(b, a, cap_b, broker, pid)
-        print("| B's job | start s | submit ms | reads | p50 ms | p95 ms | max ms | API CPU % "
+        print("| B's job | start s | of it, for a worker | its process | A's jobs gave up, "
+              "so far | submit ms | reads | p50 ms | p95 ms | max ms | API CPU % "
               "| A's answers |")
-        print("|---|---|---|---|---|---|---|---|---|")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         print("\n".join(rows))
     finally:
         server.terminate()

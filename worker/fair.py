@@ -75,11 +75,18 @@ class Turn:
     tenant: str
 
 
+def _starting(since: dt.datetime) -> Any:
+    """SQL: picked within the starting window and not claimed since (its pool process is
+    starting); a job a worker gave back (`JobStore.release`) was claimed after its pick."""
+    return ((Job.picked_at >= since)
+            & ((Job.run_started_at.is_(None)) | (Job.run_started_at < Job.picked_at)))
+
+
 def _waiting(since: dt.datetime) -> Any:
     """SQL: a job waiting for a worker (see the module); `since`: the starting window's start."""
     return ((Job.lease_owner.is_(None)) & (Job.cancel_requested.is_(False))
             & (Job.dispatched_at.is_not(None))
-            & ((Job.picked_at.is_(None)) | (Job.picked_at < since))
+            & ((Job.picked_at.is_(None)) | ~_starting(since))
             & (((Job.state == "queued") & (Job.parts == 0))
                | ((Job.state == "running") & (Job.stage == "assembling"))))
 
@@ -88,7 +95,7 @@ def _on_worker(now: dt.datetime, since: dt.datetime) -> Any:
     """SQL: a job that holds a worker: a live lease, or picked and not yet claimed."""
     return (((Job.state == "running") & (Job.lease_owner.is_not(None))
              & (Job.lease_expires_at > now))
-            | ((Job.state == "queued") & (Job.lease_owner.is_(None)) & (Job.picked_at >= since)))
+            | ((Job.state == "queued") & (Job.lease_owner.is_(None)) & _starting(since)))
 
 
 def turns(s: Session, job: Job, now: dt.datetime, since: dt.datetime) -> list[Turn]:

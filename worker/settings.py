@@ -93,7 +93,7 @@ class WorkerSettings(BaseSettings):
     cancel_grace_seconds: float = Field(5.0, gt=0)
     """After a cancel, how long a worker waits for the job to stop between two steps before it
     ends its own process."""
-    share_after_seconds: float = Field(10.0, ge=0)
+    share_after_seconds: float = Field(1.0, ge=0)
     """Fair share of the workers (worker.fair): a job of a tenant holding at least two workers
     more than a tenant with a waiting job gives its worker up at its next step (a checkpoint,
     back in the queue, no attempt counted) once it has held it this long; 0 never. The wait

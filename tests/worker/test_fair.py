@@ -168,3 +168,24 @@ def test_nobody_is_asked_for_its_own_tenant_or_a_cancelled_job(store: JobStore):
     store.request_cancel(a2, "a")  # a job asked to stop already is not asked again
     assert not _ask(store, a2)
     assert _ask(store, a1)
+
+
+def test_a_job_given_back_is_not_starting(store: JobStore):
+    """A job released after its pick and claim holds no worker and waits again once sent: the
+    tenant's other job is not asked too (one each would be two asks for one waiting job)."""
+    a1, a2 = _queued(store, "a"), _queued(store, "a")
+    for job_id in (a1, a2):
+        assert store.pick(job_id, STARTING, force=True).status == "run"
+        store.claim(job_id, Owner.current(), 600, 3)
+    with store.session() as s:
+        s.execute(update(Job).where(Job.id.in_([a1, a2])).values(
+            picked_at=utcnow() - dt.timedelta(seconds=61),
+            run_started_at=utcnow() - dt.timedelta(seconds=60)))
+    b1 = _queued(store, "b")
+    asked = [j for j in (a1, a2) if _ask(store, j)]
+    assert len(asked) == 1
+    store.release(asked[0], Owner.parse(store.get(asked[0]).lease_owner), "back in the queue")
+    assert not any(_ask(store, j) for j in (a1, a2))  # A 1 on a worker, B 0: even enough
+    store.mark_dispatched(asked[0])
+    deferred = store.pick(asked[0], STARTING)  # waiting again, behind B
+    assert deferred.status == "defer" and deferred.first.job == b1
