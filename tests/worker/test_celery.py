@@ -39,8 +39,12 @@ def s3_server():
 @pytest.fixture(params=["embedded", "distributed"])
 def stack(request, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
     """(environment for worker processes, settings for this process)."""
+    # The fair share is off: the session's PostgreSQL keeps other tests' queued jobs (each
+    # test has a queue of its own, so they never run), and one of another tenant would make a
+    # test's own jobs give their workers up (test_gate turns it on).
     env = {"DGS_DATA_DIR": str(tmp_path / "data"), "DGS_LEASE_SECONDS": "4",
            "DGS_HEARTBEAT_SECONDS": "0.5", "DGS_CANCEL_GRACE_SECONDS": "3",
+           "DGS_SHARE_AFTER_SECONDS": "0",
            "DGS_QUEUE": f"q-{secrets.token_hex(4)}", "OMP_NUM_THREADS": "1"}
     if request.param == "distributed":
         redis_url, prefix = request.getfixturevalue("redis_broker")
