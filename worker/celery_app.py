@@ -40,6 +40,10 @@ def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> C
         worker_pool_start_method="spawn",
         # ... which, on a busy machine, takes longer than Celery's 4 s to report for work.
         worker_proc_alive_timeout=120.0,
+        # A pool process that ended itself (a cancel's grace ran out) or died has written its
+        # outcome to the job store already; Celery need not wait its default 10 s for a result
+        # before freeing the slot (the fair pick saw the next tenant wait 10-13 s for it).
+        worker_lost_wait=1.0,
         task_default_queue=settings.queue,
         task_ignore_result=True,
         task_serializer="json",

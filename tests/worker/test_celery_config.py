@@ -15,6 +15,7 @@ def test_reliability_settings(tmp_path: Path):
     assert c.task_acks_late and c.task_reject_on_worker_lost
     assert c.worker_prefetch_multiplier == 1 and c.worker_max_tasks_per_child == 1
     assert c.task_ignore_result and c.accept_content == ["json"]
+    assert c.worker_lost_wait == 1.0  # a lost pool process frees its slot in a second, not 10
     assert app.conf.broker_url.startswith("sqla+sqlite:///") and str(tmp_path) in c.broker_url
 
 
