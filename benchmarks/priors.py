@@ -12,6 +12,9 @@ distance):
 - **none**: the capture without, `rig_priors` off (no prior term).
 
     python benchmarks/priors.py [--sizes test:12:64 fast:16:128] [--seeds 0] [--threads 1]
+                                [--work DIR]
+
+With `--work`, runs an earlier call finished there are read, not run again.
 
 Each size is PRESET:VIEWS:PIXELS. Prints the table of docs/benchmarks.md.
 """
@@ -21,6 +24,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -50,11 +54,15 @@ def one(work: Path, preset: str, views: int, pixels: int, seed: int, name: str,
     run = work / f"run-{preset}-{views}-{pixels}-{seed}-{name.split(chr(39))[0].strip()}"
     cfg = work / f"{run.name}.json"
     cfg.write_text(json.dumps(config))
-    t = time.perf_counter()
-    dgs("reconstruct", str(capture), "--out", str(run), "--preset", preset, "--config",
-        str(cfg), "--no-progress", threads=threads)
-    seconds = time.perf_counter() - t
-    dgs("eval", str(run), threads=threads)
+    timing = work / f"{run.name}.seconds"
+    if not (run / "eval.json").is_file():  # a run of an earlier call is kept (--work)
+        shutil.rmtree(run, ignore_errors=True)
+        t = time.perf_counter()
+        dgs("reconstruct", str(capture), "--out", str(run), "--preset", preset, "--config",
+            str(cfg), "--no-progress", threads=threads)
+        timing.write_text(str(time.perf_counter() - t))
+        dgs("eval", str(run), threads=threads)
+    seconds = float(timing.read_text()) if timing.is_file() else float("nan")
     ev = json.loads((run / "eval.json").read_text())
     frames = json.loads((run / "metrics.json").read_text())["frames"]  # {frame: record}
     prior = next(iter(frames.values())).get("normal_prior")

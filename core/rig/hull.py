@@ -37,26 +37,29 @@ def _project(cam: Camera, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.n
 
 
 def _carve(cameras: Sequence[Camera], masks: Sequence[np.ndarray], lo: np.ndarray,
-           hi: np.ndarray, n: int, min_seen: int = 2) -> tuple[np.ndarray, np.ndarray, float]:
+           hi: np.ndarray, n: int, min_seen: int = 2
+           ) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Occupancy (n, n, n) of the grid over the box [lo, hi] (voxels seen by at least
-    `min_seen` views), its voxel centres and size."""
+    `min_seen` views), its voxel centres and size, and which voxels a matte carved (a view saw
+    them on its background)."""
     size = float((hi - lo).max() / n)
     axes = [lo[i] + (np.arange(n) + 0.5) * size for i in range(3)]
     centres = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     centres = centres.astype(np.float32)
     alive = np.arange(len(centres))  # each view projects only what the ones before kept
     seen = np.zeros(len(centres), np.int16)
+    carved = np.zeros(len(centres), bool)
     for cam, mask in zip(cameras, masks):
         u, v, z = _project(cam, centres[alive])
         inside = (z > 0) & (u >= 0) & (v >= 0) & (u < cam.width) & (v < cam.height)
         fg = np.zeros(len(alive), bool)
         fg[inside] = mask[v[inside], u[inside], 0] > 0.5
         seen[alive] += inside
+        carved[alive[inside & ~fg]] = True
         alive = alive[~inside | fg]
     occ = np.zeros(len(centres), bool)
     occ[alive] = seen[alive] >= min_seen
-    occ = occ.reshape(n, n, n)
-    return occ, centres.reshape(n, n, n, 3), size
+    return occ.reshape(n, n, n), centres.reshape(n, n, n, 3), size, carved.reshape(n, n, n)
 
 
 def _box(cameras: Sequence[Camera], masks: Sequence[np.ndarray], center: np.ndarray,
@@ -64,10 +67,18 @@ def _box(cameras: Sequence[Camera], masks: Sequence[np.ndarray], center: np.ndar
     """The hull's bounding box, two voxels wider, from a coarse carve of the cube about
     `center` that keeps what three quarters of the views see (a voxel that few views see
     is carved by few: far from the subject, their cones meet in large phantom volumes);
-    None when nothing survives."""
+    None when nothing survives. Each matte is grown by a coarse voxel's footprint at the
+    subject's distance first: a voxel is kept where any of it may be foreground, so a part
+    thinner than a voxel (a neck, a raised arm) does not cut the box short."""
     lo, hi = center - radius, center + radius
-    occ, centres, size = _carve(cameras, masks, lo, hi, n,
-                                max(2, int(np.ceil(0.75 * len(cameras)))))
+    size = 2 * radius / n
+    grown = []
+    for cam, mask in zip(cameras, masks):
+        reach = int(np.ceil(0.87 * cam.K[0, 0] * size / max(
+            float(np.linalg.norm(cam.center - center)), 1e-9)))
+        grown.append(ndimage.maximum_filter(mask[..., 0], size=2 * reach + 1)[..., None])
+    occ, centres, size, _ = _carve(cameras, grown, lo, hi, n,
+                                   max(2, int(np.ceil(0.75 * len(cameras)))))
     if not occ.any():
         return None
     pts = centres[occ]
@@ -83,8 +94,8 @@ def hull_normals(cameras: Sequence[Camera], masks: Sequence[np.ndarray], center:
     box = _box(cameras, masks, center, radius, max(16, resolution // 4))
     if box is None:
         return None
-    occ, centres, size = _carve(cameras, masks, *box, resolution,
-                                max(2, int(np.ceil(0.75 * len(cameras)))))
+    occ, centres, size, carved = _carve(cameras, masks, *box, resolution,
+                                        max(2, int(np.ceil(0.75 * len(cameras)))))
     if not occ.any():
         return None
     smooth = ndimage.gaussian_filter(occ.astype(np.float32), SMOOTH)
@@ -92,6 +103,11 @@ def hull_normals(cameras: Sequence[Camera], masks: Sequence[np.ndarray], center:
     surface = occ & ~ndimage.binary_erosion(occ)
     pts, nrm = centres[surface], -grad[surface]
     nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-12)
+    # The subject's surface is where a matte carved the voxel beside it. Where the hull ends
+    # because too few views saw past it (a head out of frame in a quarter of the views) or at
+    # the grid's edge, it is cut flat, not the subject: those voxels still hide what is behind
+    # them, with no normal.
+    nrm[~ndimage.binary_dilation(carved, np.ones((3, 3, 3), bool))[surface]] = 0.0
     return [_draw(cam, pts, nrm, size) for cam in cameras]
 
 
