@@ -61,6 +61,10 @@ class TriangulationStats:
     matches: int = 0
     tracks: int = 0
     points: int = 0
+    observations: int = 0
+    """Observations of the kept points (the sum of their track lengths)."""
+    reprojection: float = 0.0
+    """Mean reprojection error (pixels) over those observations."""
 
 
 def camera_pairs(cameras: Sequence[Camera], neighbours: int,
@@ -283,9 +287,30 @@ def triangulate_views(cameras: Sequence[Camera], images: Sequence[np.ndarray],
     points, views, coords = _robust_tracks(groups, cameras, config)
     colors = [_track_colours(v, c, images) for v, c in zip(views, coords)]
     cloud = PointCloud(np.concatenate(points), np.concatenate(colors).astype(np.float32))
-    cloud = cloud.subset(in_visual_hull(cloud.points, cameras, masks))
+    hull = in_visual_hull(cloud.points, cameras, masks)
+    cloud = cloud.subset(hull)
     stats.points = len(cloud)
+    counts, errors = _observation_errors(points, views, coords, cameras)
+    stats.observations = int(counts[hull].sum())
+    stats.reprojection = float(errors[hull].sum() / max(stats.observations, 1))
     return cloud, stats
+
+
+def _observation_errors(points: list[np.ndarray], views: list[np.ndarray],
+                        coords: list[np.ndarray], cameras: Sequence[Camera]
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Per kept point (in `points`' order): its track length and the sum of its observations'
+    reprojection errors (pixels)."""
+    counts, sums = [], []
+    for pts, v, xy in zip(points, views, coords):
+        err = np.zeros(v.shape)
+        for i in np.unique(v):
+            where = v == i
+            uv, _ = cameras[i].project(pts[np.nonzero(where)[0]])
+            err[where] = np.linalg.norm(uv - xy[where], axis=1)
+        counts.append(np.full(len(pts), v.shape[1]))
+        sums.append(err.sum(axis=1))
+    return np.concatenate(counts), np.concatenate(sums)
 
 
 def _track_colours(views: np.ndarray, coords: np.ndarray,
