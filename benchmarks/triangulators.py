@@ -11,6 +11,9 @@ against COLMAP's point triangulator (pycolmap) on the same views.
 - **colmap-guided**: as colmap, the RANSAC verification replaced by the known poses
   (`guided_geometric_verification` with the posed reconstruction) and two-view tracks kept
   (`ignore_two_view_tracks` off) as ours keeps them.
+- **colmap-ours**: COLMAP's triangulator (and its bundle adjustment of the points) on our
+  features and epipolar matches, written into the database as verified: the triangulator
+  alone against ours, on the same matches.
 
 Per method: points, mean track length, mean reprojection error (px), seconds (one thread:
 OMP_NUM_THREADS=1, OpenCV and COLMAP on one thread), and accuracy without the method's own
@@ -44,8 +47,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from core.data import import_capture, load_capture  # noqa: E402
 from core.data.capture import Camera  # noqa: E402
 from core.data.points import PointCloud  # noqa: E402
-from core.triangulation import (TriangulationConfig, camera_pairs, in_visual_hull,  # noqa: E402
-                                pixel_indices, triangulate_views)
+from core.triangulation import (TriangulationConfig, _features, _fundamental,  # noqa: E402
+                                _match, camera_pairs, in_visual_hull, pixel_indices,
+                                triangulate_views)
 
 
 def _u8(image: np.ndarray) -> np.ndarray:
@@ -53,13 +57,25 @@ def _u8(image: np.ndarray) -> np.ndarray:
 
 
 def colmap_triangulate(cameras: list[Camera], images: list[np.ndarray],
-                       masks: list[np.ndarray | None], work: Path, guided: bool = False,
+                       masks: list[np.ndarray | None], work: Path, matches: str = "colmap",
                        config: TriangulationConfig = TriangulationConfig()) -> tuple[
                            PointCloud, dict]:
-    """Points from COLMAP's triangulator with the cameras' poses and intrinsics fixed."""
+    """Points from COLMAP's triangulator with the cameras' poses and intrinsics fixed.
+    `matches`: `colmap` (COLMAP SIFT, matching, RANSAC verification), `guided` (the same
+    matches verified by the known poses, two-view tracks kept) or `ours` (our features and
+    epipolar matches written into the database as verified, two-view tracks kept)."""
     import pycolmap
 
     pycolmap.logging.minloglevel = 2  # warnings and errors only
+    seconds: dict[str, float] = {}
+    clock = time.perf_counter()
+
+    def lap(name: str) -> None:
+        nonlocal clock
+        now = time.perf_counter()
+        seconds[name] = seconds.get(name, 0.0) + now - clock
+        clock = now
+
     work.mkdir(parents=True, exist_ok=True)
     (work / "images").mkdir()
     (work / "masks").mkdir()
@@ -69,31 +85,56 @@ def colmap_triangulate(cameras: list[Camera], images: list[np.ndarray],
         if mask is not None:  # COLMAP: no features where the mask <name>.png is zero
             cv2.imwrite(str(work / "masks" / f"{name}.png"),
                         ((mask[..., 0] > 0.5) * 255).astype(np.uint8))
+    lap("write")
     db = work / "database.db"
     reader = pycolmap.ImageReaderOptions(camera_model="PINHOLE")
     if any(m is not None for m in masks):
         reader.mask_path = work / "masks"
-    extraction = pycolmap.FeatureExtractionOptions(num_threads=1)
-    extraction.sift.max_num_features = config.max_features
-    pycolmap.extract_features(db, work / "images", image_names=names,
-                              camera_mode=pycolmap.CameraMode.PER_IMAGE, reader_options=reader,
-                              extraction_options=extraction, device=pycolmap.Device.cpu)
+    pairs = camera_pairs(cameras, config.neighbours, config.max_axis_angle)
     index = {n: i for i, n in enumerate(names)}
+    if matches == "ours":
+        pycolmap.Database.open(db).close()  # import_images wants the file
+        pycolmap.import_images(db, work / "images", camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                               image_names=names, options=reader)
+    else:
+        extraction = pycolmap.FeatureExtractionOptions(num_threads=1)
+        extraction.sift.max_num_features = config.max_features
+        pycolmap.extract_features(db, work / "images", image_names=names,
+                                  camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                                  reader_options=reader, extraction_options=extraction,
+                                  device=pycolmap.Device.cpu)
+    lap("features")
     with pycolmap.Database.open(db) as d:  # our intrinsics for the ones it guessed
+        ids = {}
         for image in d.read_all_images():
             cam, K = d.read_camera(image.camera_id), cameras[index[image.name]].K
             cam.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
             d.update_camera(cam)
-    pairs = camera_pairs(cameras, config.neighbours, config.max_axis_angle)
-    (work / "pairs.txt").write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pairs))
-    matching = pycolmap.FeatureMatchingOptions(num_threads=1)
-    matching.sift.max_ratio = config.ratio
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.num_threads = 1
-    pycolmap.match_image_pairs(
-        db, matching_options=matching, verification_options=verification,
-        pairing_options=pycolmap.ImportedPairingOptions(match_list_path=work / "pairs.txt"),
-        device=pycolmap.Device.cpu)
+            ids[index[image.name]] = image.image_id
+        if matches == "ours":  # pixel centres at +0.5 in both
+            feats = [_features(img, m, config.max_features) for img, m in zip(images, masks)]
+            for i, (xy, _) in enumerate(feats):
+                d.write_keypoints(ids[i], xy.astype(np.float32))
+            lap("features")
+            for a, b in pairs:
+                m = _match(feats[a][0], feats[a][1], feats[b][0], feats[b][1],
+                           _fundamental(cameras[a], cameras[b]), config).astype(np.uint32)
+                d.write_matches(ids[a], ids[b], m)
+                d.write_two_view_geometry(ids[a], ids[b], pycolmap.TwoViewGeometry(
+                    config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED,
+                    inlier_matches=m))
+    if matches != "ours":
+        (work / "pairs.txt").write_text("".join(f"{names[a]} {names[b]}\n"
+                                                for a, b in pairs))
+        matching = pycolmap.FeatureMatchingOptions(num_threads=1)
+        matching.sift.max_ratio = config.ratio
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.num_threads = 1
+        pycolmap.match_image_pairs(
+            db, matching_options=matching, verification_options=verification,
+            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=work / "pairs.txt"),
+            device=pycolmap.Device.cpu)
+    lap("matching")
     rec = pycolmap.Reconstruction()
     with pycolmap.Database.open(db) as d:
         stats = {"features": d.num_keypoints(), "matches": d.num_matches()}
@@ -112,17 +153,20 @@ def colmap_triangulate(cameras: list[Camera], images: list[np.ndarray],
         for frame in frames:
             rec.register_frame(frame.frame_id)
     options = pycolmap.IncrementalPipelineOptions(num_threads=1)
-    if guided:  # the matches' inliers from the known poses, not from RANSAC
+    if matches != "colmap":  # two-view tracks kept, as ours keeps them
+        options.triangulation.ignore_two_view_tracks = False
+        options.min_num_matches = 1
+    if matches == "guided":  # the matches' inliers from the known poses, not from RANSAC
         verification.min_num_inliers = 1
         pycolmap.guided_geometric_verification(rec, db, two_view_geometry_options=verification,
                                                num_threads=1)
-        options.triangulation.ignore_two_view_tracks = False
-        options.min_num_matches = 1
+        lap("matching")
     with pycolmap.Database.open(db) as d:
         stats["inlier_matches"] = d.num_inlier_matches()
     (work / "sparse").mkdir()
     out = pycolmap.triangulate_points(rec, db, work / "images", work / "sparse",
                                       clear_points=True, options=options)
+    lap("triangulation")
     ids = sorted(out.points3D.keys())
     pts = np.array([out.points3D[i].xyz for i in ids]).reshape(-1, 3)
     cols = np.array([out.points3D[i].color for i in ids]).reshape(-1, 3) / 255.0
@@ -133,7 +177,7 @@ def colmap_triangulate(cameras: list[Camera], images: list[np.ndarray],
     obs = int(lengths[hull].sum())
     stats.update(points=len(cloud), observations=obs,
                  reprojection=float((errors[hull] * lengths[hull]).sum() / max(obs, 1)),
-                 points_before_hull=len(pts))
+                 points_before_hull=len(pts), stage_seconds=seconds)
     return cloud, stats
 
 
@@ -196,7 +240,7 @@ def main() -> int:
     ap.add_argument("--frame", default=None)
     ap.add_argument("--out", type=Path, default=None, help="JSON report here")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: temp)")
-    ap.add_argument("--methods", nargs="+", default=["ours", "colmap", "colmap-guided"])
+    ap.add_argument("--methods", nargs="+", default=["ours", "colmap", "colmap-guided", "colmap-ours"])
     args = ap.parse_args()
     cv2.setNumThreads(1)
     work = args.work or Path(tempfile.mkdtemp(prefix="triangulators-"))
@@ -225,7 +269,7 @@ def main() -> int:
                      "observations": st.observations, "reprojection": st.reprojection}
         else:
             cloud, stats = colmap_triangulate(cams, imgs, masks, work / method,
-                                              guided=method == "colmap-guided")
+                                              matches=method.partition("-")[2] or "colmap")
         stats["seconds"] = time.perf_counter() - t
         stats["track_length"] = stats["observations"] / max(stats["points"], 1)
         if depths is not None and len(cloud):
