@@ -11,6 +11,7 @@ against COLMAP's point triangulator (pycolmap) on the same views.
 - **colmap-guided**: as colmap, the RANSAC verification replaced by the known poses
   (`guided_geometric_verification` with the posed reconstruction) and two-view tracks kept
   (`ignore_two_view_tracks` off) as ours keeps them.
+- **ours-loose** (with `--methods`): ours at COLMAP's thresholds (4 px, 1.5 degrees).
 - **colmap-ours**: COLMAP's triangulator (and its bundle adjustment of the points) on our
   features and epipolar matches, written into the database as verified: the triangulator
   alone against ours, on the same matches.
@@ -19,13 +20,15 @@ Per method: points, mean track length, mean reprojection error (px), seconds (on
 OMP_NUM_THREADS=1, OpenCV and COLMAP on one thread), and accuracy without the method's own
 numbers: on a synthetic capture, the distance of each point to the ground-truth surface (the
 smallest |z - depth| over the views it projects into, gt/depth), as a median and the share
-within 1 % of the cameras' distance; on a real capture (no ground truth), the median distance
-from each method's points to the other's nearest point, and the colour of each point against
-the held-out views it lands in (median |difference|, 0..1).
+within 1 % of the cameras' distance; on a real capture (no ground truth), the same against the
+held-out views' depth from our plane sweep over all views given no sparse points
+(`--stereo-reference`, `core.rig.depth`: depth that passed the cross-view consistency check), the
+median distance from each method's points to the other's nearest point, and the colour of each
+point against the held-out views it lands in (median |difference|, 0..1).
 
     PYTHONPATH=$PWD:/tmp/pycolmap-site OMP_NUM_THREADS=1 \\
         python benchmarks/triangulators.py CAPTURE [--downscale 4] [--frame F] \\
-        [--out DIR] [--work DIR]
+        [--stereo-reference] [--out FILE] [--work DIR]
 
 CAPTURE: a capture folder (capture.json) or any importable source (transforms.json, ...).
 """
@@ -240,6 +243,11 @@ def main() -> int:
     ap.add_argument("--frame", default=None)
     ap.add_argument("--out", type=Path, default=None, help="JSON report here")
     ap.add_argument("--work", type=Path, default=None, help="scratch folder (default: temp)")
+    ap.add_argument("--stereo-reference", action="store_true",
+                    help="no ground truth: the plane sweep's fused depth of the held-out views "
+                         "(all views, no sparse points) is the surface")
+    ap.add_argument("--stereo-cache", type=Path, default=None,
+                    help="an .npz that keeps the stereo reference between runs")
     ap.add_argument("--methods", nargs="+", default=["ours", "colmap", "colmap-guided", "colmap-ours"])
     args = ap.parse_args()
     cv2.setNumThreads(1)
@@ -256,6 +264,25 @@ def main() -> int:
     if gt.is_dir():  # ground truth at the capture's resolution, served cameras at theirs
         depths = [cv2.resize(np.load(gt / f"{c.id}.npy"), (c.width, c.height),
                              interpolation=cv2.INTER_NEAREST) for c in cams]
+    ref_cams = cams
+    if depths is None and args.stereo_reference and held[0]:
+        from core.rig.depth import rig_depth
+
+        t = time.perf_counter()
+        cache = args.stereo_cache
+        if cache is not None and cache.is_file():
+            saved = np.load(cache)
+            depths = [saved[f"d{i}"] for i in range(len(held[0]))]
+            ref_cams = [c.scaled(d.shape[1], d.shape[0]) for c, d in zip(held[0], depths)]
+        else:
+            fused = rig_depth(cams + held[0], imgs + held[1], masks + held[2])
+            ref_cams, depths = fused.cameras[len(cams):], fused.depths[len(cams):]
+            if cache is not None:
+                np.savez(cache, **{f"d{i}": d for i, d in enumerate(depths)})
+        print(f"stereo reference: {len(depths)} held-out depth maps "
+              f"{ref_cams[0].width}x{ref_cams[0].height}, "
+              f"{np.mean([np.mean(d > 0) for d in depths]):.0%} of their pixels, "
+              f"{time.perf_counter() - t:.0f} s", flush=True)
     centers = np.stack([c.center for c in cams])
     scale = float(np.median(np.linalg.norm(centers - centers.mean(axis=0), axis=1)))
     print(f"{args.capture} frame {frame} at 1/{args.downscale:g}: {len(cams)} training views "
@@ -263,8 +290,10 @@ def main() -> int:
     clouds, rows = {}, {}
     for method in args.methods:
         t = time.perf_counter()
-        if method == "ours":
-            cloud, st = triangulate_views(cams, imgs, masks)
+        if method in ("ours", "ours-loose"):
+            config = TriangulationConfig() if method == "ours" else TriangulationConfig(
+                max_reprojection=4.0, min_angle_deg=1.5)  # COLMAP's filter thresholds
+            cloud, st = triangulate_views(cams, imgs, masks, config)
             stats = {"features": st.features, "matches": st.matches, "points": st.points,
                      "observations": st.observations, "reprojection": st.reprojection}
         else:
@@ -273,9 +302,10 @@ def main() -> int:
         stats["seconds"] = time.perf_counter() - t
         stats["track_length"] = stats["observations"] / max(stats["points"], 1)
         if depths is not None and len(cloud):
-            err = surface_error(cloud.points, cams, depths)
+            err = surface_error(cloud.points, ref_cams, depths)
             stats["surface_median"] = float(np.median(err))
             stats["surface_within_1pct"] = float(np.mean(err < 0.01 * scale))
+            stats["surface_points"] = int(np.isfinite(err).sum())
         if held[0] and len(cloud):
             stats["held_out_colour"] = held_out_colour(cloud, held[0], held[1])
         clouds[method], rows[method] = cloud, stats
@@ -299,13 +329,15 @@ def table(report: dict) -> str:
     lines = [f"{report['capture']} ({report['views']} views, {report['size'][0]}x"
              f"{report['size'][1]}, camera distance {report['scale']:.3f})",
              "| method | points | track length | reprojection (px) | seconds | surface median "
-             "| within 1 % | held-out colour | to the other (median) |",
+             "| within 1 % (points) | held-out colour | to the other (median) |",
              "|---|---|---|---|---|---|---|---|---|"]
     for name, r in report["methods"].items():
         other = ", ".join(f"{k[3:-7]} {v:.4f}" for k, v in r.items()
                           if k.startswith("to_") and k.endswith("_median"))
         surf = f"{r['surface_median']:.4f}" if "surface_median" in r else "-"
-        within = f"{100 * r['surface_within_1pct']:.0f} %" if "surface_within_1pct" in r else "-"
+        within = (f"{100 * r['surface_within_1pct']:.0f} % "
+                  f"({round(r['surface_within_1pct'] * r['points'])})"
+                  if "surface_within_1pct" in r else "-")
         colour = f"{r['held_out_colour']:.3f}" if "held_out_colour" in r else "-"
         lines.append(f"| {name} | {r['points']} | {r['track_length']:.2f} | "
                      f"{r['reprojection']:.3f} | {r['seconds']:.2f} | {surf} | {within} | "
