@@ -1,8 +1,12 @@
 """Sparse points from known poses (issue 39): our SIFT triangulation (`core.triangulation`)
 against COLMAP's point triangulator (pycolmap) on the same views.
 
-- **ours**: `triangulate_views` (OpenCV SIFT, epipolar-guided matching between the
-  `camera_pairs` neighbours, tracks, DLT with reprojection and angle checks, visual hull).
+- **ours**: `triangulate_views` as the project ships it (OpenCV SIFT, epipolar-guided
+  matching between the `camera_pairs` neighbours, COLMAP's point triangulator with the poses
+  fixed, visual hull). Until commit a4ecb95 its tracks and points were our own (connected
+  components, DLT with reprojection and angle checks); the benchmark at commit efdfd8c measured
+  that code as **ours** and COLMAP's triangulator on our matches as **colmap-ours**
+  (docs/decisions/2026-11-29-sparse-points-pycolmap-or-ours.md).
 - **colmap**: pycolmap with the capture's cameras (PINHOLE) and world-to-camera poses fixed:
   COLMAP SIFT (`extract_features`, masks as COLMAP masks) into a database, matching of the
   same neighbour pairs (`match_image_pairs`: ratio test and cross check over the whole image,
@@ -11,10 +15,6 @@ against COLMAP's point triangulator (pycolmap) on the same views.
 - **colmap-guided**: as colmap, the RANSAC verification replaced by the known poses
   (`guided_geometric_verification` with the posed reconstruction) and two-view tracks kept
   (`ignore_two_view_tracks` off) as ours keeps them.
-- **ours-loose** (with `--methods`): ours at COLMAP's thresholds (4 px, 1.5 degrees).
-- **colmap-ours**: COLMAP's triangulator (and its bundle adjustment of the points) on our
-  features and epipolar matches, written into the database as verified: the triangulator
-  alone against ours, on the same matches.
 
 Per method: points, mean track length, mean reprojection error (px), seconds (one thread:
 OMP_NUM_THREADS=1, OpenCV and COLMAP on one thread), and accuracy without the method's own
@@ -50,9 +50,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from core.data import import_capture, load_capture  # noqa: E402
 from core.data.capture import Camera  # noqa: E402
 from core.data.points import PointCloud  # noqa: E402
-from core.triangulation import (TriangulationConfig, _features, _fundamental,  # noqa: E402
-                                _match, camera_pairs, in_visual_hull, pixel_indices,
-                                triangulate_views)
+from core.triangulation import (TriangulationConfig, camera_pairs, in_visual_hull,  # noqa: E402
+                                pixel_indices, triangulate_views)
 
 
 def _u8(image: np.ndarray) -> np.ndarray:
@@ -64,9 +63,8 @@ def colmap_triangulate(cameras: list[Camera], images: list[np.ndarray],
                        config: TriangulationConfig = TriangulationConfig()) -> tuple[
                            PointCloud, dict]:
     """Points from COLMAP's triangulator with the cameras' poses and intrinsics fixed.
-    `matches`: `colmap` (COLMAP SIFT, matching, RANSAC verification), `guided` (the same
-    matches verified by the known poses, two-view tracks kept) or `ours` (our features and
-    epipolar matches written into the database as verified, two-view tracks kept)."""
+    `matches`: `colmap` (COLMAP SIFT, matching, RANSAC verification) or `guided` (the same
+    matches verified by the known poses, two-view tracks kept)."""
     import pycolmap
 
     pycolmap.logging.minloglevel = 2  # warnings and errors only
@@ -95,17 +93,12 @@ def colmap_triangulate(cameras: list[Camera], images: list[np.ndarray],
         reader.mask_path = work / "masks"
     pairs = camera_pairs(cameras, config.neighbours, config.max_axis_angle)
     index = {n: i for i, n in enumerate(names)}
-    if matches == "ours":
-        pycolmap.Database.open(db).close()  # import_images wants the file
-        pycolmap.import_images(db, work / "images", camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                               image_names=names, options=reader)
-    else:
-        extraction = pycolmap.FeatureExtractionOptions(num_threads=1)
-        extraction.sift.max_num_features = config.max_features
-        pycolmap.extract_features(db, work / "images", image_names=names,
-                                  camera_mode=pycolmap.CameraMode.PER_IMAGE,
-                                  reader_options=reader, extraction_options=extraction,
-                                  device=pycolmap.Device.cpu)
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=1)
+    extraction.sift.max_num_features = config.max_features
+    pycolmap.extract_features(db, work / "images", image_names=names,
+                              camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                              reader_options=reader, extraction_options=extraction,
+                              device=pycolmap.Device.cpu)
     lap("features")
     with pycolmap.Database.open(db) as d:  # our intrinsics for the ones it guessed
         ids = {}
@@ -114,29 +107,15 @@ def colmap_triangulate(cameras: list[Camera], images: list[np.ndarray],
             cam.params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2]]
             d.update_camera(cam)
             ids[index[image.name]] = image.image_id
-        if matches == "ours":  # pixel centres at +0.5 in both
-            feats = [_features(img, m, config.max_features) for img, m in zip(images, masks)]
-            for i, (xy, _) in enumerate(feats):
-                d.write_keypoints(ids[i], xy.astype(np.float32))
-            lap("features")
-            for a, b in pairs:
-                m = _match(feats[a][0], feats[a][1], feats[b][0], feats[b][1],
-                           _fundamental(cameras[a], cameras[b]), config).astype(np.uint32)
-                d.write_matches(ids[a], ids[b], m)
-                d.write_two_view_geometry(ids[a], ids[b], pycolmap.TwoViewGeometry(
-                    config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED,
-                    inlier_matches=m))
-    if matches != "ours":
-        (work / "pairs.txt").write_text("".join(f"{names[a]} {names[b]}\n"
-                                                for a, b in pairs))
-        matching = pycolmap.FeatureMatchingOptions(num_threads=1)
-        matching.sift.max_ratio = config.ratio
-        verification = pycolmap.TwoViewGeometryOptions()
-        verification.ransac.num_threads = 1
-        pycolmap.match_image_pairs(
-            db, matching_options=matching, verification_options=verification,
-            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=work / "pairs.txt"),
-            device=pycolmap.Device.cpu)
+    (work / "pairs.txt").write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pairs))
+    matching = pycolmap.FeatureMatchingOptions(num_threads=1)
+    matching.sift.max_ratio = config.ratio
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.num_threads = 1
+    pycolmap.match_image_pairs(
+        db, matching_options=matching, verification_options=verification,
+        pairing_options=pycolmap.ImportedPairingOptions(match_list_path=work / "pairs.txt"),
+        device=pycolmap.Device.cpu)
     lap("matching")
     rec = pycolmap.Reconstruction()
     with pycolmap.Database.open(db) as d:
@@ -156,10 +135,9 @@ def colmap_triangulate(cameras: list[Camera], images: list[np.ndarray],
         for frame in frames:
             rec.register_frame(frame.frame_id)
     options = pycolmap.IncrementalPipelineOptions(num_threads=1)
-    if matches != "colmap":  # two-view tracks kept, as ours keeps them
+    if matches == "guided":  # two-view tracks kept, as ours keeps them
         options.triangulation.ignore_two_view_tracks = False
-        options.min_num_matches = 1
-    if matches == "guided":  # the matches' inliers from the known poses, not from RANSAC
+        options.min_num_matches = 1  # the matches' inliers from the known poses, not from RANSAC
         verification.min_num_inliers = 1
         pycolmap.guided_geometric_verification(rec, db, two_view_geometry_options=verification,
                                                num_threads=1)
@@ -248,7 +226,7 @@ def main() -> int:
                          "(all views, no sparse points) is the surface")
     ap.add_argument("--stereo-cache", type=Path, default=None,
                     help="an .npz that keeps the stereo reference between runs")
-    ap.add_argument("--methods", nargs="+", default=["ours", "colmap", "colmap-guided", "colmap-ours"])
+    ap.add_argument("--methods", nargs="+", default=["ours", "colmap", "colmap-guided"])
     args = ap.parse_args()
     cv2.setNumThreads(1)
     work = args.work or Path(tempfile.mkdtemp(prefix="triangulators-"))
@@ -290,10 +268,8 @@ def main() -> int:
     clouds, rows = {}, {}
     for method in args.methods:
         t = time.perf_counter()
-        if method in ("ours", "ours-loose"):
-            config = TriangulationConfig() if method == "ours" else TriangulationConfig(
-                max_reprojection=4.0, min_angle_deg=1.5)  # COLMAP's filter thresholds
-            cloud, st = triangulate_views(cams, imgs, masks, config)
+        if method == "ours":
+            cloud, st = triangulate_views(cams, imgs, masks)
             stats = {"features": st.features, "matches": st.matches, "points": st.points,
                      "observations": st.observations, "reprojection": st.reprojection}
         else:

@@ -11,7 +11,8 @@ tracks from the correspondence graph, triangulates, merges, completes and filter
 refines the points by bundle adjustment with the poses constant
 (docs/decisions/2026-11-29-sparse-points-pycolmap-or-ours.md: more points as accurate as our
 own DLT tracks, in about the same time). With masks, a point must project onto the foreground
-of every view it falls in (the visual hull). Colour: the mean of the images at its
+of every view it falls in (the visual hull), and fall in three views or more (a wrong match
+along two views' epipolar lines, outside every other view, is not carved by any). Colour: the mean of the images at its
 observations.
 
 Torch-free (numpy, OpenCV, pycolmap); images in 0..1, cameras ideal pinholes (undistorted).
@@ -210,6 +211,8 @@ def triangulate_views(cameras: Sequence[Camera], images: Sequence[np.ndarray],
     colors = _mean_per_point(point, _colours_at(view, xy, images), len(points))
     cloud = PointCloud(points, np.clip(colors, 0, 1).astype(np.float32))
     hull = in_visual_hull(points, cameras, masks)
+    if any(m is not None for m in masks):  # the hull carves only where views overlap
+        hull &= _views_inside(points, cameras) >= min(3, len(cameras))
     cloud = cloud.subset(hull)
     stats.points = len(cloud)
     err = np.zeros(len(point))
@@ -284,6 +287,17 @@ def _colmap_points(cameras: Sequence[Camera], keypoints: Sequence[np.ndarray],
     tracks = [np.array([(e.image_id - 1, e.point2D_idx) for e in out.points3D[p].track.elements],
                        np.int64).reshape(-1, 2) for p in ids]
     return points, tracks
+
+
+def _views_inside(points: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
+    """(N,) in how many of the cameras' images each point lands (in front). A matted subject
+    is where the views overlap; a point inside only the two views that matched it (a wrong
+    match along their epipolar lines) is one no third view's mask can carve."""
+    count = np.zeros(len(points), np.int64)
+    for cam in cameras:
+        uv, z = cam.project(points)
+        count += pixel_indices(uv, cam.width, cam.height, z)[2]
+    return count
 
 
 def _observations(tracks: list[np.ndarray], keypoints: Sequence[np.ndarray]
