@@ -12,8 +12,8 @@ refines the points by bundle adjustment with the poses constant
 (docs/decisions/2026-11-29-sparse-points-pycolmap-or-ours.md: more points as accurate as our
 own DLT tracks, in about the same time). With masks, a point must project onto the foreground
 of every view it falls in (the visual hull), and fall in three views or more (a wrong match
-along two views' epipolar lines, outside every other view, is not carved by any). Colour: the mean of the images at its
-observations.
+along two views' epipolar lines, outside every other view, is not carved by any). Colour: the
+mean of the images at its observations.
 
 Torch-free (numpy, OpenCV, pycolmap); images in 0..1, cameras ideal pinholes (undistorted).
 """
