@@ -4,26 +4,30 @@ point cloud seeds training with.
 SIFT features (Lowe 2004) in every view; each camera is matched with its nearest neighbours
 (centres close, optical axes within `max_axis_angle`); a match must pass Lowe's ratio test, be
 mutual, and lie within `max_epipolar` pixels of its epipolar line (the poses are known, so no
-RANSAC is needed). Matches chain into tracks (connected components of (view, feature) pairs);
-each track with one feature per view is triangulated by linear least squares (DLT) on
-normalised image coordinates and kept when it lies in front of every camera that sees it, its
-largest reprojection error is below `max_reprojection` pixels and its rays meet at
-`min_angle_deg` or more. With masks, a point must project onto the foreground of every view it
-falls in (the visual hull). Colour: the mean of the images at its observations.
+RANSAC is needed). COLMAP's point triangulator (pycolmap, Schoenberger and Frahm 2016) makes
+the points from those matches with every camera's pose and intrinsics fixed: it builds the
+tracks from the correspondence graph, triangulates, merges, completes and filters them
+(reprojection below `max_reprojection` pixels, rays meeting at `min_angle_deg` or more) and
+refines the points by bundle adjustment with the poses constant
+(docs/decisions/2026-11-29-sparse-points-pycolmap-or-ours.md: more points as accurate as our
+own DLT tracks, in about the same time). With masks, a point must project onto the foreground
+of every view it falls in (the visual hull), and fall in three views or more (a wrong match
+along two views' epipolar lines, outside every other view, is not carved by any). Colour: the
+mean of the images at its observations.
 
-Torch-free (numpy, OpenCV, SciPy); images in 0..1, cameras ideal pinholes (undistorted).
+Torch-free (numpy, OpenCV, pycolmap); images in 0..1, cameras ideal pinholes (undistorted).
 """
 
 from __future__ import annotations
 
 import math
+import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 
 from core.data.capture import Camera
 from core.data.points import PointCloud
@@ -46,10 +50,12 @@ class TriangulationConfig:
     """Lowe's ratio test: best match distance below this times the second best (Lowe 2004)."""
     max_epipolar: float = 1.5
     """Largest distance (pixels) of a match from its epipolar line."""
-    max_reprojection: float = 1.5
-    """Largest reprojection error (pixels) of a kept point in any view that sees it."""
-    min_angle_deg: float = 2.0
-    """Smallest largest angle between the rays of a kept point (depth is ill-posed below)."""
+    max_reprojection: float = 4.0
+    """Largest reprojection error (pixels) of an observation that a track merges, completes or
+    keeps (COLMAP's default)."""
+    min_angle_deg: float = 1.5
+    """Smallest angle between the rays of a kept point (depth is ill-posed below; COLMAP's
+    default)."""
 
 
 @dataclass
@@ -60,7 +66,12 @@ class TriangulationStats:
     pairs: int = 0
     matches: int = 0
     tracks: int = 0
+    """Points the triangulator made, before the visual hull carved them."""
     points: int = 0
+    observations: int = 0
+    """Observations of the kept points (the sum of their track lengths)."""
+    reprojection: float = 0.0
+    """Mean reprojection error (pixels) over those observations."""
 
 
 def camera_pairs(cameras: Sequence[Camera], neighbours: int,
@@ -145,80 +156,6 @@ def _match(xa: np.ndarray, da: np.ndarray, xb: np.ndarray, db: np.ndarray, F: np
     return np.array(pairs, dtype=np.int64).reshape(-1, 2)
 
 
-def _tracks(offsets: np.ndarray, edges: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Connected components of the match graph: (node ids, component labels) of the nodes in
-    components of two or more nodes, sorted by label."""
-    n = int(offsets[-1])
-    graph = coo_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n))
-    _, labels = connected_components(graph, directed=False)
-    sizes = np.bincount(labels)
-    nodes = np.flatnonzero(sizes[labels] >= 2)
-    order = np.argsort(labels[nodes], kind="stable")
-    return nodes[order], labels[nodes][order]
-
-
-def _dlt(rays: np.ndarray, poses: np.ndarray) -> np.ndarray:
-    """(T, 3) points from (T, L, 2) normalised coordinates and (T, L, 3, 4) [R | t] poses."""
-    x, y = rays[..., 0:1], rays[..., 1:2]
-    rows = np.concatenate([x * poses[..., 2, :] - poses[..., 0, :],
-                           y * poses[..., 2, :] - poses[..., 1, :]], axis=1)  # (T, 2L, 4)
-    _, _, vt = np.linalg.svd(rows)
-    h = vt[:, -1]
-    w = np.where(np.abs(h[:, 3:]) > 1e-12, h[:, 3:], 1e-12)
-    return h[:, :3] / w
-
-
-def _triangulate_tracks(views: np.ndarray, coords: np.ndarray, cameras: Sequence[Camera],
-                        config: TriangulationConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """For tracks of one length L, views (T, L) and pixel coordinates (T, L, 2): points (T, 3),
-    whether each is kept (T,), and each observation's reprojection error (T, L), infinite
-    behind the camera."""
-    Kinv = np.stack([np.linalg.inv(c.K) for c in cameras])
-    poses = np.stack([c.world_to_camera[:3] for c in cameras])
-    h = np.concatenate([coords, np.ones(coords.shape[:2] + (1,))], axis=2)
-    rays = np.einsum("tlij,tlj->tli", Kinv[views], h)[..., :2]
-    pts = _dlt(rays, poses[views])
-    cam = np.einsum("tlij,tj->tli", poses[views][..., :3], pts) + poses[views][..., 3]
-    z = np.where(cam[..., 2:] > 1e-9, cam[..., 2:], 1e-9)
-    proj = np.einsum("tlij,tlj->tli", np.stack([c.K for c in cameras])[views], cam / z)[..., :2]
-    err = np.where(cam[..., 2] > 1e-9, np.linalg.norm(proj - coords, axis=2), np.inf)
-    centers = np.stack([c.center for c in cameras])[views]
-    dirs = pts[:, None] - centers
-    dirs /= np.maximum(np.linalg.norm(dirs, axis=2, keepdims=True), 1e-12)
-    cos = np.einsum("tai,tbi->tab", dirs, dirs).min(axis=(1, 2))
-    angle_ok = cos <= math.cos(math.radians(config.min_angle_deg))
-    return pts, (err.max(axis=1) < config.max_reprojection) & angle_ok, err
-
-
-def _robust_tracks(groups: dict[int, tuple[np.ndarray, np.ndarray]], cameras: Sequence[Camera],
-                   config: TriangulationConfig) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Triangulate tracks grouped by length {L: (views (T, L), coords (T, L, 2))}, longest
-    first; a track that fails loses its worst observation and is tried again one shorter, down
-    to two views (a wrong match in a chain, or a feature repeated at one spot, costs that
-    observation, not the track). Returns points (P, 3) and the kept tracks' views (P, L) and
-    coordinates (P, L, 2) as lists per length."""
-    out_pts, out_views, out_coords = [], [], []
-    for length in range(max(groups, default=0), 1, -1):
-        if length not in groups:
-            continue
-        views, coords = groups.pop(length)
-        pts, ok, err = _triangulate_tracks(views, coords, cameras, config)
-        out_pts.append(pts[ok])
-        out_views.append(views[ok])
-        out_coords.append(coords[ok])
-        bad = np.flatnonzero(~ok)
-        if length > 2 and len(bad):
-            keep = np.ones((len(bad), length), dtype=bool)
-            keep[np.arange(len(bad)), err[bad].argmax(axis=1)] = False
-            shorter = (views[bad][keep].reshape(len(bad), length - 1),
-                       coords[bad][keep].reshape(len(bad), length - 1, 2))
-            if length - 1 in groups:
-                shorter = tuple(np.concatenate([a, b]) for a, b in zip(groups[length - 1],
-                                                                        shorter))
-            groups[length - 1] = shorter
-    return out_pts, out_views, out_coords
-
-
 def pixel_indices(uv: np.ndarray, width: int, height: int,
                   z: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Integer pixel (u, v) of continuous coordinates (N, 2), clipped into the image, and
@@ -256,44 +193,136 @@ def triangulate_views(cameras: Sequence[Camera], images: Sequence[np.ndarray],
     stats = TriangulationStats()
     feats = [_features(img, m, config.max_features) for img, m in zip(images, masks)]
     stats.features = sum(len(f[0]) for f in feats)
-    offsets = np.concatenate([[0], np.cumsum([len(f[0]) for f in feats])]).astype(np.int64)
-    edges = []
+    matches = []
     for a, b in camera_pairs(cameras, config.neighbours, config.max_axis_angle):
         m = _match(feats[a][0], feats[a][1], feats[b][0], feats[b][1],
                    _fundamental(cameras[a], cameras[b]), config)
-        if len(m):
-            edges.append(np.stack([m[:, 0] + offsets[a], m[:, 1] + offsets[b]], axis=1))
+        matches.append((a, b, m))
         stats.pairs += 1
         stats.matches += len(m)
     empty = PointCloud(np.zeros((0, 3)), np.zeros((0, 3), np.float32))
-    if not edges or not sum(len(e) for e in edges):
+    if not stats.matches:
         return empty, stats
-    nodes, labels = _tracks(offsets, np.concatenate(edges))
-    view_of = np.searchsorted(offsets, nodes, side="right") - 1
-    starts = np.flatnonzero(np.r_[True, labels[1:] != labels[:-1]])
-    lengths = np.diff(np.r_[starts, len(nodes)])
-    coords_all = np.concatenate([f[0] for f in feats])[nodes]
-    groups = {}
-    for length in np.unique(lengths):
-        if length > 2 * len(cameras):  # a chain of wrong matches, not one point
-            continue
-        sel = starts[lengths == length][:, None] + np.arange(length)  # (T, L) node positions
-        groups[int(length)] = (view_of[sel], coords_all[sel])
-        stats.tracks += len(sel)
-    points, views, coords = _robust_tracks(groups, cameras, config)
-    colors = [_track_colours(v, c, images) for v, c in zip(views, coords)]
-    cloud = PointCloud(np.concatenate(points), np.concatenate(colors).astype(np.float32))
-    cloud = cloud.subset(in_visual_hull(cloud.points, cameras, masks))
+    points, tracks = _colmap_points(cameras, [f[0] for f in feats], matches, config)
+    stats.tracks = len(points)
+    if not len(points):
+        return empty, stats
+    point, view, xy = _observations(tracks, [f[0] for f in feats])
+    colors = _mean_per_point(point, _colours_at(view, xy, images), len(points))
+    cloud = PointCloud(points, np.clip(colors, 0, 1).astype(np.float32))
+    hull = in_visual_hull(points, cameras, masks)
+    if any(m is not None for m in masks):  # the hull carves only where views overlap
+        hull &= _views_inside(points, cameras) >= min(3, len(cameras))
+    cloud = cloud.subset(hull)
     stats.points = len(cloud)
+    err = np.zeros(len(point))
+    for v in np.unique(view):
+        at = view == v
+        err[at] = np.linalg.norm(cameras[v].project(points[point[at]])[0] - xy[at], axis=1)
+    kept = hull[point]
+    stats.observations = int(kept.sum())
+    stats.reprojection = float(err[kept].mean()) if kept.any() else 0.0
     return cloud, stats
 
 
-def _track_colours(views: np.ndarray, coords: np.ndarray,
-                   images: Sequence[np.ndarray]) -> np.ndarray:
-    acc = np.zeros(views.shape + (3,))
-    for v in np.unique(views):
-        where = views == v
+def _colmap_points(cameras: Sequence[Camera], keypoints: Sequence[np.ndarray],
+                   matches: Sequence[tuple[int, int, np.ndarray]], config: TriangulationConfig
+                   ) -> tuple[np.ndarray, list[np.ndarray]]:
+    """COLMAP's point triangulator (pycolmap) on our features and matches with every camera's
+    pose and intrinsics fixed: points (P, 3) and per point its track (L, 2) of (view, feature
+    index). COLMAP reads them from a database: one camera, rig and frame per view, the matches
+    as calibrated two-view geometries (their inliers: the epipolar filter has verified them)."""
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2  # its progress log is per image: warnings and errors
+    with tempfile.TemporaryDirectory(prefix="dgs-triangulation-") as tmp:
+        db_path = Path(tmp) / "database.db"
+        rec = pycolmap.Reconstruction()
+        with pycolmap.Database.open(db_path) as db:
+            for i, (cam, xy) in enumerate(zip(cameras, keypoints)):
+                key = i + 1  # COLMAP's ids start at 1
+                K = cam.K
+                camera = pycolmap.Camera(camera_id=key, model="PINHOLE", width=cam.width,
+                                         height=cam.height,
+                                         params=[K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+                rig = pycolmap.Rig(rig_id=key)
+                rig.add_ref_sensor(camera.sensor_id)
+                image = pycolmap.Image(name=f"{i}", camera_id=key, image_id=key)
+                image.frame_id = key
+                frame = pycolmap.Frame(frame_id=key, rig_id=key)
+                frame.add_data_id(image.data_id)
+                db.write_camera(camera, use_camera_id=True)
+                db.write_rig(rig, use_rig_id=True)
+                db.write_frame(frame, use_frame_id=True)
+                db.write_image(image, use_image_id=True)
+                db.write_keypoints(key, np.asarray(xy, np.float32).reshape(-1, 2))
+                frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(cam.R), cam.t)
+                rec.add_camera(camera)
+                rec.add_rig(rig)
+                rec.add_frame(frame)
+                rec.add_image(image)
+            for a, b, m in matches:
+                m = np.ascontiguousarray(m, np.uint32).reshape(-1, 2)
+                db.write_matches(a + 1, b + 1, m)
+                db.write_two_view_geometry(a + 1, b + 1, pycolmap.TwoViewGeometry(
+                    config=pycolmap.TwoViewGeometryConfiguration.CALIBRATED,
+                    inlier_matches=m))
+        for i in range(len(cameras)):
+            rec.register_frame(i + 1)
+        options = pycolmap.IncrementalPipelineOptions(
+            num_threads=max(1, cv2.getNumThreads()), random_seed=0, extract_colors=False,
+            min_num_matches=1)  # every verified pair counts, however few its matches
+        options.triangulation.ignore_two_view_tracks = False  # ours are seeds: keep them
+        options.triangulation.random_seed = 0
+        options.triangulation.min_angle = config.min_angle_deg
+        options.triangulation.merge_max_reproj_error = config.max_reprojection
+        options.triangulation.complete_max_reproj_error = config.max_reprojection
+        options.mapper.filter_max_reproj_error = config.max_reprojection
+        options.mapper.filter_min_tri_angle = config.min_angle_deg
+        (Path(tmp) / "sparse").mkdir()
+        out = pycolmap.triangulate_points(rec, db_path, tmp, Path(tmp) / "sparse",
+                                          clear_points=True, options=options)
+    ids = sorted(out.points3D.keys())
+    points = np.array([out.points3D[p].xyz for p in ids], np.float64).reshape(-1, 3)
+    tracks = [np.array([(e.image_id - 1, e.point2D_idx) for e in out.points3D[p].track.elements],
+                       np.int64).reshape(-1, 2) for p in ids]
+    return points, tracks
+
+
+def _views_inside(points: np.ndarray, cameras: Sequence[Camera]) -> np.ndarray:
+    """(N,) in how many of the cameras' images each point lands (in front). A matted subject
+    is where the views overlap; a point inside only the two views that matched it (a wrong
+    match along their epipolar lines) is one no third view's mask can carve."""
+    count = np.zeros(len(points), np.int64)
+    for cam in cameras:
+        uv, z = cam.project(points)
+        count += pixel_indices(uv, cam.width, cam.height, z)[2]
+    return count
+
+
+def _observations(tracks: list[np.ndarray], keypoints: Sequence[np.ndarray]
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every observation of the tracks: its point's index, its view and pixel coordinates."""
+    point = np.repeat(np.arange(len(tracks)), [len(t) for t in tracks])
+    flat = np.concatenate(tracks)
+    xy = np.zeros((len(flat), 2))
+    for v in np.unique(flat[:, 0]):
+        at = flat[:, 0] == v
+        xy[at] = keypoints[v][flat[at, 1]]
+    return point, flat[:, 0], xy
+
+
+def _colours_at(view: np.ndarray, xy: np.ndarray, images: Sequence[np.ndarray]) -> np.ndarray:
+    out = np.zeros((len(view), 3))
+    for v in np.unique(view):
+        at = view == v
         img = images[v]
-        u, y, _ = pixel_indices(coords[where], img.shape[1], img.shape[0])
-        acc[where] = img[y, u, :3]
-    return np.clip(acc.mean(axis=1), 0, 1)
+        u, y, _ = pixel_indices(xy[at], img.shape[1], img.shape[0])
+        out[at] = img[y, u, :3]
+    return out
+
+
+def _mean_per_point(point: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    sums = np.zeros((n, values.shape[1]))
+    np.add.at(sums, point, values)
+    return sums / np.maximum(np.bincount(point, minlength=n), 1)[:, None]

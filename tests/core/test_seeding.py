@@ -137,7 +137,7 @@ def test_triangulated_points_lie_on_the_surface(textured: Path):
 
     from core.data.dataset import CaptureDataset
     from core.training import training_cameras
-    from core.triangulation import triangulate_views
+    from core.triangulation import TriangulationConfig, triangulate_views
 
     cap = load_capture(textured)
     ds = CaptureDataset(cap, cameras=[c.id for c in training_cameras(cap)])
@@ -145,6 +145,9 @@ def test_triangulated_points_lie_on_the_surface(textured: Path):
     cloud, stats = triangulate_views([v.camera for v in views], [v.image.numpy() for v in views],
                                      [v.mask.numpy() for v in views])
     assert stats.points == len(cloud) >= 30, stats
+    # Every point is seen twice or more, within the triangulator's reprojection bound.
+    assert stats.observations >= 2 * stats.points, stats
+    assert 0 < stats.reprojection < TriangulationConfig().max_reprojection, stats
     mesh = trimesh.load(textured / "gt" / "meshes" / "000000.ply")
     surface = trimesh.sample.sample_surface(mesh, 200_000, seed=0)[0]
     dist, _ = cKDTree(surface).query(cloud.points)
