@@ -21,7 +21,9 @@ Torch-free (numpy, OpenCV, pycolmap); images in 0..1, cameras ideal pinholes (un
 from __future__ import annotations
 
 import math
+import signal
 import tempfile
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +33,15 @@ import numpy as np
 
 from core.data.capture import Camera
 from core.data.points import PointCloud
+
+_TERM = signal.getsignal(signal.SIGTERM)
+import pycolmap  # noqa: E402  (between the two halves of keeping SIGTERM's handler)
+
+# COLMAP's logging (glog) takes SIGTERM when pycolmap is imported, to print a stack trace and
+# end the process: a worker told to stop by SIGTERM must checkpoint and give its job back
+# instead (worker.runner), so Python's handler is put back. (The fatal signals keep glog's.)
+if _TERM is not None and threading.current_thread() is threading.main_thread():
+    signal.signal(signal.SIGTERM, _TERM)
 
 __all__ = ["TriangulationConfig", "TriangulationStats", "camera_pairs", "in_visual_hull",
            "pixel_indices", "triangulate_views"]
@@ -232,8 +243,6 @@ def _colmap_points(cameras: Sequence[Camera], keypoints: Sequence[np.ndarray],
     pose and intrinsics fixed: points (P, 3) and per point its track (L, 2) of (view, feature
     index). COLMAP reads them from a database: one camera, rig and frame per view, the matches
     as calibrated two-view geometries (their inliers: the epipolar filter has verified them)."""
-    import pycolmap
-
     pycolmap.logging.minloglevel = 2  # its progress log is per image: warnings and errors
     with tempfile.TemporaryDirectory(prefix="dgs-triangulation-") as tmp:
         db_path = Path(tmp) / "database.db"

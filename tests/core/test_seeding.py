@@ -290,3 +290,23 @@ def test_no_seed_is_left_in_front_of_a_lens(textured: Path):
     kept = seed_points(cams, images, [None] * len(cams), cfg, n_random=100,
                        capture_points=cloud)
     assert "(1 within" in kept.note  # without the held-out camera only its own lens is cleared
+
+
+def test_sigterm_still_reaches_python_after_colmap_loads(tmp_path: Path):
+    """COLMAP's logging takes SIGTERM when pycolmap loads (a stack trace, then death): a worker
+    process that imported the triangulation must still run its own handler (checkpoint, give
+    the job back), as a fresh interpreter shows."""
+    import subprocess
+    import sys
+
+    code = ("import os, signal, sys\n"
+            "seen = []\n"
+            "signal.signal(signal.SIGTERM, lambda *a: seen.append(1))\n"
+            "import core.triangulation\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\n"
+            "signal.signal(signal.SIGTERM, lambda *a: seen.append(2))\n"
+            "os.kill(os.getpid(), signal.SIGTERM)\n"
+            "print(seen)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[2], timeout=120)
+    assert out.returncode == 0 and out.stdout.strip() == "[1, 2]", out.stderr[-2000:]
