@@ -91,10 +91,15 @@ def _waiting(since: dt.datetime) -> Any:
                | ((Job.state == "running") & (Job.stage == "assembling"))))
 
 
+def _leased(now: dt.datetime) -> Any:
+    """SQL: a running job under a live lease."""
+    return ((Job.state == "running") & (Job.lease_owner.is_not(None))
+            & (Job.lease_expires_at > now))
+
+
 def _on_worker(now: dt.datetime, since: dt.datetime) -> Any:
     """SQL: a job that holds a worker: a live lease, or picked and not yet claimed."""
-    return (((Job.state == "running") & (Job.lease_owner.is_not(None))
-             & (Job.lease_expires_at > now))
+    return (_leased(now)
             | ((Job.state == "queued") & (Job.lease_owner.is_(None)) & _starting(since)))
 
 
@@ -168,8 +173,7 @@ class FairPick:
             if s.scalar(others.limit(1)) is None:  # the usual answer, without the lock
                 return False
             _lock_picks(s)
-            live = ((Job.state == "running") & (Job.lease_owner.is_not(None))
-                    & (Job.lease_expires_at > now))
+            live = _leased(now)
             if s.scalar(select(Job.id).where(live, Job.yield_asked_at.is_not(None))
                         .limit(1)) is not None:
                 return False  # one ask at a time: the last has not left its worker yet

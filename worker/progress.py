@@ -18,6 +18,7 @@ import threading
 import time
 from typing import Any
 
+from worker.fair import yield_wait
 from worker.models import Job
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
@@ -38,10 +39,10 @@ class JobLink:
         """This worker is shutting down: stop, checkpoint, and give the job back."""
         self.yielding = False
         """Another tenant's turn (worker.fair): stop, checkpoint, and give the job back."""
-        self._yield_after = min((w for w in (settings.share_after_seconds,
-                                             settings.time_slice_seconds) if w > 0),
-                                default=None)
-        """The least time on this worker after which the job may be asked to give it up."""
+        self._yield_after = yield_wait(2, settings.share_after_seconds,
+                                       settings.time_slice_seconds)
+        """The least time on this worker after which the job may be asked to give it up (a gap
+        of two workers is one every rule of the fair share asks for)."""
         self._lock = threading.Lock()
         self._logs: list[str] = []
         self._pending: dict[str, Any] | None = None
