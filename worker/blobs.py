@@ -10,7 +10,7 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -31,6 +31,21 @@ def check_key(key: str) -> str:
     if any(p in ("", ".", "..") for p in parts):
         raise ValueError(f"key: {key!r} has an empty, '.' or '..' part")
     return key
+
+
+def _write(dest: Path, fill: Callable[[Path], object]) -> None:
+    """`fill` a new file beside `dest`, then rename it over `dest` (writes are atomic). The
+    temporary has a name of its own, so two processes writing the same file (two jobs fetching
+    one capture) never write into, or rename away, each other's."""
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".part")
+    os.close(fd)
+    try:
+        fill(Path(name))
+        os.replace(name, dest)
+    except BaseException:
+        Path(name).unlink(missing_ok=True)
+        raise
 
 
 @dataclass(frozen=True)
@@ -71,25 +86,13 @@ class LocalBlobStore:
         return self.root.joinpath(*check_key(key).split("/"))
 
     def put_file(self, key: str, path: Path) -> None:
-        dest = self._path(key)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=dest.parent, prefix=f".{dest.name}.", suffix=".part")
-        os.close(fd)
-        try:
-            shutil.copyfile(path, tmp)
-            os.replace(tmp, dest)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        _write(self._path(key), lambda tmp: shutil.copyfile(path, tmp))
 
     def get_file(self, key: str, dest: Path) -> None:
         src = self._path(key)
         if not src.is_file():
             raise FileNotFoundError(f"artifact store: no blob {key!r}")
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dest.with_name(dest.name + ".part")
-        shutil.copyfile(src, tmp)
-        os.replace(tmp, dest)
+        _write(dest, lambda tmp: shutil.copyfile(src, tmp))
 
     def size(self, key: str) -> int | None:
         path = self._path(key)
@@ -160,14 +163,10 @@ class S3BlobStore:
         from botocore.exceptions import ClientError
 
         name = self._name(key)
-        dest.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dest.with_name(dest.name + ".part")
         try:
-            self.client.download_file(self.bucket, name, str(tmp))
+            _write(dest, lambda tmp: self.client.download_file(self.bucket, name, str(tmp)))
         except ClientError as exc:
-            tmp.unlink(missing_ok=True)
             raise FileNotFoundError(f"artifact store: no blob {key!r} ({exc})") from None
-        os.replace(tmp, dest)
 
     def size(self, key: str) -> int | None:
         # lazy: only with S3 storage (boto3)

@@ -24,12 +24,14 @@ A tenant that took every worker while alone would keep them until its jobs end: 
 worker up at the next step when another tenant waits with at least two jobs fewer on a worker
 (the shares are then uneven by more than one worker; each tenant ends with its share, and no
 two tenants trade a worker back and forth). The job stops with a checkpoint and goes back to the
-queue (`JobStore.release`, no attempt counted); the freed worker's pick gives the waiting tenant
-the turn. One job is asked at a time, and only after holding its worker `share_after_seconds`
-(every claim makes progress). With fewer workers than tenants the shares cannot be even: time
+queue (`JobStore.release`, no attempt counted), and its pool process runs the waiting tenant's
+job itself (`FairPick.hand_over`, `worker.tasks`): the turn passes without the seconds of a
+fresh process importing torch. One job is asked at a time, and only after holding its worker
+`share_after_seconds` (every claim makes progress). A job picked before the waiting tenant came
+gives its turn up as its process starts, before its claim and the seconds of its setup
+(`FairPick.gives_way_at_start`). With fewer workers than tenants the shares cannot be even: time
 slicing (`time_slice_seconds`, off by default) asks a job whenever another tenant waits with
-fewer on a worker, after holding its worker that long; each slice costs a checkpoint and a
-process start.
+fewer on a worker, after holding its worker that long; each slice costs a checkpoint.
 
 A waiting job is queued (or a parted job's assembly), sent to the broker, not picked within
 the starting window, with no cancel asked and no parts of its own to wait for. The claim and its
@@ -39,6 +41,7 @@ lease (`JobStore.claim`) stay what keeps a job from running twice: the pick only
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Collection
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -103,14 +106,15 @@ def _on_worker(now: dt.datetime, since: dt.datetime) -> Any:
             | ((Job.state == "queued") & (Job.lease_owner.is_(None)) & _starting(since)))
 
 
-def turns(s: Session, job: Job, now: dt.datetime, since: dt.datetime) -> list[Turn]:
+def turns(s: Session, job: Job | None, now: dt.datetime, since: dt.datetime) -> list[Turn]:
     """Every tenant with a waiting job, and `job`'s, in the order of their turns."""
     oldest: dict[str, tuple[dt.datetime, str]] = {}
     for tenant, job_id, created in s.execute(select(Job.tenant, Job.id, Job.created_at)
                                              .where(_waiting(since))
                                              .order_by(Job.created_at, Job.id)):
         oldest.setdefault(tenant, (created, job_id))
-    oldest.setdefault(job.tenant, (job.created_at, job.id))
+    if job is not None:
+        oldest.setdefault(job.tenant, (job.created_at, job.id))
     busy = dict(s.execute(select(Job.tenant, func.count()).where(
         Job.tenant.in_(list(oldest)), _on_worker(now, since)).group_by(Job.tenant)).all())
     served = dict(s.execute(select(Job.tenant, func.max(Job.picked_at)).where(
@@ -125,6 +129,15 @@ def yield_wait(fewer: int, share_after: float, time_slice: float) -> float | Non
     waits = [wait for wait, gap in ((share_after, 2), (time_slice, 1))
              if wait > 0 and fewer >= gap]
     return min(waits, default=None)
+
+
+def _ahead(s: Session, tenant: str, others: Any, now: dt.datetime, since: dt.datetime) -> int:
+    """How many jobs more `tenant` has on a worker than the waiting tenant with the fewest
+    (`others`: the query of the other waiting tenants)."""
+    tenants = set(s.scalars(others.distinct())) | {tenant}
+    busy = dict(s.execute(select(Job.tenant, func.count()).where(
+        Job.tenant.in_(list(tenants)), _on_worker(now, since)).group_by(Job.tenant)).all())
+    return busy.get(tenant, 0) - min(busy.get(t, 0) for t in tenants - {tenant})
 
 
 def _lock_picks(s: Session) -> None:
@@ -156,6 +169,54 @@ class FairPick:
             job.picked_at = now
             return Pick("run")
 
+    def gives_way_at_start(self, job_id: str, *, share_after: float,
+                           starting_seconds: float) -> bool:
+        """Whether the picked job `job_id`, whose pool process is about to claim it, gives its
+        turn up instead: since its pick another tenant has come to wait with at least two jobs
+        fewer on a worker, so the fair share would ask it to stop as soon as it had held the
+        worker `share_after` seconds, after the seconds of its setup. It goes back to waiting
+        (not picked, not dispatched: a sweeper sends it again; no attempt counted) and the
+        process runs the waiting tenant's job (`hand_over`). False with the fair share off."""
+        if share_after <= 0:
+            return False
+        now = utcnow()
+        since = now - dt.timedelta(seconds=starting_seconds)
+        with self.session() as s:  # type: ignore[attr-defined]
+            job = s.get(Job, job_id)
+            if (job is None or job.state != "queued" or job.lease_owner is not None
+                    or job.picked_at is None or job.cancel_requested or job.parts):
+                return False
+            others = select(Job.tenant).where(_waiting(since), Job.tenant != job.tenant)
+            if s.scalar(others.limit(1)) is None:  # the usual answer, without the lock
+                return False
+            _lock_picks(s)
+            if _ahead(s, job.tenant, others, now, since) < 2:
+                return False
+            job.picked_at = job.dispatched_at = None
+            job.message = ("back in the queue: another tenant's job took its turn as its "
+                           "worker started (fair share)")
+            return True
+
+    def hand_over(self, tenant: str, starting_seconds: float, *,
+                  pipelines: Collection[str]) -> str | None:
+        """The job that a pool process runs next itself, without a process start, after its
+        job (of `tenant`) gave its worker up: the oldest waiting job of the tenant whose turn
+        it is, marked picked. None when that tenant is `tenant` (the waiting tenant's job was
+        picked elsewhere meanwhile), nobody waits, or the job's pipeline is not one of
+        `pipelines` (those whose time limit fits in what the process has left)."""
+        now = utcnow()
+        since = now - dt.timedelta(seconds=starting_seconds)
+        with self.session() as s:  # type: ignore[attr-defined]
+            _lock_picks(s)
+            first = next(iter(turns(s, None, now, since)), None)
+            if first is None or first.tenant == tenant:
+                return None
+            job = s.get(Job, first.job)
+            if job.pipeline not in pipelines:
+                return None
+            job.picked_at = now
+            return job.id
+
     def ask_to_yield(self, job_id: str, owner: str, *, share_after: float, time_slice: float,
                      starting_seconds: float) -> bool:
         """Whether the running job `job_id` (leased by `owner`) should give its worker up now
@@ -177,12 +238,8 @@ class FairPick:
             if s.scalar(select(Job.id).where(live, Job.yield_asked_at.is_not(None))
                         .limit(1)) is not None:
                 return False  # one ask at a time: the last has not left its worker yet
-            tenants = set(s.scalars(others.distinct())) | {job.tenant}
-            busy = dict(s.execute(select(Job.tenant, func.count()).where(
-                Job.tenant.in_(list(tenants)), _on_worker(now, since)).group_by(Job.tenant)).all())
-            mine = busy.get(job.tenant, 0)
-            fewest = min(busy.get(t, 0) for t in tenants - {job.tenant})
-            wait = yield_wait(mine - fewest, share_after, time_slice)
+            wait = yield_wait(_ahead(s, job.tenant, others, now, since), share_after,
+                              time_slice)
             if wait is None:
                 return False
             held = now - dt.timedelta(seconds=wait)

@@ -8,6 +8,7 @@ publishing a folder's files as typed artifacts under jobs/<id>/artifacts/.
 
 from __future__ import annotations
 
+import fcntl
 import importlib
 import shutil
 import signal
@@ -50,6 +51,9 @@ class Outcome:
     exhausted (the redelivery cap was reached: the job failed)."""
     note: str = ""
     """Why nothing was done, for the worker's log."""
+    gave_way: bool = False
+    """Released because it gave its worker to another tenant's job (`worker.fair`): the pool
+    process may run that job itself (`worker.tasks`)."""
 
 
 @contextmanager
@@ -85,13 +89,22 @@ class Runner:
                                          region=settings.s3_region)
         self._published: dict[str, tuple[int, int]] = {}
         """Artifact paths already published, with the (size, mtime) their file had."""
+        self._handed = False
 
-    def run(self, job_id: str) -> Outcome:
+    def run(self, job_id: str, *, handed: bool = False) -> Outcome:
         """Claim and run the job. A message for a job that another live worker runs, that has
         ended or was deleted (a duplicate delivery: a sweeper re-sent it, the broker delivered
         it twice) finds nothing to do and is dropped: if the running worker dies, its lease
-        expires and a sweeper sends the job again."""
+        expires and a sweeper sends the job again. `handed`: the job was handed to this pool
+        process after its own job gave way (`worker.tasks`), so the time limit it may reach is
+        that task's: reaching it sends the job back to the queue instead of failing it."""
+        self._handed = handed
         s = self.settings
+        if not handed and self.store.gives_way_at_start(
+                job_id, share_after=s.share_after_seconds, starting_seconds=s.stall_seconds):
+            return Outcome("released", "another tenant came to wait while this pool process "
+                           "started: its turn goes to that tenant's job (fair share), and it "
+                           "goes back to the queue", gave_way=True)
         owner = Owner.current()
         claim = self.store.claim(job_id, owner, s.lease_seconds, s.max_attempts)
         if claim.status != "claimed":
@@ -116,7 +129,7 @@ class Runner:
         if a sweeper sent it already and another worker took it, the claim says so."""
         parent = self.store.get(parent_id)
         if parent is not None and parent.stage == "assembling" and parent.lease_owner is None:
-            self.run(parent_id)
+            self.run(parent_id, handed=self._handed)
 
     def _execution(self, job: Job, link: JobLink) -> Execution:
         pipeline = get_pipeline(job.pipeline)
@@ -155,7 +168,7 @@ class Runner:
             link.log(f"{why}: {reason}; back in the queue")
             link.close()
             self.store.release(job.id, link.owner, f"back in the queue: {why} at {exc.where}")
-            return Outcome("released")
+            return Outcome("released", gave_way=not link.shutdown)
         link.log(f"cancelled: {reason}")
         link.close()
         self.store.finish(job.id, link.owner, "cancelled", None,
@@ -164,6 +177,12 @@ class Runner:
 
     def _fail(self, job: Job, link: JobLink, exc: Exception, retry_note: str) -> Outcome:
         roots = self._client_roots(job, link)
+        if isinstance(exc, SoftTimeLimitExceeded) and self._handed:
+            why = "its pool process reached its time limit (it ran another job first)"
+            link.log(f"{why}; back in the queue, to resume from its last checkpoint")
+            link.close()
+            self.store.release(job.id, link.owner, f"back in the queue: {why}")
+            return Outcome("released")
         if isinstance(exc, SoftTimeLimitExceeded):
             error = {"code": "time_limit", "retryable": True,
                      "message": f"the job reached its time limit; {retry_note}"}
@@ -197,7 +216,8 @@ class Runner:
 
     # -- inputs -------------------------------------------------------------------------------
     def capture(self, job: Job, link: JobLink) -> Path:
-        """The capture's folder on this machine (fetched from the store once per machine)."""
+        """The capture's folder on this machine (fetched from the store once per machine, by one
+        process while the others wait)."""
         if job.capture_id is None:
             raise ValueError("capture: the job's capture was deleted")
         prefix = f"captures/{job.capture_id}"
@@ -209,14 +229,21 @@ class Runner:
         cache = self.settings.scratch / "captures" / job.capture_id
         if (cache / ".complete").is_file():
             return cache
-        blobs = self.blobs.list(prefix)
-        if not blobs:
-            raise ValueError(f"capture: {job.capture_id} is not in the store")
-        link.update(fraction=0.0, stage="fetching capture",
-                    message=f"{len(blobs)} files, {sum(b.size for b in blobs) / 1e6:.0f} MB")
-        for blob in blobs:
-            self.blobs.get_file(blob.key, cache / blob.key[len(prefix) + 1:])
-        (cache / ".complete").touch()
+        cache.mkdir(parents=True, exist_ok=True)
+        # Two jobs on one capture start together (two pool processes): one fetches, the other
+        # waits for it and reads what it fetched.
+        with open(cache / ".fetching", "a") as held:
+            fcntl.flock(held, fcntl.LOCK_EX)
+            if (cache / ".complete").is_file():
+                return cache
+            blobs = self.blobs.list(prefix)
+            if not blobs:
+                raise ValueError(f"capture: {job.capture_id} is not in the store")
+            link.update(fraction=0.0, stage="fetching capture",
+                        message=f"{len(blobs)} files, {sum(b.size for b in blobs) / 1e6:.0f} MB")
+            for blob in blobs:
+                self.blobs.get_file(blob.key, cache / blob.key[len(prefix) + 1:])
+            (cache / ".complete").touch()
         return cache
 
     def fetch(self, prefix: str, dest: Path) -> list[Path]:

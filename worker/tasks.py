@@ -4,12 +4,14 @@ from the store (docs/design.md 2.3); tested with a real worker, not eager mode."
 from __future__ import annotations
 
 import logging
+import time
 
 from worker.app import app
 from worker.celery_app import TASK_NAME
 from worker.faults import hang_if_asked
 from worker.gate import nothing_to_run
-from worker.settings import get_settings
+from worker.pipelines import PIPELINES
+from worker.settings import WorkerSettings, get_settings
 from worker.store import JobStore
 
 __all__ = ["run_job"]
@@ -24,6 +26,7 @@ def run_job(job_id: str) -> str:
     deleted or runs on another live worker finds nothing to do, says so in the log and is
     acknowledged; no retry, no traceback). Most such messages never get here: the Celery
     parent drops them (worker.gate)."""
+    started = time.monotonic()
     hang_if_asked("start")
     settings = get_settings()
     # Between the parent's look (worker.gate) and here, the seconds a fresh interpreter takes,
@@ -39,4 +42,30 @@ def run_job(job_id: str) -> str:
     outcome = Runner(settings).run(job_id)
     if outcome.note:
         log.info("job %s: %s", job_id, outcome.note)
-    return outcome.status
+    status = outcome.status
+    while outcome.gave_way and (handed := _hand_over(settings, job_id, started)) is not None:
+        log.info("job %s: handed to this pool process after job %s gave its worker up (no "
+                 "process start)", handed, job_id)
+        job_id = handed
+        outcome = Runner(settings).run(job_id, handed=True)
+        if outcome.note:
+            log.info("job %s: %s", job_id, outcome.note)
+    return status
+
+
+def _hand_over(settings: WorkerSettings, job_id: str, started: float) -> str | None:
+    """The waiting job this pool process runs next, now that its job `job_id` gave its worker
+    to another tenant (`worker.fair`): the turn passes without a fresh process (seconds of
+    interpreter start and torch import). The handed job runs under this task's time limit, so
+    only when at least half of its own is left (reaching it sends the job back to the queue,
+    `Runner.run`); its own message, delivered later, finds it running or ended and is
+    dropped (`worker.gate`)."""
+    soft = (run_job.request.timelimit or (None, None))[1]
+    left = None if soft is None else soft - (time.monotonic() - started)
+    fits = [name for name, p in PIPELINES.items()
+            if left is None or left >= p.limits(settings)[0] / 2]
+    store = JobStore(settings.database)
+    job = store.get(job_id)
+    if job is None or not fits:
+        return None
+    return store.hand_over(job.tenant, settings.stall_seconds, pipelines=fits)

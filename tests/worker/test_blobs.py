@@ -3,6 +3,7 @@ the same behaviour, and keys that could escape their folder refused before any I
 
 from __future__ import annotations
 
+import threading
 from pathlib import Path
 
 import pytest
@@ -78,3 +79,31 @@ def test_store_urls(tmp_path: Path):
         open_store("s3:///nothing")
     with pytest.raises(ValueError, match="file:///folder or s3://"):
         open_store("ftp://host/x")
+
+
+def test_two_fetches_of_one_file_at_once_both_end_whole(blobs, tmp_path: Path):
+    """Two jobs on one machine fetch the same capture file at the same moment: each download
+    has a temporary of its own, so neither renames the other's away (a FileNotFoundError that
+    failed one of the jobs) and the file ends whole. Threads stand in for the pool processes."""
+    data = bytes(range(256)) * 4000
+    src = tmp_path / "src.bin"
+    src.write_bytes(data)
+    blobs.put_file("captures/c1/images/000000/cam00.png", src)
+    dest = tmp_path / "scratch" / "cam00.png"
+    start, errors = threading.Barrier(6), []
+
+    def fetch() -> None:
+        start.wait()
+        for _ in range(15):
+            try:
+                blobs.get_file("captures/c1/images/000000/cam00.png", dest)
+            except Exception as exc:  # noqa: BLE001  (collected and shown below)
+                errors.append(exc)
+
+    threads = [threading.Thread(target=fetch) for _ in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == [] and dest.read_bytes() == data
+    assert [p.name for p in dest.parent.iterdir()] == ["cam00.png"]  # no temporary left

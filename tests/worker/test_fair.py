@@ -189,3 +189,58 @@ def test_a_job_given_back_is_not_starting(store: JobStore):
     store.mark_dispatched(asked[0])
     deferred = store.pick(asked[0], STARTING)  # waiting again, behind B
     assert deferred.status == "defer" and deferred.first.job == b1
+
+
+def test_the_process_that_gave_way_is_handed_the_waiting_job(store: JobStore):
+    """A's job gives its worker up to B: its pool process is handed B's oldest waiting job
+    (marked picked, so no other worker's pick gives B a second one), never one of A's own;
+    nothing is handed when nobody else waits or when the job's time limit does not fit."""
+    a_old, a_new = _running(store, "a", 60), _running(store, "a", 30)
+    b1, b2 = _queued(store, "b"), _queued(store, "b")
+    everything = ("reconstruct", "relight", "export")
+    assert _ask(store, a_new)
+    store.release(a_new, Owner.parse(store.get(a_new).lease_owner), "back in the queue")
+    store.mark_dispatched(a_new)  # a sweeper sent it again: A waits too, with one on a worker
+    assert store.hand_over("a", STARTING, pipelines=("relight",)) is None  # does not fit
+    assert store.get(b1).picked_at is None
+    assert store.hand_over("a", STARTING, pipelines=everything) == b1
+    assert store.get(b1).picked_at is not None
+    store.claim(b1, Owner.current(), 600, 3)
+    # One each on a worker now; B was served (the hand-over's pick), A never (its jobs were
+    # claimed without one): A has the turn, so A's process is handed nothing (never its own
+    # tenant's job), and a process of B's that gave way would be handed A's.
+    assert store.hand_over("a", STARTING, pipelines=everything) is None
+    assert store.get(b2).picked_at is None
+    assert store.hand_over("b", STARTING, pipelines=everything) == a_new
+    for job_id in (a_old, b1):
+        store.finish(job_id, Owner.parse(store.get(job_id).lease_owner), "succeeded")
+    with store.session() as s:
+        s.execute(update(Job).where(Job.tenant.in_(["a", "b"]), Job.state == "queued")
+                  .values(state="cancelled"))
+    assert store.hand_over("a", STARTING, pipelines=everything) is None  # nobody waits
+
+
+def test_a_job_picked_before_another_tenant_came_gives_its_turn_up_at_start(store: JobStore):
+    """A's second job was picked while A was alone; B comes to wait before A's pool process
+    claims it: the process gives A's turn to B (A's job back to waiting, no attempt, a new
+    message from a sweeper) rather than claim it and stop a few seconds later. Not with the
+    fair share off, not with the shares even, not for a job that was never picked."""
+    a_old = _running(store, "a", 60)
+    a_new = _queued(store, "a")
+    assert store.pick(a_new, STARTING).status == "run"  # A alone: its turn
+    assert not store.gives_way_at_start(a_new, share_after=1, starting_seconds=STARTING)
+    b1 = _queued(store, "b")
+    assert not store.gives_way_at_start(a_new, share_after=0, starting_seconds=STARTING)
+    assert store.gives_way_at_start(a_new, share_after=1, starting_seconds=STARTING)
+    back = store.get(a_new)
+    assert (back.state, back.attempts, back.picked_at, back.dispatched_at) == (
+        "queued", 0, None, None)
+    assert store.hand_over("a", STARTING, pipelines=("reconstruct",)) == b1
+    store.claim(b1, Owner.current(), 600, 3)
+    store.mark_dispatched(a_new)  # the sweeper's new message: one each on a worker now
+    assert store.pick(a_new, STARTING, force=True).status == "run"
+    _queued(store, "b")  # B waits again, one job behind A (2 on a worker to 1): even enough
+    assert not store.gives_way_at_start(a_new, share_after=1, starting_seconds=STARTING)
+    assert not store.gives_way_at_start(_queued(store, "a"), share_after=1,
+                                        starting_seconds=STARTING)  # never picked
+    assert store.get(a_old).state == "running"

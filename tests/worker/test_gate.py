@@ -143,8 +143,8 @@ def _training(h: Harness, tenant: str, iterations: int) -> str:
 
 def test_a_tenant_on_every_worker_gives_one_up(stack, tiny_capture: Path, worker_factory):
     """A's two long jobs hold both of a worker's pool processes when B submits: one of A's
-    stops at a step and goes back to the queue (not an attempt lost), B's job runs on the freed
-    process and ends while A's other job still runs, and A's job comes back with a new
+    stops at a step and goes back to the queue (not an attempt lost), its pool process runs
+    B's job, which ends while A's other job still runs, and A's job comes back with a new
     attempt to resume where it stopped."""
     env, settings = stack
     h = Harness(settings, tiny_capture)
@@ -166,6 +166,9 @@ def test_a_tenant_on_every_worker_gives_one_up(stack, tiny_capture: Path, worker
         kept = next(j for j in jobs if j is not gave[0])
         assert (kept.state, len(kept.runs)) == ("running", 1)  # never stopped for B
         assert "back in the queue" in h.log(gave[0].id) and "fair share" in h.log(gave[0].id)
+        # B's job ran in the pool process A's job left: no fresh process (torch imported) first.
+        assert h.store.get(b).runs[0]["worker"] == gave[0].runs[0]["worker"], text[-3000:]
+        assert f"job {b}: handed to this pool process after job {gave[0].id}" in text
         back = wait_for(lambda: (j if (j := h.store.get(gave[0].id)).attempts == 2
                                  and j.state == "running" else None), 300, "A's job back")
         assert back.redeliveries <= 1  # the release gave its attempt back

@@ -6,10 +6,12 @@ from __future__ import annotations
 
 import datetime as dt
 import json
+import secrets
 import signal
 import subprocess
 import sys
 import textwrap
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -78,6 +80,51 @@ def test_a_job_runs_the_run_it_stored_at_submit(setup, tiny_capture: Path):
     ran = read_run(settings.data_dir / "store" / "jobs" / job.id / "artifacts")
     assert ran.same_run(resolved) and ran.config.train.seed == 0 and ran.capture == cap
     assert ran.views.split.rule == "none" and ran.config.train.device == "cpu"
+
+
+class _RemoteStore(LocalBlobStore):
+    """A store whose blobs are not files on this machine (as S3's), counting the downloads."""
+
+    def __init__(self, root: Path):
+        super().__init__(root)
+        self.downloads, self._lock = 0, threading.Lock()
+
+    def local_path(self, key: str) -> None:
+        return None
+
+    def get_file(self, key: str, dest: Path) -> None:
+        with self._lock:
+            self.downloads += 1
+        super().get_file(key, dest)
+
+
+def test_two_jobs_on_one_capture_fetch_it_once(setup, tiny_capture: Path):
+    """Two pool processes start jobs on one capture at once (threads stand in for them): one
+    fetches it into the scratch folder while the other waits, and both read every file whole.
+    Both used to download into the same temporaries, and one job failed."""
+    settings, store, _ = setup
+    blobs = _RemoteStore(settings.data_dir / "store")
+    cap = add_capture(store, blobs, tiny_capture)
+    jobs = [store.create("t1", "reconstruct", {"preset": "test"}, capture_id=cap)
+            for _ in range(2)]
+    runner, start, got = Runner(settings, store, blobs), threading.Barrier(2), {}
+
+    def fetch(job) -> None:
+        start.wait()
+        got[job.id] = runner.capture(job, JobLink(store, job, Owner.current(), settings))
+
+    threads = [threading.Thread(target=fetch, args=(job,)) for job in jobs]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    files = sorted(p for p in tiny_capture.rglob("*") if p.is_file())
+    assert blobs.downloads == len(files)
+    for folder in got.values():
+        assert folder == settings.scratch / "captures" / cap
+        for path in files:
+            assert (folder / path.relative_to(tiny_capture)).read_bytes() == path.read_bytes()
+    assert load_capture(folder).frames
 
 
 def test_a_duplicate_message_of_a_running_job_is_dropped(setup):
@@ -283,3 +330,30 @@ def test_a_normal_estimator_is_a_model_asset_or_an_allowed_name_never_a_path(
         assert metrics["frames"]["000000"]["normal_prior"] == "estimator"
         resolved = read_run(settings.data_dir / "store" / "jobs" / done / "artifacts")
         assert resolved.config.normal_estimator == name  # the name, not where it was put
+
+
+def test_a_pool_process_gives_its_turn_up_when_another_tenant_came(setup):
+    """A's job was picked while A was alone, and B came to wait while its pool process
+    started: the runner claims nothing (no attempt), answers that the job gave way (the task
+    then runs B's job in this process, worker.tasks) and A's job waits again."""
+    settings, store, blobs = setup
+    ta, tb = (f"{t}-{secrets.token_hex(3)}" for t in "ab")
+    a1, a2 = (store.create(ta, "reconstruct", {"preset": "test"}, capture_id=None)
+              for _ in range(2))
+    b1 = store.create(tb, "reconstruct", {"preset": "test"}, capture_id=None)
+    for job in (a1, a2):
+        store.mark_dispatched(job.id)
+    assert store.pick(a1.id, 300).status == "run"
+    assert store.claim(a1.id, Owner.current(), 600, 3).status == "claimed"
+    assert store.pick(a2.id, 300).status == "run"
+    store.mark_dispatched(b1.id)
+    try:
+        outcome = Runner(settings, store, blobs).run(a2.id)
+        assert (outcome.status, outcome.gave_way) == ("released", True)
+        assert "fair share" in outcome.note
+        job = store.get(a2.id)
+        assert (job.state, job.attempts, job.runs or [], job.dispatched_at) == (
+            "queued", 0, [], None)
+    finally:  # nothing left waiting in a shared PostgreSQL for other tests' picks
+        for job, tenant in ((a1, ta), (a2, ta), (b1, tb)):
+            store.request_cancel(job.id, tenant)
