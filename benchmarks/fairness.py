@@ -253,10 +253,15 @@ def split(store: Path, job: str) -> tuple[float, float]:
 
 
 def gave_up(store: Path) -> int:
-    """How many times A's jobs gave a worker up (a run that ended "released")."""
+    """How many times A's jobs gave a worker up: a run that ended "released", or a turn given
+    up as its pool process started (a line of the job's log, no run)."""
     with sqlite3.connect(store, timeout=30) as db:
-        return sum(1 for (runs,) in db.execute("SELECT runs FROM jobs WHERE tenant = 'flooder'")
+        runs = sum(1 for (runs,) in db.execute("SELECT runs FROM jobs WHERE tenant = 'flooder'")
                    for run in json.loads(runs or "[]") if run.get("outcome") == "released")
+        turns = db.execute(
+            "SELECT COUNT(*) FROM job_logs JOIN jobs ON jobs.id = job_logs.job_id WHERE "
+            "jobs.tenant = 'flooder' AND job_logs.line LIKE '%its turn goes to%'").fetchone()[0]
+    return runs + turns
 
 
 def row(phase: str, out: dict, flood: Flood | None, store: Path) -> str:

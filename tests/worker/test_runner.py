@@ -351,6 +351,7 @@ def test_a_pool_process_gives_its_turn_up_when_another_tenant_came(setup):
         outcome = Runner(settings, store, blobs).run(a2.id)
         assert (outcome.status, outcome.gave_way) == ("released", True)
         assert "fair share" in outcome.note
+        assert "its turn goes to" in "".join(log.line for log in store.logs(a2.id, 0, 10))
         job = store.get(a2.id)
         assert (job.state, job.attempts, job.runs or [], job.dispatched_at) == (
             "queued", 0, [], None)
