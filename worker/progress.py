@@ -23,7 +23,12 @@ from worker.models import Job
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
 
-__all__ = ["JobLink"]
+__all__ = ["JobLink", "log_line"]
+
+
+def log_line(text: str) -> str:
+    """A line of a job's log as stored: the worker's local time, then the text."""
+    return f"{time.strftime('%H:%M:%S')} {text}"
 
 
 class JobLink:
@@ -62,9 +67,8 @@ class JobLink:
         return self
 
     def log(self, line: str) -> None:
-        stamp = time.strftime("%H:%M:%S")
         with self._lock:
-            self._logs.append(f"{stamp} {line}")
+            self._logs.append(log_line(line))
 
     def update(self, *, fraction: float, milestone: bool = False, **fields: Any) -> None:
         """New progress (stage, frame, frames, iteration, iterations, message): kept in memory,

@@ -13,7 +13,6 @@ import importlib
 import shutil
 import signal
 import threading
-import time
 import traceback
 from contextlib import contextmanager
 from dataclasses import dataclass
@@ -34,7 +33,7 @@ from worker.faults import hang_if_asked
 from worker.gate import nothing_to_run
 from worker.models import Job
 from worker.pipelines import get_pipeline
-from worker.progress import JobLink
+from worker.progress import JobLink, log_line
 from worker.redact import SERVER, redact
 from worker.scratch import job_folder, mark
 from worker.settings import WorkerSettings
@@ -103,10 +102,10 @@ class Runner:
         s = self.settings
         if not handed and self.store.gives_way_at_start(
                 job_id, share_after=s.share_after_seconds, starting_seconds=s.stall_seconds):
-            self.store.append_logs(job_id, [
-                f"{time.strftime('%H:%M:%S')} another tenant came to wait with fewer jobs on the "
-                "workers while this job's worker started: its turn goes to that tenant's job; "
-                "back in the queue (fair share)"])
+            self.store.append_logs(job_id, [log_line(
+                "another tenant came to wait with fewer jobs on the workers while this job's "
+                "worker started: its turn goes to that tenant's job; back in the queue (fair "
+                "share)")])
             return Outcome("released", "another tenant came to wait while this pool process "
                            "started: its turn goes to that tenant's job (fair share), and it "
                            "goes back to the queue", gave_way=True)
