@@ -18,9 +18,9 @@ TASK_NAME = "dgs.run_job"
 
 def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> Celery:
     """A Celery app on the settings' broker: acks late, requeue when the worker process is lost
-    (the redelivery cap is counted in the job store), one task prefetched, one task per child
-    process, each a fresh interpreter, no result backend (the job store holds every
-    outcome)."""
+    (the redelivery cap is counted in the job store), one task prefetched, pool processes that
+    start as fresh interpreters and run tasks until a count or a memory cap replaces them, no
+    result backend (the job store holds every outcome)."""
     app = Celery("dgs", broker=settings.broker, include=list(include))
     transport: dict = {}
     if settings.broker.startswith(("redis://", "rediss://")):
@@ -34,7 +34,11 @@ def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> C
         task_acks_late=True,
         task_reject_on_worker_lost=True,
         worker_prefetch_multiplier=1,
-        worker_max_tasks_per_child=1,
+        # A pool process runs up to this many tasks, and none after one that grew it past the
+        # memory cap: the next job starts without an interpreter and torch to load.
+        worker_max_tasks_per_child=settings.pool_tasks_per_process,
+        worker_max_memory_per_child=(None if settings.pool_process_max_mib is None
+                                     else settings.pool_process_max_mib * 1024),  # KiB
         # Each pool process starts as a fresh interpreter: a forked one inherited the locks
         # another thread of this process held in SQLite at the fork, and hung in gc (issue 42).
         worker_pool_start_method="spawn",

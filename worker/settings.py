@@ -126,6 +126,13 @@ class WorkerSettings(BaseSettings):
     """Largest image (width x height) the API and the workers decode: capture images, masks,
     normal maps and environment maps. Checked from the file's header before any decoding, so
     a 20000 x 20000 PNG is refused in microseconds (the default passes a 16384 x 8192 map)."""
+    pool_tasks_per_process: int = Field(100, ge=1)
+    """Tasks a worker's pool process runs before Celery replaces it with a fresh one. A process
+    kept between jobs starts the next at once (an interpreter and torch take seconds, which a
+    waiting tenant's job would otherwise wait; issue 42); 1 starts every job fresh."""
+    pool_process_max_mib: int | None = Field(4096, ge=64)
+    """A pool process whose peak resident memory reached this (MiB) is replaced after its task,
+    so a large job's heap never carries into the next one; None: no limit."""
     torch_threads: int | None = Field(None, ge=1, le=1024)
     """Threads a job's training uses (torch.set_num_threads); None leaves torch's default (every
     core). `dgs serve --workers N` gives each embedded worker the machine's cores divided by N,

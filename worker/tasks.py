@@ -29,9 +29,9 @@ def run_job(job_id: str) -> str:
     started = time.monotonic()
     hang_if_asked("start")
     settings = get_settings()
-    # Between the parent's look (worker.gate) and here, the seconds a fresh interpreter takes,
-    # the job may have been cancelled or claimed elsewhere: one read, before torch is
-    # imported (seconds more), drops such a message at the cost of the process alone.
+    # Between the parent's look (worker.gate) and here (seconds, when the pool process is a
+    # fresh interpreter) the job may have been cancelled or claimed elsewhere: one read,
+    # before torch is imported (seconds more in a fresh process), drops such a message.
     refused = JobStore(settings.database).peek(job_id)
     if refused is not None:
         log.info("job %s: %s (before loading torch)", job_id, nothing_to_run(refused))
@@ -55,8 +55,8 @@ def run_job(job_id: str) -> str:
 
 def _hand_over(settings: WorkerSettings, job_id: str, started: float) -> str | None:
     """The waiting job this pool process runs next, now that its job `job_id` gave its worker
-    to another tenant (`worker.fair`): the turn passes without a fresh process (seconds of
-    interpreter start and torch import). The handed job runs under this task's time limit, so
+    to another tenant (`worker.fair`): the turn passes at once, without a round trip through
+    the broker, and the slot cannot go to another message of the tenant that gave it up. The handed job runs under this task's time limit, so
     only when at least half of its own is left (reaching it sends the job back to the queue,
     `Runner.run`); its own message, delivered later, finds it running or ended and is
     dropped (`worker.gate`)."""

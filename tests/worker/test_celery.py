@@ -100,6 +100,11 @@ class Harness:
         return "\n".join(r.line for r in self.store.logs(job_id, 0, 10_000))
 
 
+def _pid(job) -> int:
+    """The pool process that ran `job` (its worker: host/pid)."""
+    return int(job.worker.rsplit("/", 1)[1])
+
+
 def _alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -180,9 +185,10 @@ def test_lost_worker_is_replaced_and_the_job_resumes(stack, tiny_capture: Path, 
 def test_cancel_stops_the_job_at_a_step_boundary_and_frees_the_worker(
         stack, tiny_capture: Path, worker_factory):
     """A cancel stops the running job between two steps, with its checkpoint written (a retry
-    resumes from it), and ends its task process; the worker takes the next job. Nothing waits
-    on the clock: the grace before a wedged job's process is ended is far longer than a step
-    here, so only the step boundary can stop it (the wedged case: tests/worker/test_runner.py)."""
+    resumes from it), and frees its task process: the worker's next job runs in that same
+    process (kept between tasks: no interpreter to start). Nothing waits on the clock: the
+    grace before a wedged job's process is ended is far longer than a step here, so only the
+    step boundary can stop it (the wedged case: tests/worker/test_runner.py)."""
     env, settings = stack
     h = Harness(settings, tiny_capture)
     worker_factory({**env, "DGS_CANCEL_GRACE_SECONDS": "3600"}).start()
@@ -201,10 +207,30 @@ def test_cancel_stops_the_job_at_a_step_boundary_and_frees_the_worker(
     assert where and 5 <= int(where.group(1)) < 5000, log
     assert "did not stop within" not in log
     assert h.blobs.size(f"jobs/{job_id}/state/checkpoints/000000.pt")  # what a retry resumes
-    wait_for(lambda: not _alive(child), 120, "the task process to end")
     nxt = h.submit(iterations=100)  # the worker takes the next job
-    assert h.wait_state(nxt, ("succeeded", "failed")).state == "succeeded"
+    done = h.wait_state(nxt, ("succeeded", "failed"))
+    assert done.state == "succeeded", h.log(nxt)
+    assert _pid(done) == child and _alive(child), done.runs
     assert h.store.retry(job_id, "t1").state == "queued"
+
+
+@pytest.mark.parametrize("stack", ["embedded"], indirect=True)
+def test_a_pool_process_that_grew_past_the_memory_cap_is_replaced(stack, tiny_capture: Path,
+                                                                  worker_factory):
+    """A pool process whose peak memory passed `DGS_POOL_PROCESS_MAX_MIB` (here any: 64 MiB is
+    less than torch alone) ends after its task and the next job runs in a fresh one; with
+    one task a process (`DGS_POOL_TASKS_PER_PROCESS` 1) likewise."""
+    env, settings = stack
+    h = Harness(settings, tiny_capture)
+    for extra in ({"DGS_POOL_PROCESS_MAX_MIB": "64"}, {"DGS_POOL_TASKS_PER_PROCESS": "1"}):
+        worker = worker_factory({**env, **extra}).start()
+        pids = []
+        for _ in range(2):
+            job = h.wait_state(h.submit(iterations=10), ("succeeded", "failed"))
+            assert job.state == "succeeded", h.log(job.id)
+            pids.append(_pid(job))
+        assert pids[0] != pids[1] and not _alive(pids[0]), (extra, pids)
+        worker.stop()
 
 
 def test_stopping_a_worker_hands_its_job_to_the_next(stack, tiny_capture: Path, worker_factory):

@@ -13,7 +13,13 @@ def test_reliability_settings(tmp_path: Path):
     app = make_celery(WorkerSettings(data_dir=tmp_path))
     c = app.conf
     assert c.task_acks_late and c.task_reject_on_worker_lost
-    assert c.worker_prefetch_multiplier == 1 and c.worker_max_tasks_per_child == 1
+    assert c.worker_prefetch_multiplier == 1
+    # Pool processes are kept between tasks (the next job starts without an interpreter to
+    # load), up to a count and a memory cap (KiB), each a setting.
+    assert c.worker_max_tasks_per_child == 100 and c.worker_max_memory_per_child == 4096 * 1024
+    c = make_celery(WorkerSettings(data_dir=tmp_path, pool_tasks_per_process=1,
+                                   pool_process_max_mib=None)).conf
+    assert c.worker_max_tasks_per_child == 1 and c.worker_max_memory_per_child is None
     assert c.task_ignore_result and c.accept_content == ["json"]
     assert c.worker_lost_wait == 1.0  # a lost pool process frees its slot in a second, not 10
     assert app.conf.broker_url.startswith("sqla+sqlite:///") and str(tmp_path) in c.broker_url
