@@ -9,7 +9,6 @@ publishing a folder's files as typed artifacts under jobs/<id>/artifacts/.
 from __future__ import annotations
 
 import ctypes
-import fcntl
 import gc
 import importlib
 import shutil
@@ -37,7 +36,7 @@ from worker.models import Job
 from worker.pipelines import get_pipeline
 from worker.progress import JobLink, log_line
 from worker.redact import SERVER, redact
-from worker.scratch import job_folder, mark
+from worker.scratch import capture_folder, hold_capture, job_folder, mark
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
 
@@ -116,6 +115,8 @@ class Runner:
         self._published: dict[str, tuple[int, int]] = {}
         """Artifact paths already published, with the (size, mtime) their file had."""
         self._handed = False
+        self._holds: list = []
+        """The cached captures the running job holds (`worker.scratch.hold_capture`)."""
 
     def run(self, job_id: str, *, handed: bool = False) -> Outcome:
         """Claim and run the job. A message for a job that another live worker runs, that has
@@ -141,11 +142,15 @@ class Runner:
             return Outcome(claim.status, nothing_to_run(claim))
         mark(s.scratch, job_id, owner)
         link = JobLink(self.store, claim.job, owner, s).start()
+        outer, self._holds = self._holds, []  # an assembly runs inside its last part's run
         try:
             with _stop_on_sigterm(link):
                 outcome = self._execute(claim.job, link)
         finally:
             link.close()
+            for held in self._holds:
+                held.close()
+            self._holds = outer
             _release_memory()
         if outcome.status in ("succeeded", "failed", "cancelled"):
             shutil.rmtree(job_folder(s.scratch, job_id), ignore_errors=True)
@@ -248,7 +253,7 @@ class Runner:
     # -- inputs -------------------------------------------------------------------------------
     def capture(self, job: Job, link: JobLink) -> Path:
         """The capture's folder on this machine (fetched from the store once per machine, by one
-        process while the others wait)."""
+        process while the others wait), held until the job ends (`worker.scratch`)."""
         if job.capture_id is None:
             raise ValueError("capture: the job's capture was deleted")
         prefix = f"captures/{job.capture_id}"
@@ -257,24 +262,19 @@ class Runner:
             if not (local / "capture.json").is_file():
                 raise ValueError(f"capture: {job.capture_id} is not in the store")
             return local
-        cache = self.settings.scratch / "captures" / job.capture_id
-        if (cache / ".complete").is_file():
-            return cache
-        cache.mkdir(parents=True, exist_ok=True)
-        # Two jobs on one capture start together (two pool processes): one fetches, the other
-        # waits for it and reads what it fetched.
-        with open(cache / ".fetching", "a") as held:
-            fcntl.flock(held, fcntl.LOCK_EX)
-            if (cache / ".complete").is_file():
-                return cache
+
+        def fetch(folder: Path) -> None:
             blobs = self.blobs.list(prefix)
             if not blobs:
                 raise ValueError(f"capture: {job.capture_id} is not in the store")
             link.update(fraction=0.0, stage="fetching capture",
                         message=f"{len(blobs)} files, {sum(b.size for b in blobs) / 1e6:.0f} MB")
             for blob in blobs:
-                self.blobs.get_file(blob.key, cache / blob.key[len(prefix) + 1:])
-            (cache / ".complete").touch()
+                self.blobs.get_file(blob.key, folder / blob.key[len(prefix) + 1:])
+
+        cache = capture_folder(self.settings.scratch, job.capture_id)
+        # held until the job ends: the sweeper deletes no capture a job holds
+        self._holds.append(hold_capture(cache, fetch))
         return cache
 
     def fetch(self, prefix: str, dest: Path) -> list[Path]:

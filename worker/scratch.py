@@ -1,4 +1,6 @@
-"""A job's folder in a worker's scratch space (<scratch>/jobs/<id>/: run directory, relight
+"""A worker's scratch space: job folders, and the captures fetched from an S3 store.
+
+A job's folder in a worker's scratch space (<scratch>/jobs/<id>/: run directory, relight
 work) lives while a worker of this scratch space runs the job. A worker killed outright (SIGKILL,
 a lost machine) leaves its folder behind; `stale_job_folders` finds such folders and
 `clean_job_folders` deletes them: the job has ended (or is gone), or another worker resumed it
@@ -8,21 +10,32 @@ Whoever claims a job writes its owner into the folder (`mark`): a worker resumin
 the same scratch space (several workers on one machine or volume) overwrites it, so a folder
 whose mark names someone else than the job's live lease holder was left by a worker that is
 no longer the job's.
+
+A capture fetched from the artifact store (<scratch>/captures/<id>/, `worker.runner`) is held by
+every job that uses it: a shared lock on its `.fetching` file for the job's whole run (the
+process that fetches it holds the lock exclusively meanwhile). `clean_capture_folders` deletes
+one that nobody holds and no active job will need once its capture is gone (deleted or expired:
+a tenant's deleted data does not stay on the workers' disks) or nobody used it for a while.
 """
 
 from __future__ import annotations
 
 import datetime as dt
+import fcntl
 import logging
+import os
 import shutil
+import time
 from pathlib import Path
+from typing import IO
 
 from sqlalchemy import select
 
-from worker.models import Job, utcnow
-from worker.store import TERMINAL, JobStore, Owner
+from worker.models import Capture, Job, utcnow
+from worker.store import ACTIVE, TERMINAL, JobStore, Owner
 
-__all__ = ["MARK", "clean_job_folders", "job_folder", "mark", "stale_job_folders"]
+__all__ = ["MARK", "capture_folder", "clean_capture_folders", "clean_job_folders", "hold_capture",
+           "job_folder", "mark", "stale_job_folders"]
 
 log = logging.getLogger("dgs.sweeper")
 MARK = ".owner"
@@ -78,4 +91,89 @@ def clean_job_folders(store: JobStore, scratch: Path) -> list[str]:
         shutil.rmtree(folder, ignore_errors=True)
         log.info("job %s: removed its scratch folder %s (%s)", folder.name, folder, why)
         done.append(folder.name)
+    return done
+
+
+FETCHING, COMPLETE = ".fetching", ".complete"
+
+
+def capture_folder(scratch: Path, capture_id: str) -> Path:
+    return scratch / "captures" / capture_id
+
+
+def _locked(folder: Path, how: int) -> IO[str]:
+    """`folder`'s `.fetching` open and flocked `how`, on the file that is at that path now (a
+    cleaner may have deleted the folder while this process waited: then again, on a new one)."""
+    while True:
+        folder.mkdir(parents=True, exist_ok=True)
+        f = open(folder / FETCHING, "a")
+        try:
+            fcntl.flock(f, how)
+            if os.fstat(f.fileno()).st_ino == os.stat(folder / FETCHING).st_ino:
+                return f
+        except FileNotFoundError:
+            pass
+        except BaseException:
+            f.close()
+            raise
+        f.close()
+
+
+def hold_capture(folder: Path, fetch) -> IO[str]:
+    """Hold the capture cached in `folder` for a job: fetched first by `fetch(folder)` unless
+    complete (one process fetches, under the lock held exclusively; the others wait and read
+    what it fetched), then held shared until the returned file is closed, so no cleaner deletes
+    it under the job. Each hold marks the capture used now."""
+    held = _locked(folder, fcntl.LOCK_SH)
+    try:
+        if not (folder / COMPLETE).is_file():
+            held.close()
+            held = _locked(folder, fcntl.LOCK_EX)
+            if not (folder / COMPLETE).is_file():
+                fetch(folder)
+                (folder / COMPLETE).touch()
+            fcntl.flock(held, fcntl.LOCK_SH)  # others may read it now; a cleaner may not
+        os.utime(folder / COMPLETE)
+        return held
+    except BaseException:
+        held.close()
+        raise
+
+
+def clean_capture_folders(store: JobStore, scratch: Path, idle_seconds: float) -> list[str]:
+    """Delete the captures cached under `scratch` that no job holds and no active job will
+    need, at once when the capture is gone from the store, else once unused for `idle_seconds`
+    (each logged); returns the capture ids."""
+    root = scratch / "captures"
+    folders = {p.name: p for p in root.iterdir() if p.is_dir()} if root.is_dir() else {}
+    if not folders:
+        return []
+    with store.session(write=False) as s:
+        needed = set(s.scalars(select(Job.capture_id).where(
+            Job.state.in_(ACTIVE), Job.capture_id.in_(list(folders)))))
+        known = set(s.scalars(select(Capture.id).where(Capture.id.in_(list(folders)))))
+    done = []
+    for capture_id, folder in folders.items():
+        if capture_id in needed:
+            continue
+        try:
+            f = open(folder / FETCHING, "a")
+        except OSError:
+            continue
+        with f:
+            try:
+                fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:  # a job holds it, or is fetching it
+                continue
+            if capture_id in known:
+                marker = folder / COMPLETE if (folder / COMPLETE).is_file() else folder / FETCHING
+                if time.time() - marker.stat().st_mtime < idle_seconds:
+                    continue
+                why = f"unused for {idle_seconds / 3600:g} h"
+            else:
+                why = "the capture was deleted"
+            (folder / COMPLETE).unlink(missing_ok=True)  # a waiting job fetches it again
+            shutil.rmtree(folder, ignore_errors=True)
+        log.info("capture %s: removed its copy in this scratch space (%s)", capture_id, why)
+        done.append(capture_id)
     return done

@@ -109,6 +109,10 @@ class WorkerSettings(BaseSettings):
     send those again. A message delivered to a worker this long ago (and at least a lease ago)
     whose job is still queued counts as gone too. Jobs that merely wait behind others are never
     sent twice."""
+    capture_cache_seconds: float = Field(24 * 3600.0, gt=0)
+    """A capture a worker fetched from S3 into its scratch space is deleted once no job holds
+    it, no active job needs it and nobody used it for this long (at once if the capture was
+    deleted); checked with the lost messages (`lost_message_seconds`)."""
     requeue_after_seconds: float = Field(6 * 3600.0, gt=0)
     """Only for a broker the sweepers cannot look into (neither Redis nor the embedded one): a
     queued job last sent this long ago is sent again."""

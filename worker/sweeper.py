@@ -31,7 +31,7 @@ from worker.idempotency import forget_expired
 from worker.models import Asset, Capture, Job, utcnow
 from worker.parts import delete_parts
 from worker.periodic import Periodic
-from worker.scratch import clean_job_folders
+from worker.scratch import clean_capture_folders, clean_job_folders
 from worker.settings import WorkerSettings
 from worker.store import ACTIVE, TERMINAL, JobStore
 
@@ -87,11 +87,13 @@ class Sweeper:
                                               min_gap=s.lease_seconds)
         for job_id, why in sent.items():
             log.warning("job %s: sent to the queue again: %s", job_id, why)
-        cleaned = []
+        cleaned, uncached = [], []
         if due:
             self._next_check = time.monotonic() + s.lost_message_seconds
             cleaned = clean_job_folders(self.store, s.scratch)
-        return {"redispatched": list(sent), "scratch": cleaned, **self.expire()}
+            uncached = clean_capture_folders(self.store, s.scratch, s.capture_cache_seconds)
+        return {"redispatched": list(sent), "scratch": cleaned, "capture_copies": uncached,
+                **self.expire()}
 
     def expire(self) -> dict[str, list[str]]:
         """Delete jobs (finished ones no active job renders from), captures (no active job on

@@ -4,6 +4,8 @@ will use again, and what a job's failure tells its client about this machine's f
 from __future__ import annotations
 
 import datetime as dt
+import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -11,9 +13,10 @@ from sqlalchemy import update
 from worker_harness import add_capture
 
 from worker.blobs import LocalBlobStore
-from worker.models import Job, utcnow
+from worker.models import Capture, Job, utcnow
 from worker.runner import Runner
-from worker.scratch import MARK, clean_job_folders, mark, stale_job_folders
+from worker.scratch import (MARK, capture_folder, clean_capture_folders, clean_job_folders,
+                            hold_capture, mark, stale_job_folders)
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
 
@@ -73,3 +76,67 @@ def test_a_failure_names_capture_files_not_server_folders(store: JobStore, store
     for text in (after.error["message"], after.message, logs):
         assert str(settings.data_dir) not in text and str(tmp_path) not in text
     assert not (settings.scratch / "jobs" / job.id).exists()  # an ended job leaves no folder
+
+
+def _cached(scratch: Path, capture_id: str, fetched: list[str]):
+    """Fetch a capture into `scratch` as a job does (a file and the complete mark), held."""
+    def fetch(folder: Path) -> None:
+        (folder / "capture.json").write_text("{}")
+        fetched.append(capture_id)
+    return hold_capture(capture_folder(scratch, capture_id), fetch)
+
+
+def _aged(scratch: Path, capture_id: str, seconds: float) -> None:
+    mark_file = capture_folder(scratch, capture_id) / ".complete"
+    then = mark_file.stat().st_mtime - seconds
+    os.utime(mark_file, (then, then))
+
+
+def test_a_cached_capture_stays_while_a_job_holds_or_needs_it(store: JobStore, tmp_path: Path):
+    """A capture fetched from S3 into a worker's scratch space is deleted when nobody holds it
+    and no active job needs it: at once when its capture is gone, else once unused for the
+    idle time. A second job on it reads the copy (no fetch) and marks it used."""
+    scratch, fetched = tmp_path / "work", []
+    with store.session() as s:
+        s.add(Capture(id="cap_kept", tenant="t1", format="canonical", state="ready"))
+    held = _cached(scratch, "cap_kept", fetched)
+    _aged(scratch, "cap_kept", 7200)
+    assert clean_capture_folders(store, scratch, 3600) == []  # a running job holds it
+    held.close()
+    job = store.create("t1", "reconstruct", {}, capture_id="cap_kept")
+    assert clean_capture_folders(store, scratch, 3600) == []  # a queued job will need it
+    store.request_cancel(job.id, "t1")
+    _cached(scratch, "cap_kept", fetched).close()  # used again: no fetch, marked used now
+    assert fetched == ["cap_kept"]
+    assert clean_capture_folders(store, scratch, 3600) == []  # used a moment ago
+    _aged(scratch, "cap_kept", 7200)
+    assert clean_capture_folders(store, scratch, 3600) == ["cap_kept"]
+    assert not capture_folder(scratch, "cap_kept").exists()
+
+    _cached(scratch, "cap_gone", fetched).close()  # no row: the capture was deleted
+    assert clean_capture_folders(store, scratch, 3600) == ["cap_gone"]
+
+
+def test_a_job_that_waited_on_a_cleaner_fetches_the_capture_again(tmp_path: Path):
+    """A job that reaches a cached capture while the cleaner deletes it waits for the cleaner,
+    then finds the copy gone and fetches it again, into a folder of its own (whichever comes
+    first, the outcome is the same)."""
+    import fcntl
+    import threading
+
+    scratch, fetched = tmp_path / "work", []
+    _cached(scratch, "cap_a", fetched).close()
+    folder = capture_folder(scratch, "cap_a")
+    cleaner = open(folder / ".fetching", "a")
+    fcntl.flock(cleaner, fcntl.LOCK_EX)
+    out: list = []
+    job = threading.Thread(target=lambda: out.append(_cached(scratch, "cap_a", fetched)))
+    job.start()
+    (folder / ".complete").unlink()
+    shutil.rmtree(folder)
+    cleaner.close()
+    job.join(60)
+    assert not job.is_alive() and out, "the job still waits"
+    assert fetched == ["cap_a", "cap_a"]
+    assert (folder / "capture.json").is_file() and (folder / ".complete").is_file()
+    out[0].close()
