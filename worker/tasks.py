@@ -6,6 +6,8 @@ from __future__ import annotations
 import logging
 import time
 
+from celery.signals import worker_process_init
+
 from worker.app import app
 from worker.celery_app import TASK_NAME
 from worker.faults import hang_if_asked
@@ -19,6 +21,15 @@ __all__ = ["run_job"]
 log = logging.getLogger("dgs.worker")
 
 
+@worker_process_init.connect
+def _load_the_runner(**_) -> None:
+    """A pool process loads torch and the runner as it starts, while it waits for work, so its
+    first job starts as fast as the ones after it (the process is kept for many,
+    worker.celery_app): an idle worker's first job waited 1.9 s for these imports. Only pool
+    processes: the Celery parent never loads torch."""
+    import worker.runner  # noqa: F401
+
+
 @app.task(name=TASK_NAME, acks_late=True, reject_on_worker_lost=True,
           Request="worker.gate:JobRequest")
 def run_job(job_id: str) -> str:
@@ -29,12 +40,11 @@ def run_job(job_id: str) -> str:
     started = time.monotonic()
     hang_if_asked("start")
     settings = get_settings()
-    # Between the parent's look (worker.gate) and here (seconds, when the pool process is a
-    # fresh interpreter) the job may have been cancelled or claimed elsewhere: one read,
-    # before torch is imported (seconds more in a fresh process), drops such a message.
+    # Between the parent's look (worker.gate) and here the job may have been cancelled or
+    # claimed elsewhere: one read drops such a message before a Runner is made.
     refused = JobStore(settings.database).peek(job_id)
     if refused is not None:
-        log.info("job %s: %s (before loading torch)", job_id, nothing_to_run(refused))
+        log.info("job %s: %s (before its run)", job_id, nothing_to_run(refused))
         return refused.status
     # lazy: the Celery parent, which only hands tasks to its pool, never loads torch
     from worker.runner import Runner

@@ -37,11 +37,21 @@ def pool_processes(worker_pid: int) -> set[int]:
     return out
 
 
+def _loaded(pid: int, library: str) -> bool:
+    try:
+        return library in Path(f"/proc/{pid}/maps").read_text()
+    except OSError:
+        return False
+
+
 def test_dead_messages_start_no_pool_process(stack, tiny_capture: Path, worker_factory):
     env, settings = stack
     h = Harness(settings, tiny_capture)
     worker = worker_factory(env).start()
-    wait_for(lambda: pool_processes(worker.proc.pid), 120, "the idle pool process")
+    idle = wait_for(lambda: pool_processes(worker.proc.pid), 120, "the idle pool process")
+    # It loads torch as it starts, before any job (its first job starts as fast as the next).
+    wait_for(lambda: all(_loaded(pid, "libtorch") for pid in idle), 300, "torch in the idle "
+             "pool process")
     dead = []
     for i in range(15):  # a tenant's retry/cancel pairs: each leaves a message behind
         job = h.store.create("t1", "reconstruct", {"preset": "test"}, capture_id=h.capture_id)
