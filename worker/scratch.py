@@ -105,8 +105,11 @@ def _locked(folder: Path, how: int) -> IO[str]:
     """`folder`'s `.fetching` open and flocked `how`, on the file that is at that path now (a
     cleaner may have deleted the folder while this process waited: then again, on a new one)."""
     while True:
-        folder.mkdir(parents=True, exist_ok=True)
-        f = open(folder / FETCHING, "a")
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            f = open(folder / FETCHING, "a")
+        except (FileExistsError, FileNotFoundError):  # the cleaner removed it meanwhile
+            continue
         try:
             fcntl.flock(f, how)
             if os.fstat(f.fileno()).st_ino == os.stat(folder / FETCHING).st_ino:

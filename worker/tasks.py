@@ -27,6 +27,7 @@ def _load_the_runner(**_) -> None:
     first job starts as fast as the ones after it (the process is kept for many,
     worker.celery_app): an idle worker's first job waited 1.9 s for these imports. Only pool
     processes: the Celery parent never loads torch."""
+    # lazy: at the pool process's start, never in the Celery parent (it never loads torch)
     import worker.runner  # noqa: F401
 
 
