@@ -247,7 +247,7 @@ class Runner:
             (scratch, SERVER), (s.data_dir, SERVER)]
         if job.capture_id is not None:
             roots += [(self.blobs.local_path(f"captures/{job.capture_id}"), ""),
-                      (scratch / "captures" / job.capture_id, "")]
+                      (capture_folder(scratch, job.capture_id), "")]
         return roots
 
     # -- inputs -------------------------------------------------------------------------------

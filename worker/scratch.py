@@ -94,11 +94,11 @@ def clean_job_folders(store: JobStore, scratch: Path) -> list[str]:
     return done
 
 
-FETCHING, COMPLETE = ".fetching", ".complete"
+FETCHING, COMPLETE, CAPTURES = ".fetching", ".complete", "captures"
 
 
 def capture_folder(scratch: Path, capture_id: str) -> Path:
-    return scratch / "captures" / capture_id
+    return scratch / CAPTURES / capture_id
 
 
 def _locked(folder: Path, how: int) -> IO[str]:
@@ -147,7 +147,7 @@ def clean_capture_folders(store: JobStore, scratch: Path, idle_seconds: float) -
     """Delete the captures cached under `scratch` that no job holds and no active job will
     need, at once when the capture is gone from the store, else once unused for `idle_seconds`
     (each logged); returns the capture ids."""
-    root = scratch / "captures"
+    root = scratch / CAPTURES
     folders = {p.name: p for p in root.iterdir() if p.is_dir()} if root.is_dir() else {}
     if not folders:
         return []

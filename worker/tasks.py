@@ -67,10 +67,10 @@ def run_job(job_id: str) -> str:
 def _hand_over(settings: WorkerSettings, job_id: str, started: float) -> str | None:
     """The waiting job this pool process runs next, now that its job `job_id` gave its worker
     to another tenant (`worker.fair`): the turn passes at once, without a round trip through
-    the broker, and the slot cannot go to another message of the tenant that gave it up. The handed job runs under this task's time limit, so
-    only when at least half of its own is left (reaching it sends the job back to the queue,
-    `Runner.run`); its own message, delivered later, finds it running or ended and is
-    dropped (`worker.gate`)."""
+    the broker, and the slot cannot go to another message of the tenant that gave it up. The
+    handed job runs under this task's time limit, so only when at least half of its own is
+    left (reaching it sends the job back to the queue, `Runner.run`); its own message,
+    delivered later, finds it running or ended and is dropped (`worker.gate`)."""
     soft = (run_job.request.timelimit or (None, None))[1]
     left = None if soft is None else soft - (time.monotonic() - started)
     fits = [name for name, p in PIPELINES.items()
