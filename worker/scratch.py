@@ -12,10 +12,12 @@ whose mark names someone else than the job's live lease holder was left by a wor
 no longer the job's.
 
 A capture fetched from the artifact store (<scratch>/captures/<id>/, `worker.runner`) is held by
-every job that uses it: a shared lock on its `.fetching` file for the job's whole run (the
-process that fetches it holds the lock exclusively meanwhile). `clean_capture_folders` deletes
-one that nobody holds and no active job will need once its capture is gone (deleted or expired:
-a tenant's deleted data does not stay on the workers' disks) or nobody used it for a while.
+every job that uses it: a shared lock on its `.held` file for the job's whole run. One process
+fetches it, holding `.fetching` exclusively, while the others wait on that lock (never on a
+holder: a job that waited for `.held` exclusively would wait for every other job on the capture
+to end). `clean_capture_folders` deletes one that nobody holds and no active job will need once
+its capture is gone (deleted or expired: a tenant's deleted data does not stay on the workers'
+disks) or nobody used it for a while.
 """
 
 from __future__ import annotations
@@ -94,25 +96,25 @@ def clean_job_folders(store: JobStore, scratch: Path) -> list[str]:
     return done
 
 
-FETCHING, COMPLETE, CAPTURES = ".fetching", ".complete", "captures"
+HELD, FETCHING, COMPLETE, CAPTURES = ".held", ".fetching", ".complete", "captures"
 
 
 def capture_folder(scratch: Path, capture_id: str) -> Path:
     return scratch / CAPTURES / capture_id
 
 
-def _locked(folder: Path, how: int) -> IO[str]:
-    """`folder`'s `.fetching` open and flocked `how`, on the file that is at that path now (a
-    cleaner may have deleted the folder while this process waited: then again, on a new one)."""
+def _locked(path: Path, how: int) -> IO[str]:
+    """`path` open and flocked `how`, on the file that is at that path now (a cleaner may have
+    deleted its folder while this process waited: then again, on a new one)."""
     while True:
         try:
-            folder.mkdir(parents=True, exist_ok=True)
-            f = open(folder / FETCHING, "a")
+            path.parent.mkdir(parents=True, exist_ok=True)
+            f = open(path, "a")
         except (FileExistsError, FileNotFoundError):  # the cleaner removed it meanwhile
             continue
         try:
             fcntl.flock(f, how)
-            if os.fstat(f.fileno()).st_ino == os.stat(folder / FETCHING).st_ino:
+            if os.fstat(f.fileno()).st_ino == os.stat(path).st_ino:
                 return f
         except FileNotFoundError:
             pass
@@ -124,18 +126,17 @@ def _locked(folder: Path, how: int) -> IO[str]:
 
 def hold_capture(folder: Path, fetch) -> IO[str]:
     """Hold the capture cached in `folder` for a job: fetched first by `fetch(folder)` unless
-    complete (one process fetches, under the lock held exclusively; the others wait and read
-    what it fetched), then held shared until the returned file is closed, so no cleaner deletes
-    it under the job. Each hold marks the capture used now."""
-    held = _locked(folder, fcntl.LOCK_SH)
+    complete (one process fetches, holding `.fetching`; the others wait for that lock and read
+    what it fetched), then held until the returned file is closed, so no cleaner deletes it
+    under the job. Each hold marks the capture used now."""
+    held = _locked(folder / HELD, fcntl.LOCK_SH)  # no cleaner deletes the folder from here on
     try:
         if not (folder / COMPLETE).is_file():
-            held.close()
-            held = _locked(folder, fcntl.LOCK_EX)
-            if not (folder / COMPLETE).is_file():
-                fetch(folder)
-                (folder / COMPLETE).touch()
-            fcntl.flock(held, fcntl.LOCK_SH)  # others may read it now; a cleaner may not
+            with open(folder / FETCHING, "a") as fetching:
+                fcntl.flock(fetching, fcntl.LOCK_EX)
+                if not (folder / COMPLETE).is_file():
+                    fetch(folder)
+                    (folder / COMPLETE).touch()
         os.utime(folder / COMPLETE)
         return held
     except BaseException:
@@ -160,7 +161,7 @@ def clean_capture_folders(store: JobStore, scratch: Path, idle_seconds: float) -
         if capture_id in needed:
             continue
         try:
-            f = open(folder / FETCHING, "a")
+            f = open(folder / HELD, "a")
         except OSError:
             continue
         with f:
@@ -169,7 +170,7 @@ def clean_capture_folders(store: JobStore, scratch: Path, idle_seconds: float) -
             except BlockingIOError:  # a job holds it, or is fetching it
                 continue
             if capture_id in known:
-                marker = folder / COMPLETE if (folder / COMPLETE).is_file() else folder / FETCHING
+                marker = folder / COMPLETE if (folder / COMPLETE).is_file() else folder / HELD
                 if time.time() - marker.stat().st_mtime < idle_seconds:
                     continue
                 why = f"unused for {idle_seconds / 3600:g} h"

@@ -127,7 +127,7 @@ def test_a_job_that_waited_on_a_cleaner_fetches_the_capture_again(tmp_path: Path
     scratch, fetched = tmp_path / "work", []
     _cached(scratch, "cap_a", fetched).close()
     folder = capture_folder(scratch, "cap_a")
-    cleaner = open(folder / ".fetching", "a")
+    cleaner = open(folder / ".held", "a")
     fcntl.flock(cleaner, fcntl.LOCK_EX)
     out: list = []
     job = threading.Thread(target=lambda: out.append(_cached(scratch, "cap_a", fetched)))
@@ -140,3 +140,38 @@ def test_a_job_that_waited_on_a_cleaner_fetches_the_capture_again(tmp_path: Path
     assert fetched == ["cap_a", "cap_a"]
     assert (folder / "capture.json").is_file() and (folder / ".complete").is_file()
     out[0].close()
+
+
+def test_two_jobs_that_hold_a_capture_unfetched_both_go_on(tmp_path: Path, monkeypatch):
+    """Two jobs reach a capture not yet fetched at once and both hold it before either
+    fetches (a barrier after each one's shared lock makes it so): one fetches, the other waits
+    for that fetch only and reads it. The fetch used to want the holders' lock exclusively:
+    it waited for the other job's whole run (CI hung on it)."""
+    import fcntl
+    import threading
+
+    from worker import scratch as scratch_module
+
+    both, locked = threading.Barrier(2, timeout=60), scratch_module._locked
+
+    def held_by_both(*args):
+        f = locked(*args)
+        if args[-1] == fcntl.LOCK_SH and not getattr(threading.current_thread(), "met", False):
+            threading.current_thread().met = True
+            both.wait()
+        return f
+
+    monkeypatch.setattr(scratch_module, "_locked", held_by_both)
+    scratch, fetched, out = tmp_path / "work", [], []
+    jobs = [threading.Thread(target=lambda: out.append(_cached(scratch, "cap_b", fetched)),
+                             daemon=True) for _ in range(2)]
+    for job in jobs:
+        job.start()
+    for job in jobs:
+        job.join(60)
+    try:
+        assert not any(job.is_alive() for job in jobs), "a fetch waits for the other job to end"
+        assert len(out) == 2 and fetched == ["cap_b"]
+    finally:
+        for f in out:
+            f.close()
