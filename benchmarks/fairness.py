@@ -276,6 +276,16 @@ def row(phase: str, out: dict, flood: Flood | None, store: Path) -> str:
             f"{attack} |")
 
 
+def summary(starts: dict[str, list[float]]) -> str:
+    """B's starts idle and flooded side by side: median, mean, worst, and flooded over idle."""
+    stats = {phase: (statistics.median(v), statistics.fmean(v), max(v))
+             for phase, v in starts.items()}
+    (mi, ai, wi), (mf, af, wf) = stats["idle"], stats["flood"]
+    return (f"B's start over {len(starts['idle'])} rounds, idle / flood, s: median {mi:.2f} / "
+            f"{mf:.2f} ({mf / mi:.1f}x), mean {ai:.2f} / {af:.2f} ({af / ai:.1f}x), worst "
+            f"{wi:.2f} / {wf:.2f} ({wf / wi:.1f}x)")
+
+
 def setup(args, data: Path) -> tuple[subprocess.Popen, str, Tenant, Tenant, str, str, str]:
     """The server, its URL, tenants A and B, their captures and A's cancelled job."""
     keys = {t: dgs(data, "keys", "create", "--tenant", t).strip().splitlines()[-1]
@@ -340,15 +350,18 @@ def main() -> None:
     try:
         pid = server.pid
         drained(b, a, cap_b, broker, pid)  # warms the worker (its native build, the imports)
-        rows = []
+        rows, starts = [], {"idle": [], "flood": []}
         for i in range(args.rounds):
             time.sleep(args.lead)
-            rows.append(row(f"idle, round {i + 1}", run_b(b, cap_b, pid), None, store))
+            out = run_b(b, cap_b, pid)
+            starts["idle"].append(out["start"])
+            rows.append(row(f"idle, round {i + 1}", out, None, store))
             drained(b, a, cap_b, broker, pid)
             flood = Flood(a, url, cap_a, target, args).start()
             time.sleep(args.lead)
             out = run_b(b, cap_b, pid)
             flood.stop()
+            starts["flood"].append(out["start"])
             rows.append(row(f"flood, round {i + 1}", out, flood, store))
             drained(b, a, cap_b, broker, pid)
         print("| B's job | start s | of it, for a worker | its process | A's jobs gave up, "
@@ -356,6 +369,7 @@ def main() -> None:
               "| A's answers |")
         print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         print("\n".join(rows))
+        print(summary(starts))
     finally:
         server.terminate()
         server.wait(60)

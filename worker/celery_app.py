@@ -7,6 +7,7 @@ Torch-free: the API builds the same app to send jobs (`dispatch`) without import
 from __future__ import annotations
 
 from celery import Celery
+from kombu.transport import sqlalchemy as kombu_sqlalchemy
 
 from worker.pipelines import get_pipeline
 from worker.settings import WorkerSettings
@@ -16,12 +17,29 @@ __all__ = ["TASK_NAME", "dispatch", "make_celery"]
 TASK_NAME = "dgs.run_job"
 
 
+BROKER_POLL_SECONDS = 0.1
+"""How often a worker on the SQLite broker looks at an empty queue (Kombu's default, 1 s, was
+most of a small job's start: benchmarks/fairness.py measured 0.1-2.3 s). A look is a short
+write lock on the broker's file: ten a second a worker."""
+
+
+class SQLiteTransport(kombu_sqlalchemy.Transport):
+    """Kombu's SQLAlchemy transport, looking at an empty queue every `BROKER_POLL_SECONDS`. Its
+    `polling_interval` transport option would reach `create_engine` too, which refuses it; a
+    class named by Celery's `broker_transport` is the way Kombu leaves."""
+
+    polling_interval = BROKER_POLL_SECONDS
+
+
 def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> Celery:
     """A Celery app on the settings' broker: acks late, requeue when the worker process is lost
     (the redelivery cap is counted in the job store), one task prefetched, pool processes that
     start as fresh interpreters and run tasks until a count or a memory cap replaces them, no
     result backend (the job store holds every outcome)."""
-    app = Celery("dgs", broker=settings.broker, include=list(include))
+    broker, transport_class = settings.broker, None
+    if broker.startswith("sqla+sqlite"):
+        broker, transport_class = broker.split("+", 1)[1], f"{__name__}:SQLiteTransport"
+    app = Celery("dgs", broker=broker, include=list(include))
     transport: dict = {}
     if settings.broker.startswith(("redis://", "rediss://")):
         transport["visibility_timeout"] = settings.visibility_timeout
@@ -52,6 +70,7 @@ def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> C
         task_ignore_result=True,
         task_serializer="json",
         accept_content=["json"],
+        broker_transport=transport_class,
         broker_transport_options=transport,
         broker_connection_retry_on_startup=True,
         worker_hijack_root_logger=False,

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from kombu.transport import sqlalchemy as kombu_sqlalchemy
+
 from worker.celery_app import make_celery
 from worker.pipelines import PIPELINES, get_pipeline
 from worker.settings import WorkerSettings
@@ -22,7 +24,11 @@ def test_reliability_settings(tmp_path: Path):
     assert c.worker_max_tasks_per_child == 1 and c.worker_max_memory_per_child is None
     assert c.task_ignore_result and c.accept_content == ["json"]
     assert c.worker_lost_wait == 1.0  # a lost pool process frees its slot in a second, not 10
-    assert app.conf.broker_url.startswith("sqla+sqlite:///") and str(tmp_path) in c.broker_url
+    assert app.conf.broker_url.startswith("sqlite:///") and str(tmp_path) in c.broker_url
+    # Kombu's SQLAlchemy transport, asking an empty queue ten times a second (its default: once)
+    with app.connection_for_read() as conn:
+        assert isinstance(conn.transport, kombu_sqlalchemy.Transport)
+        assert conn.transport.polling_interval == 0.1
 
 
 def test_redis_visibility_timeout_outlasts_the_longest_job(tmp_path: Path):
