@@ -29,6 +29,22 @@ def pg_url():
     yield from services.postgres_database()
 
 
+@pytest.fixture
+def pg_empty(pg_url: str) -> str:
+    """`pg_url`'s database migrated and emptied for this test. The database is one a session:
+    a test before may have left jobs, captures or an API key (the API then asks every caller
+    for a key, and a test without one gets 401)."""
+    from sqlalchemy import text
+
+    from worker.db import engine_for, migrate
+
+    migrate(pg_url)
+    with engine_for(pg_url).begin() as c:
+        c.execute(text("TRUNCATE api_keys, captures, uploads, jobs, job_events, job_logs, "
+                       "idempotency_keys, artifacts, assets, rate_buckets"))
+    return pg_url
+
+
 @pytest.fixture(scope="session")
 def redis_broker():
     """(Redis URL, key prefix) private to this session."""

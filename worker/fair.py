@@ -20,7 +20,8 @@ and 3 alone are the queue's order (a tenant's three queued jobs before another's
 the latest pick makes tenants take turns.
 
 A tenant that took every worker while alone would keep them until its jobs end: the fair share
-(`FairPick.ask_to_yield`, asked by each running job's heartbeat) asks one of its jobs to give its
+(`FairPick.ask_to_yield`, asked by each running job's heartbeat thread, and between heartbeats
+when `FairPick.watch` sees another tenant wait) asks one of its jobs to give its
 worker up at the next step when another tenant waits with at least two jobs fewer on a worker
 (the shares are then uneven by more than one worker; each tenant ends with its share, and no
 two tenants trade a worker back and forth). The job stops with a checkpoint and goes back to the
@@ -216,6 +217,19 @@ class FairPick:
                 return None
             job.picked_at = now
             return job.id
+
+    def watch(self, job_id: str, owner: str, *, starting_seconds: float) -> tuple[bool, bool]:
+        """A running job's look between heartbeats, a read: (cancel requested, a job of another
+        tenant waits for a worker). Nothing while `owner` does not hold the job (the heartbeat
+        finds out that the lease was lost)."""
+        since = utcnow() - dt.timedelta(seconds=starting_seconds)
+        with self.session(write=False) as s:  # type: ignore[attr-defined]
+            job = s.execute(select(Job.tenant, Job.cancel_requested, Job.lease_owner)
+                            .where(Job.id == job_id)).first()
+            if job is None or job.lease_owner != owner:
+                return False, False
+            others = select(Job.id).where(_waiting(since), Job.tenant != job.tenant).limit(1)
+            return bool(job.cancel_requested), s.scalar(others) is not None
 
     def ask_to_yield(self, job_id: str, owner: str, *, share_after: float, time_slice: float,
                      starting_seconds: float) -> bool:

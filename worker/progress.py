@@ -1,5 +1,6 @@
-"""A running job's link to the job store: a heartbeat thread that renews the lease, writes the
-latest progress and log lines every `heartbeat_seconds`, and watches for a cancel.
+"""A running job's link to the job store: a heartbeat thread that renews the lease and writes the
+latest progress and log lines every `heartbeat_seconds`, and between heartbeats looks (a read,
+every `watch_seconds`) for a cancel or another tenant's turn (worker.fair).
 
 The training loop only updates in-memory state (`update`, `log`) and asks `should_stop()` after
 each step, so it never waits on the database. Updates between two heartbeats are coalesced into
@@ -118,12 +119,25 @@ class JobLink:
                                     progress, milestones=milestones)
 
     def _run(self) -> None:
-        while not self._done.wait(self.settings.heartbeat_seconds):
-            try:
-                owned, cancel = self._flush()
-            except Exception as exc:  # the database is briefly away: keep the job running
-                self.log(f"heartbeat failed ({type(exc).__name__}: {exc}); retrying")
-                continue
+        s = self.settings
+        tick = min(s.watch_seconds, s.heartbeat_seconds)
+        beat = time.monotonic() + s.heartbeat_seconds
+        while not self._done.wait(tick):
+            if time.monotonic() >= beat:  # write, renew the lease, see a cancel
+                beat = time.monotonic() + s.heartbeat_seconds
+                try:
+                    owned, cancel = self._flush()
+                except Exception as exc:  # the database is briefly away: keep the job running
+                    self.log(f"heartbeat failed ({type(exc).__name__}: {exc}); retrying")
+                    continue
+                waiting = owned  # `_may_yield` looks for a waiting tenant itself
+            else:  # between heartbeats: only look
+                try:
+                    cancel, waiting = self.store.watch(self.job_id, str(self.owner),
+                                                       starting_seconds=s.stall_seconds)
+                except Exception:  # the database is away: the next heartbeat says so
+                    continue
+                owned = not self.lost
             if not owned and not self.lost:
                 self.lost = True
                 self.stop.set()
@@ -132,13 +146,14 @@ class JobLink:
                 self._cancel_seen = time.monotonic()
                 self.log("cancel requested: stopping after the current step")
                 self.stop.set()
-            if owned and not (self.cancelled or self.yielding) and self._may_yield():
+            if (owned and waiting and not (self.cancelled or self.yielding)
+                    and self._may_yield()):
                 self.yielding = True
                 self.log("another tenant waits with fewer jobs on the workers: stopping after "
                          "the current step, back in the queue (fair share)")
                 self.stop.set()
             if (self._cancel_seen is not None and not self._done.is_set()
-                    and time.monotonic() - self._cancel_seen > self.settings.cancel_grace_seconds):
+                    and time.monotonic() - self._cancel_seen > s.cancel_grace_seconds):
                 self._kill_self()
 
     def _may_yield(self) -> bool:

@@ -84,6 +84,9 @@ class WorkerSettings(BaseSettings):
     dead and the job is handed to another worker (resuming from its checkpoint)."""
     heartbeat_seconds: float = Field(1.0, gt=0)
     """How often a worker writes progress, logs and its lease renewal to the job store."""
+    watch_seconds: float = Field(0.2, gt=0)
+    """How often a running job looks (a read) for a cancel or another tenant's turn between
+    its heartbeats: a worker is freed for them within this, not within a heartbeat."""
     stall_seconds: float = Field(300.0, gt=0)
     """A pool process that runs a task but has held no live lease for this long (stuck
     before its claim, or after its job ended) is killed by its worker's watchdog, as is one

@@ -48,16 +48,7 @@ def database_url(request, tmp_path: Path) -> str | None:
     """None (SQLite in the data folder); tests parametrize it indirectly with "postgres"."""
     if request.param == "sqlite":
         return None
-    url = request.getfixturevalue("pg_url")
-    from sqlalchemy import text
-
-    from worker.db import engine_for, migrate
-
-    migrate(url)
-    with engine_for(url).begin() as c:  # one database per session: start each test empty
-        c.execute(text("TRUNCATE api_keys, captures, uploads, jobs, job_events, job_logs, "
-                       "idempotency_keys, artifacts, assets, rate_buckets"))
-    return url
+    return request.getfixturevalue("pg_empty")
 
 
 @pytest.fixture

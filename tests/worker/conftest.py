@@ -49,16 +49,7 @@ def store_url(request, tmp_path: Path) -> str:
         url = f"sqlite:///{tmp_path / 'dgs.sqlite3'}"
         migrate(url)
         return url
-    url = request.getfixturevalue("pg_url")
-    migrate(url)
-    from sqlalchemy import text
-
-    from worker.db import engine_for
-
-    with engine_for(url).begin() as c:  # one database per session: start each test empty
-        c.execute(text("TRUNCATE api_keys, captures, uploads, jobs, job_events, job_logs, "
-                       "idempotency_keys, artifacts, assets, rate_buckets"))
-    return url
+    return request.getfixturevalue("pg_empty")
 
 
 @pytest.fixture

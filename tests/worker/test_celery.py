@@ -50,7 +50,7 @@ def stack(request, tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
         redis_url, prefix = request.getfixturevalue("redis_broker")
         endpoint = request.getfixturevalue("s3_server")
         bucket = f"dgs-{secrets.token_hex(4)}"
-        env.update({"DGS_DATABASE_URL": request.getfixturevalue("pg_url"),
+        env.update({"DGS_DATABASE_URL": request.getfixturevalue("pg_empty"),
                     "DGS_BROKER_URL": redis_url, "DGS_REDIS_KEY_PREFIX": prefix,
                     "DGS_STORAGE_URL": f"s3://{bucket}/dgs", "DGS_S3_ENDPOINT_URL": endpoint,
                     "DGS_S3_REGION": "us-east-1", "AWS_ACCESS_KEY_ID": "test",

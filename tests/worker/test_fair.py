@@ -147,6 +147,26 @@ def test_a_tenant_two_workers_ahead_gives_one_up(store: JobStore):
     assert resumed.attempts == 2 and resumed.yield_asked_at is None
 
 
+def test_a_running_job_looks_for_a_cancel_and_a_waiting_tenant(store: JobStore):
+    """`watch`, a running job's read between heartbeats: its cancel, and whether a job of
+    another tenant waits (its own tenant's, a cancelled one, or a lease it lost: nothing)."""
+    a1 = _running(store, "a", 60)
+    owner = store.get(a1).lease_owner
+
+    def watch(job_id: str = a1, holder: str = owner) -> tuple[bool, bool]:
+        return store.watch(job_id, holder, starting_seconds=STARTING)
+
+    _queued(store, "a")
+    assert watch() == (False, False)  # only A waits
+    b1 = _queued(store, "b")
+    assert watch() == (False, True)
+    assert watch(holder="someone-else") == (False, False)
+    store.request_cancel(b1, "b")
+    assert watch() == (False, False)
+    store.request_cancel(a1, "a")
+    assert watch() == (True, False)
+
+
 def test_one_worker_less_keeps_it_unless_time_sliced(store: JobStore):
     """With one worker each tenant cannot have its share: A's job keeps the worker (B's turn
     comes when it ends) unless time slicing is on, then after a slice."""

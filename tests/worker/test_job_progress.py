@@ -16,6 +16,7 @@ from worker.reconstruct_job import ReconstructJob
 from worker.runner import Runner
 from worker.settings import WorkerSettings
 from worker.store import JobStore, Owner
+from worker_harness import wait_for
 
 
 @pytest.fixture
@@ -84,3 +85,30 @@ def test_every_frame_of_a_reconstruction_reaches_the_events(claimed, tmp_path: P
     assert frames == [1, 1, 2, 2, 3, 3], frames
     assert [e["stage"] for e in events][1::2] == ["outputs"] * 3  # each frame_done
     assert [e["iteration"] for e in events][0::2] == [0, 0, 0]  # each frame_start
+
+
+def test_a_cancel_and_a_waiting_tenant_are_seen_between_heartbeats(claimed):
+    """A running job looks for a cancel and for another tenant's turn every `watch_seconds`,
+    not only at its heartbeat: with no heartbeat in the test's time, both still stop it."""
+    settings, store, job, owner = claimed
+    settings = settings.model_copy(update={"heartbeat_seconds": 3600.0, "watch_seconds": 0.05,
+                                           "share_after_seconds": 0.01})
+    link = JobLink(store, job, owner, settings).start()
+    try:
+        store.request_cancel(job.id, "t1")
+        wait_for(link.should_stop, 300, "the cancel to be seen")
+        assert link.cancelled and not link.yielding
+    finally:
+        link.close()
+
+    first, last = (store.create("t1", "reconstruct", {}, capture_id=None) for _ in range(2))
+    store.claim(first.id, Owner.current(), 60, 3)
+    claim = store.claim(last.id, owner, 60, 3)  # t1's job claimed last is the one asked
+    store.mark_dispatched(store.create("t2", "reconstruct", {}, capture_id=None).id)
+    link = JobLink(store, claim.job, owner, settings).start()
+    try:
+        wait_for(link.should_stop, 300, "t2's turn to be seen")
+        assert link.yielding and not link.cancelled
+        assert store.get(last.id).yield_asked_at is not None
+    finally:
+        link.close()

@@ -31,7 +31,7 @@ def capture4(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
-def test_parts_through_redis_and_s3(tmp_path: Path, monkeypatch, pg_url, redis_broker,
+def test_parts_through_redis_and_s3(tmp_path: Path, monkeypatch, pg_empty, redis_broker,
                                     capture4: Path, worker_factory):
     import boto3
     from moto.server import ThreadedMotoServer
@@ -45,7 +45,7 @@ def test_parts_through_redis_and_s3(tmp_path: Path, monkeypatch, pg_url, redis_b
         env = {"DGS_DATA_DIR": str(tmp_path / "data"), "DGS_LEASE_SECONDS": "4",
                "DGS_HEARTBEAT_SECONDS": "0.5", "DGS_QUEUE": f"q-{secrets.token_hex(4)}",
                "DGS_SHARE_AFTER_SECONDS": "0",  # as test_celery's stack: the shared store
-               "OMP_NUM_THREADS": "1", "DGS_DATABASE_URL": pg_url, "DGS_BROKER_URL": redis_url,
+               "OMP_NUM_THREADS": "1", "DGS_DATABASE_URL": pg_empty, "DGS_BROKER_URL": redis_url,
                "DGS_REDIS_KEY_PREFIX": prefix, "DGS_STORAGE_URL": f"s3://{bucket}/dgs",
                "DGS_S3_ENDPOINT_URL": endpoint, "DGS_S3_REGION": "us-east-1",
                "AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test"}

@@ -27,7 +27,7 @@ pytestmark = pytest.mark.timeout(400)
 
 
 @pytest.fixture
-def stack(tmp_path: Path, pg_url, redis_broker, s3_server, monkeypatch):  # noqa: F811
+def stack(tmp_path: Path, pg_empty, redis_broker, s3_server, monkeypatch):  # noqa: F811
     """(environment of worker processes, the API's base URL)."""
     import boto3
 
@@ -37,7 +37,7 @@ def stack(tmp_path: Path, pg_url, redis_broker, s3_server, monkeypatch):  # noqa
         monkeypatch.setenv(key, "test")
     boto3.client("s3", endpoint_url=s3_server, region_name="us-east-1").create_bucket(
         Bucket=bucket)
-    shared = {"database_url": pg_url, "broker_url": redis_url, "redis_key_prefix": prefix,
+    shared = {"database_url": pg_empty, "broker_url": redis_url, "redis_key_prefix": prefix,
               "queue": f"q-{secrets.token_hex(4)}", "storage_url": f"s3://{bucket}/dgs",
               "s3_endpoint_url": s3_server, "s3_region": "us-east-1"}
     env = {f"DGS_{k.upper()}": v for k, v in shared.items()}
