@@ -36,18 +36,16 @@ def make_celery(settings: WorkerSettings, *, include: tuple[str, ...] = ()) -> C
     (the redelivery cap is counted in the job store), one task prefetched, pool processes that
     start as fresh interpreters and run tasks until a count or a memory cap replaces them, no
     result backend (the job store holds every outcome)."""
-    broker, transport_class = settings.broker, None
-    if broker.startswith("sqla+sqlite"):
-        broker, transport_class = broker.split("+", 1)[1], f"{__name__}:SQLiteTransport"
-    app = Celery("dgs", broker=broker, include=list(include))
-    transport: dict = {}
-    if settings.broker.startswith(("redis://", "rediss://")):
+    broker, transport_class, transport = settings.broker, None, {}
+    if broker.startswith(("redis://", "rediss://")):
         transport["visibility_timeout"] = settings.visibility_timeout
         if settings.redis_key_prefix:
             transport["global_keyprefix"] = settings.redis_key_prefix
-    elif settings.broker.startswith("sqla+sqlite"):
+    elif broker.startswith("sqla+sqlite"):
+        broker, transport_class = broker.split("+", 1)[1], f"{__name__}:SQLiteTransport"
         # Kombu hands these to create_engine: wait for the API's writes instead of failing.
         transport["connect_args"] = {"timeout": 30}
+    app = Celery("dgs", broker=broker, include=list(include))
     app.conf.update(
         task_acks_late=True,
         task_reject_on_worker_lost=True,

@@ -95,6 +95,11 @@ def _waiting(since: dt.datetime) -> Any:
                | ((Job.state == "running") & (Job.stage == "assembling"))))
 
 
+def _others_waiting(tenant: str, since: dt.datetime) -> Any:
+    """SQL: the tenants of the jobs of tenants other than `tenant` that wait for a worker."""
+    return select(Job.tenant).where(_waiting(since), Job.tenant != tenant)
+
+
 def _leased(now: dt.datetime) -> Any:
     """SQL: a running job under a live lease."""
     return ((Job.state == "running") & (Job.lease_owner.is_not(None))
@@ -187,7 +192,7 @@ class FairPick:
             if (job is None or job.state != "queued" or job.lease_owner is not None
                     or job.picked_at is None or job.cancel_requested or job.parts):
                 return False
-            others = select(Job.tenant).where(_waiting(since), Job.tenant != job.tenant)
+            others = _others_waiting(job.tenant, since)
             if s.scalar(others.limit(1)) is None:  # the usual answer, without the lock
                 return False
             _lock_picks(s)
@@ -228,7 +233,7 @@ class FairPick:
                             .where(Job.id == job_id)).first()
             if job is None or job.lease_owner != owner:
                 return False, False
-            others = select(Job.id).where(_waiting(since), Job.tenant != job.tenant).limit(1)
+            others = _others_waiting(job.tenant, since).limit(1)
             return bool(job.cancel_requested), s.scalar(others) is not None
 
     def ask_to_yield(self, job_id: str, owner: str, *, share_after: float, time_slice: float,
@@ -244,7 +249,7 @@ class FairPick:
                     or job.cancel_requested or job.yield_asked_at is not None
                     or job.run_started_at is None):
                 return False
-            others = select(Job.tenant).where(_waiting(since), Job.tenant != job.tenant)
+            others = _others_waiting(job.tenant, since)
             if s.scalar(others.limit(1)) is None:  # the usual answer, without the lock
                 return False
             _lock_picks(s)

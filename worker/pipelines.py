@@ -13,6 +13,7 @@ reconstruction (POST /v1/renders, /v1/exports name it; the job row keeps it as
 
 from __future__ import annotations
 
+import importlib
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Annotated, Any, Literal
@@ -142,8 +143,8 @@ class Pipeline:
     description: str
     params: type[BaseModel]
     execution: str
-    """What runs a job of it on a worker ("module:Class", imported by `worker.runner` only:
-    it needs torch, which the API never loads)."""
+    """What runs a job of it on a worker ("module:Class", imported by `execution_class` on a
+    worker only: it needs torch, which the API never loads)."""
     endpoint: str
     """The request that submits a job of it (POST)."""
     artifacts: tuple[str, ...]
@@ -158,6 +159,11 @@ class Pipeline:
 
     def schema(self) -> dict[str, Any]:
         return self.params.model_json_schema()
+
+    def execution_class(self) -> type:
+        """The class `execution` names, imported (on a worker: it loads torch)."""
+        module, name = self.execution.split(":")
+        return getattr(importlib.import_module(module), name)
 
     def parse(self, params: Any, where: str = "params") -> BaseModel:
         """The parameters from JSON data (a request's, or a job row's), validated strictly

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import ctypes
 import gc
-import importlib
 import shutil
 import signal
 import threading
@@ -172,8 +171,7 @@ class Runner:
         params = pipeline.parse(job.params)
         if job.parts:  # a job run as parts: what is left of it is their assembly
             return AssembleJob(self, job, params, link)
-        module, name = pipeline.execution.split(":")
-        return getattr(importlib.import_module(module), name)(self, job, params, link)
+        return pipeline.execution_class()(self, job, params, link)
 
     def _execute(self, job: Job, link: JobLink) -> Outcome:
         link.log(f"attempt {job.attempts} on {link.owner.host} (pid {link.owner.pid})")

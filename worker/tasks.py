@@ -4,7 +4,6 @@ from the store (docs/design.md 2.3); tested with a real worker, not eager mode."
 from __future__ import annotations
 
 import gc
-import importlib
 import logging
 import time
 
@@ -36,7 +35,7 @@ def _load_the_runner(**_) -> None:
     import worker.runner  # noqa: F401
 
     for pipeline in PIPELINES.values():
-        importlib.import_module(pipeline.execution.split(":")[0])
+        pipeline.execution_class()
     gc.collect()
     gc.freeze()
 
