@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from compose_stack import Stack
+from compose_stack import Stack, wait_for
 from deploy_jobs import worker_hosts
 from plyfile import PlyData
 
@@ -33,8 +33,14 @@ def test_every_service_runs_from_the_images_built_here(stack: Stack):
     # The API is published on loopback only (DGS_API_BIND's default), and healthy.
     (api,) = running["api"]
     assert stack.docker("port", api["ID"], "8000").stdout.split() == [f"127.0.0.1:{stack.port}"]
-    assert stack.docker("inspect", "-f", "{{.State.Health.Status}}", api["ID"]).stdout.strip() \
-        == "healthy"
+    # Docker runs the first health check one interval (15 s) after the start, whatever /readyz
+    # already answers, so it is waited for rather than read once.
+    def health(container: str = api["ID"]) -> str:
+        return stack.docker("inspect", "-f", "{{.State.Health.Status}}",
+                            container).stdout.strip()
+
+    wait_for(lambda: health() != "starting", 300, "Docker's first health check of the API")
+    assert health() == "healthy"
     # The API image has no torch; the worker image has the native extension built in.
     api = stack.exec("api", "python", "-c", "import torch", check=False)
     assert api.returncode != 0 and "No module named 'torch'" in api.stderr
