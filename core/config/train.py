@@ -260,7 +260,7 @@ class TrainConfig:
     """Apply the Mip-Splatting opacity compensation."""
     near: Positive | None = None
     """Near plane of every render, training and evaluation alike (camera depth, scene units):
-    nothing closer is drawn. None: a tenth of the rig's median camera distance to the point
+    nothing closer is drawn. None: a fifth of the rig's median camera distance to the point
     its cameras look at, at most twice their spread (`core.data.layout.near_plane`), resolved
     against the capture with the run, so RUN/config.json records the number."""
     background: tuple[Color, Color, Color] = (0.0, 0.0, 0.0)

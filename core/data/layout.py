@@ -12,10 +12,13 @@ from core.data.capture import Camera
 
 __all__ = ["NEAR_FRACTION", "common_radius", "look_at_center", "near_plane"]
 
-NEAR_FRACTION = 0.1
+NEAR_FRACTION = 0.2
 """The near plane of a rig's renders, as a fraction of its median camera distance to the point
 the cameras look at: in a dome, Gaussians of the wall beside or just in front of a camera
-project huge at the rasterizer's 0.01 and smear its view (docs/decisions/
+project huge at the rasterizer's 0.01 and smear its view, and large faint ones a few tenths in
+front of a held-out camera, which no training view sees from there, haze all of it. A fifth:
+the Panoptic twin's training views fuse nothing nearer than 0.42 of that distance (a key frame
+says when a capture's stereo finds a surface within twice the plane) (docs/decisions/
 2026-11-29-seeds-and-priors-from-the-rig.md)."""
 
 

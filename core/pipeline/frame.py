@@ -94,6 +94,10 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
     priors = fill_priors(fitter.views, job.estimator, rig if use_rig else None)
     if rig is not None and "priors" in rig.seconds:
         fitter.notes.append(rig.note())
+    if rig is not None:
+        close = near_note(rig.nearest(), fitter.near)
+        if close:
+            fitter.notes.append(close)
     checkpoint = job.run.checkpoint(role.frame)
     resumed_at = 0
     if checkpoint.is_file():
@@ -129,6 +133,16 @@ def fit_frame(job: FrameJob, role: FrameRole, inputs: TrackedInputs | None, labe
         record.refine_nominal, record.scoring_extra = (fitter.nominal_refine,
                                                        fitter.scoring_extra)
     return record
+
+
+def near_note(nearest: float | None, near: float) -> str | None:
+    """A warning when the rig's stereo found a surface nearer a training camera than twice the
+    run's near plane: a subject that close is clipped in that camera's renders."""
+    if nearest is None or nearest >= 2 * near:
+        return None
+    return (f"the rig's stereo found a surface {nearest:.3g} from a camera, within twice the "
+            f"near plane ({near:.3g}); renders clip nothing nearer than the plane, so if the "
+            f"subject comes that close set train.near below {nearest / 2:.3g}")
 
 
 def _wait(fitter: FrameFitter) -> None:

@@ -98,6 +98,16 @@ class RigGeometry:
         reach = max(float(np.linalg.norm(c.center - center)) for c in self.cameras)
         return hull_normals(self.cameras, self.masks, center, reach)
 
+    def nearest(self, share: float = 1.0) -> float | None:
+        """The nearest surface any view's fused depth holds: per view the `share` percentile
+        of its fused depths (a few stray pixels do not count), the least over the views; None
+        before `fused` ran (it is not run for this) or where no depth survived."""
+        if self._fused is None:
+            return None
+        near = [float(np.percentile(d[d > 0], share)) for d in self._fused.depths
+                if np.any(d > 0)]
+        return min(near) if near else None
+
     def note(self) -> str:
         """One line for the run's notes: what was computed and how long it took."""
         parts = ", ".join(f"{k} {v:.1f} s" for k, v in self.seconds.items())

@@ -181,14 +181,14 @@ def test_a_forward_facing_rig_keeps_its_near_plane_within_its_spread():
         cams.append(Camera(f"cam{i:02d}", 24, 24, np.diag([20.0, 20.0, 1.0]), w2c))
     capture = Capture(Path("/nowhere"), tuple(cams), ("000000",), (0.0, 1.0, 0.0))
     near = resolve_run(capture, load_config("test"), preset="test").config.train.near
-    assert near == pytest.approx(0.1 * 2 * 0.5)
+    assert near == pytest.approx(0.2 * 2 * 0.5)
 
 
 def test_the_rigs_near_plane_is_resolved_into_the_record_and_travels(tmp_path: Path):
     config = load_config("test")
     assert config.train.near is None  # the rig's, resolved with the run
     run = resolve_run(_ring(8, 5.0), config, preset="test")
-    assert run.config.train.near == pytest.approx(0.5)  # a tenth of the cameras' distance
+    assert run.config.train.near == pytest.approx(1.0)  # a fifth of the cameras' distance
     (tmp_path / "config.json").write_text(json.dumps(run.to_json()))
     back = read_run(tmp_path)
     assert back.config.train.near == run.config.train.near and back.same_run(run)

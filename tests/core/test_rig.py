@@ -121,3 +121,18 @@ def test_normal_priors_match_the_true_normals(roof):
         assert np.median(cos[sure]) > 0.99 and np.percentile(cos[sure], 5) > 0.9
         assert np.percentile(cos[has], 10) > 0.9
     assert set(rig.seconds) == {"triangulation", "stereo", "priors"}
+
+
+def test_the_nearest_surface_is_the_ridge_and_a_close_one_is_told(roof):
+    from core.pipeline.frame import near_note
+
+    cams, renders = roof
+    rig = RigGeometry(cams, [r[0] for r in renders], [None] * len(cams))
+    assert rig.nearest() is None  # nothing fused yet, and asking does not fuse
+    rig.fused()
+    truth = min(float(np.percentile(r[1], 1)) for r in renders)  # the ridge, 3.0 below
+    assert rig.nearest() == pytest.approx(truth, rel=0.03)
+    assert near_note(rig.nearest(), near=1.0) is None  # 3.0 is beyond twice the plane
+    note = near_note(rig.nearest(), near=1.6)
+    assert note is not None and f"train.near below {rig.nearest() / 2:.3g}" in note
+    assert near_note(None, near=1.6) is None
