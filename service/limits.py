@@ -9,7 +9,10 @@
 - **Event streams**: at most `DGS_MAX_EVENT_STREAMS` open at once per tenant on each API
   process (a stream lives in one process; N processes allow N times as many). A slot is
   freed when the stream ends, also when the client goes away: `HeldStream` listens for the
-  disconnect instead of waiting for its next write to fail.
+  disconnect instead of waiting for its next write to fail. Openings take a token from the
+  tenant's bucket in this process (`DGS_MAX_EVENT_STREAMS` at once, then
+  `DGS_EVENT_STREAMS_PER_MINUTE`): a client that opens and drops streams as fast as it can
+  (a stream of an ended job ends at once) would otherwise read the job store with every one.
 """
 
 from __future__ import annotations
@@ -73,9 +76,13 @@ class Limits:
                  clock: Callable[[], float] = time.time):
         self.settings, self.store, self.clock = settings, store, clock
         self.changes = Rate(settings.job_changes_per_minute / 60.0, settings.job_changes_burst)
+        self.openings = Rate(settings.event_streams_per_minute / 60.0,
+                             settings.max_event_streams)
         self.lock = threading.Lock()
         self.streams: dict[str, int] = {}
         """Open event streams of this process, by tenant."""
+        self.opened: dict[str, tuple[float, float]] = {}
+        """The bucket of stream openings of this process, by tenant: (tokens, stamp)."""
 
     def change(self, tenant: str) -> None:
         """Count one state change of `tenant` (a submit, cancel, retry or delete); 429
@@ -104,8 +111,9 @@ class Limits:
                 headers={"Retry-After": str(retry_after)})
 
     def open_stream(self, tenant: str) -> StreamSlot:
-        """A slot for one more event stream of `tenant`; 429 too_many_streams past the cap."""
-        cap = self.settings.max_event_streams
+        """A slot for one more event stream of `tenant`; 429 too_many_streams past the cap on
+        open streams or past the rate of openings."""
+        cap, now = self.settings.max_event_streams, self.clock()
         with self.lock:
             open_now = self.streams.get(tenant, 0)
             if open_now >= cap:
@@ -114,6 +122,17 @@ class Limits:
                          f"is {cap} (DGS_MAX_EVENT_STREAMS); close one, or poll "
                          "GET /v1/jobs/{id} meanwhile", code="too_many_streams",
                     retryable=True, headers={"Retry-After": str(STREAM_RETRY_AFTER_SECONDS)})
+            tokens, stamp = self.opened.get(tenant, (float(cap), now))
+            tokens = self.openings.refill(tokens, stamp, now)
+            if wait := self.openings.wait(tokens):
+                retry_after = max(1, math.ceil(wait))
+                raise ApiError(
+                    429, f"too many event streams opened: {cap} at once, then "
+                         f"{self.settings.event_streams_per_minute:g} a minute "
+                         f"(DGS_EVENT_STREAMS_PER_MINUTE); try again in {retry_after} s, or "
+                         "poll GET /v1/jobs/{id} meanwhile", code="too_many_streams",
+                    retryable=True, headers={"Retry-After": str(retry_after)})
+            self.opened[tenant] = (tokens - 1.0, max(stamp, now))
             self.streams[tenant] = open_now + 1
         return StreamSlot(self, tenant)
 

@@ -26,7 +26,10 @@ class LimitsOut(BaseModel):
                                               "capture or as an environment map.")
     max_active_jobs: int = Field(description="Most queued or running jobs of one tenant.")
     max_event_streams: int = Field(description="Most open event streams of one tenant on one "
-                                               "API process.")
+                                               "API process, and most opened at once.")
+    event_streams_per_minute: float = Field(description="Event streams one tenant may open a "
+                                                        "minute on one API process, once "
+                                                        "max_event_streams are spent.")
     job_changes_per_minute: float = Field(description="Job submits, cancels, retries and "
                                                       "deletes of one tenant a minute, once "
                                                       "job_changes_burst are spent.")

@@ -77,6 +77,11 @@ class ServiceSettings(WorkerSettings):
     max_event_streams: int = Field(20, ge=1)
     """Most event streams (GET /v1/jobs/{id}/events) one tenant may hold open at once on one
     API process; one more answers 429 too_many_streams. Each open stream polls the job store."""
+    event_streams_per_minute: float = Field(60.0, gt=0)
+    """Event streams one tenant may open a minute on one API process, once it has opened
+    `max_event_streams` at once; past it, 429 too_many_streams with Retry-After. The cap on
+    open streams bounds how many poll at once, this how fast a client may open and drop
+    them (each opening reads the job store)."""
     job_changes_per_minute: float = Field(60.0, gt=0)
     """Job state changes (submits of jobs, renders and exports; cancel; retry; delete) one
     tenant may make a minute on average, across every API process (the buckets live in the

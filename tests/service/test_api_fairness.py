@@ -1,8 +1,9 @@
 """One tenant cannot starve the others (issue 42): job state changes past the tenant's rate, jobs
-past its active-jobs cap and event streams past its stream cap answer 429 with Retry-After and
-a message saying what the limit is; another tenant is unaffected; an idempotent replay and a
-request refused for another reason are never counted; a stream's slot comes back when it ends
-and when its client goes away. The rate limit's clock is driven by the tests (no sleeps)."""
+past its active-jobs cap and event streams past its stream cap or its rate of openings answer
+429 with Retry-After and a message saying what the limit is; another tenant is unaffected; an
+idempotent replay and a request refused for another reason are never counted; a stream's slot
+comes back when it ends and when its client goes away. The rate limits' clock is driven by the
+tests (no sleeps)."""
 
 from __future__ import annotations
 
@@ -21,11 +22,12 @@ TEST = {"preset": "test"}
 
 @pytest.fixture
 def settings(tmp_path, database_url):
-    """Small limits: 3 changes at once then 6 a minute, 2 active jobs, 2 streams; streams
-    never write a keep-alive, so only the disconnect itself can free a slot."""
+    """Small limits: 3 changes at once then 6 a minute, 2 active jobs, 2 streams open and 2
+    opened at once then 6 a minute; streams never write a keep-alive, so only the disconnect
+    itself can free a slot."""
     return make_settings(tmp_path / "data", database_url=database_url, job_changes_burst=3,
                          job_changes_per_minute=6, max_active_jobs=2, max_event_streams=2,
-                         sse_keepalive_seconds=3600)
+                         event_streams_per_minute=6, sse_keepalive_seconds=3600)
 
 
 @pytest.fixture
@@ -144,7 +146,7 @@ def _open(http: httpx.Client, path: str, headers: dict):
     return response, response.iter_lines()
 
 
-def test_streams_past_the_cap_are_refused_and_slots_come_back(live_api, tenants):
+def test_streams_past_the_cap_are_refused_and_slots_come_back(live_api, tenants, clock):
     url, services = live_api
     a, b = tenants["a"], tenants["b"]
     job, other = _queued(services, "a"), _queued(services, "b")
@@ -160,6 +162,7 @@ def test_streams_past_the_cap_are_refused_and_slots_come_back(live_api, tenants)
         # The client goes away: its slot comes back although the stream never writes again.
         first.close()
         wait_for(lambda: services.limits.streams.get("a") == 1, 60, "the closed stream's slot")
+        clock[0] += 60.0  # the rate of openings is not what this test is about
         with http.stream("GET", f"/v1/jobs/{job}/events", headers=a) as third:
             lines3 = third.iter_lines()
             assert _first_event(lines3) == "event: state"
@@ -169,6 +172,31 @@ def test_streams_past_the_cap_are_refused_and_slots_come_back(live_api, tenants)
         assert '"state":"cancelled"' in "".join(lines2)
         second.close()
         wait_for(lambda: "a" not in services.limits.streams, 60, "every slot of tenant a")
+
+
+@BOTH
+def test_streams_opened_and_dropped_past_the_rate_are_refused(client, services, tenants, clock):
+    """A stream of an ended job ends at once and frees its slot: the cap on open streams
+    never stops a client that opens them in a loop; the rate of openings does."""
+    a, b = tenants["a"], tenants["b"]
+    job, other = _queued(services, "a"), _queued(services, "b")
+    assert client.post(f"/v1/jobs/{job}/cancel", headers=a).status_code == 202
+    for _ in range(2):  # the burst: as many as may be open at once
+        r = client.get(f"/v1/jobs/{job}/events", headers=a)
+        assert r.status_code == 200 and '"state":"cancelled"' in r.text
+    assert "a" not in services.limits.streams  # both ended: no slot is held
+    message = _refused(client.get(f"/v1/jobs/{job}/events", headers=a), "too_many_streams",
+                       "10")  # one opening a 10 s
+    assert "2 at once, then 6 a minute" in message and "try again in 10 s" in message
+    assert "a" not in services.limits.streams  # refused: nothing held
+    assert client.get(f"/v1/jobs/{job}", headers=a).status_code == 200  # polling still works
+    with client.stream("GET", f"/v1/jobs/{other}/events", headers=b) as theirs:  # its own
+        assert _first_event(theirs.iter_lines()) == "event: state"
+    clock[0] += 9.0
+    _refused(client.get(f"/v1/jobs/{job}/events", headers=a), "too_many_streams", "1")
+    clock[0] += 1.0
+    assert client.get(f"/v1/jobs/{job}/events", headers=a).status_code == 200
+    _refused(client.get(f"/v1/jobs/{job}/events", headers=a), "too_many_streams", "10")
 
 
 def test_a_slot_comes_back_when_the_client_goes_away_under_asgi_2_4(tmp_path):
