@@ -5,7 +5,8 @@ Paper preset, 30k iterations per key frame:
 - stage 2 (7k-21k): geometry branch on (opacity_g its own parameter, normals initialised),
   normal-prior and depth-normal losses on, beta ramps 0 -> 0.7 (cosine) by the end of training;
 - stage 3 (21k-30k): ambient occlusion baked at 21k, visibility loss on, SH degree raised to 3
-  (one degree per 1000 steps, as 3DGS raises it).
+  (one degree per 1000 steps, as 3DGS raises it; `Schedule.sh_from` "start" raises it from step
+  0 instead).
 Densification and opacity resets follow 3DGS (Kerbl et al. 2023, arguments/__init__.py):
 densify every 100 steps from 500 to 15k, opacity reset (and pruning) every 3000 steps.
 Other presets scale every step count by iterations / 30000.
@@ -74,7 +75,7 @@ def plan(step: int, schedule: Schedule = Schedule(), method: Method = "disentang
         t = min((step - s.stage2_start) / span, 1.0)
         beta = s.beta_max * 0.5 * (1.0 - math.cos(math.pi * t))
     sh = 0
-    if method == "3dgs":
+    if method == "3dgs" or s.sh_from == "start":
         sh = min(s.sh_max_degree, step // s.sh_interval)
     elif stage == 3:
         sh = min(s.sh_max_degree, 1 + (step - s.stage3_start) // s.sh_interval)

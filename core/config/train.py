@@ -39,7 +39,11 @@ class Schedule:
     sh_max_degree: Annotated[int, Field(ge=0, le=3)] = 3
     """SH degree reached in stage 3."""
     sh_interval: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 1_000
-    """Steps per SH degree increase in stage 3 (3DGS oneupSHdegree every 1000)."""
+    """Steps per SH degree increase (3DGS oneupSHdegree every 1000)."""
+    sh_from: Literal["stage3", "start"] = "stage3"
+    """When the SH degree starts to rise: `stage3`, with stage 3 (the paper: colour is view
+    independent while the geometry branch learns, so view-dependent colour cannot explain its
+    shading away); `start`, from step 0 as 3DGS raises it (a plain 3DGS always does)."""
     densify_from: Steps = 500
     """Densification runs at steps > densify_from (3DGS densify_from_iter)."""
     densify_until: Steps = 15_000

@@ -29,6 +29,21 @@ def test_paper_stage_boundaries_and_flags():
     assert plan(29_999, s).sh_degree == 3
 
 
+def test_sh_from_the_start_rises_as_3dgs_and_leaves_the_stages_alone():
+    paper, early = schedule_for("paper"), Schedule(sh_from="start")
+    assert [plan(k, early).sh_degree for k in (0, 999, 1_000, 2_000, 3_000, 29_999)] == \
+        [0, 0, 1, 2, 3, 3]
+    assert [plan(k, early, "3dgs").sh_degree for k in (0, 1_000, 2_000, 3_000)] == [0, 1, 2, 3]
+    for k in (0, 6_999, 7_000, 21_000, 29_999):  # everything else as the paper's
+        a, b = plan(k, paper), plan(k, early)
+        assert (a.stage, a.beta, a.bake_ao, a.start_geometry, a.densify, a.reset_opacity) == \
+            (b.stage, b.beta, b.bake_ao, b.start_geometry, b.densify, b.reset_opacity)
+    assert plan(7_000, paper).sh_degree == 0 and plan(7_000, early).sh_degree == 3
+    assert Schedule(sh_from="start").scaled(600).sh_from == "start"
+    with pytest.raises(ValueError, match="sh_from"):
+        Schedule(sh_from="later")
+
+
 def test_beta_cosine_ramp_reaches_max_at_the_end():
     s = schedule_for("paper")
     betas = [plan(k, s).beta for k in range(7_000, 30_000)]
