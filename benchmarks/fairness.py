@@ -7,8 +7,9 @@ run: the job's start (submit to running: the job store's created_at to started_a
 A's flood, every second until B's job has ended: `--pairs` retry/cancel pairs on A's own
 cancelled job (2 x pairs requests at once), `--submits` tiny submits at once (past the
 active-jobs cap), and `--streams` event streams held on A's jobs, the retried one and those
-accepted (a refused one tries again after its Retry-After). `--submits 0` is the issue's flood. Between phases A's jobs are cancelled and a probe job of B runs
-to its end, so every message the flood left in the queue is gone before the next phase.
+accepted (a refused one tries again after its Retry-After); `--submits 0` is the issue's flood.
+Between phases A's jobs are cancelled and a probe job of B runs to its end, so every message
+the flood left in the queue is gone before the next phase.
 
     python benchmarks/fairness.py [--rounds 2] [--pairs 15] [--submits 10] [--streams 200]
                                   [--max-active-jobs 2] [--lead 3] [--workers 1]

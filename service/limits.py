@@ -41,6 +41,17 @@ STREAM_RETRY_AFTER_SECONDS = 10
 """Retry-After of an event stream past the cap (follow the job by polling meanwhile)."""
 
 
+def too_fast(wait: float, what: str, burst: int, per_minute: float, which: str, meanwhile: str,
+             *, code: str) -> ApiError:
+    """The 429 of a request past a rate (`burst` at once, then `per_minute`), `wait` seconds
+    before the bucket has a token again."""
+    retry_after = max(1, math.ceil(wait))
+    return ApiError(
+        429, f"too many {what}: {burst} at once, then {per_minute:g} a minute {which}; try "
+             f"again in {retry_after} s{meanwhile}", code=code, retryable=True,
+        headers={"Retry-After": str(retry_after)})
+
+
 def cap_refused(exc: CapReached) -> ApiError:
     """The 429 of a submit or retry past the active-jobs cap."""
     return ApiError(
@@ -87,28 +98,26 @@ class Limits:
     def change(self, tenant: str) -> None:
         """Count one state change of `tenant` (a submit, cancel, retry or delete); 429
         rate_limited with Retry-After when its bucket is empty."""
-        self._refuse(take(self.store.url, f"changes:{tenant}", self.changes, self.clock()))
+        self._refuse_change(take(self.store.url, f"changes:{tenant}", self.changes,
+                                 self.clock()))
 
     def admit(self, tenant: str) -> None:
         """Before a submit is checked (its parameters, its capture: reads of the artifact
         store), the cheap refusals: 429 when the tenant's bucket is empty or its active jobs
         are at the cap, taking nothing (the job store decides again when the job is added)."""
-        self._refuse(peek(self.store.url, f"changes:{tenant}", self.changes, self.clock()))
+        self._refuse_change(peek(self.store.url, f"changes:{tenant}", self.changes,
+                                 self.clock()))
         with self.store.session(write=False) as s:
             active = JobStore.active_jobs(s, tenant)
         if active >= self.settings.max_active_jobs:
             raise cap_refused(CapReached(active, self.settings.max_active_jobs))
 
-    def _refuse(self, wait: float) -> None:
+    def _refuse_change(self, wait: float) -> None:
         if wait:
             s = self.settings
-            retry_after = max(1, math.ceil(wait))
-            raise ApiError(
-                429, f"too many job changes: {s.job_changes_burst} at once, then "
-                     f"{s.job_changes_per_minute:g} a minute (submits, cancels, retries and "
-                     f"deletes together); try again in {retry_after} s",
-                code="rate_limited", retryable=True,
-                headers={"Retry-After": str(retry_after)})
+            raise too_fast(wait, "job changes", s.job_changes_burst, s.job_changes_per_minute,
+                           "(submits, cancels, retries and deletes together)", "",
+                           code="rate_limited")
 
     def open_stream(self, tenant: str) -> StreamSlot:
         """A slot for one more event stream of `tenant`; 429 too_many_streams past the cap on
@@ -123,16 +132,13 @@ class Limits:
                          "GET /v1/jobs/{id} meanwhile", code="too_many_streams",
                     retryable=True, headers={"Retry-After": str(STREAM_RETRY_AFTER_SECONDS)})
             tokens, stamp = self.opened.get(tenant, (float(cap), now))
-            tokens = self.openings.refill(tokens, stamp, now)
-            if wait := self.openings.wait(tokens):
-                retry_after = max(1, math.ceil(wait))
-                raise ApiError(
-                    429, f"too many event streams opened: {cap} at once, then "
-                         f"{self.settings.event_streams_per_minute:g} a minute "
-                         f"(DGS_EVENT_STREAMS_PER_MINUTE); try again in {retry_after} s, or "
-                         "poll GET /v1/jobs/{id} meanwhile", code="too_many_streams",
-                    retryable=True, headers={"Retry-After": str(retry_after)})
-            self.opened[tenant] = (tokens - 1.0, max(stamp, now))
+            wait, tokens, stamp = self.openings.take(tokens, stamp, now)
+            if wait:
+                raise too_fast(wait, "event streams opened", cap,
+                               self.settings.event_streams_per_minute,
+                               "(DGS_EVENT_STREAMS_PER_MINUTE)",
+                               ", or poll GET /v1/jobs/{id} meanwhile", code="too_many_streams")
+            self.opened[tenant] = (tokens, stamp)
             self.streams[tenant] = open_now + 1
         return StreamSlot(self, tenant)
 

@@ -56,6 +56,14 @@ class Rate:
         """Seconds until a bucket holding `tokens` has one to give (0: it has)."""
         return 0.0 if tokens >= 1.0 else (1.0 - tokens) / self.per_second
 
+    def take(self, tokens: float, stamp: float, now: float) -> tuple[float, float, float]:
+        """One request at `now` on a bucket that held `tokens` at `stamp`: (seconds to wait, 0.0
+        when a token was taken; the bucket's tokens and stamp after it)."""
+        tokens = self.refill(tokens, stamp, now)
+        if wait := self.wait(tokens):
+            return wait, tokens, stamp
+        return 0.0, tokens - 1.0, max(stamp, now)
+
 
 def lock_tenant(s: Session, tenant: str) -> None:
     """Serialize the transactions that count and add a tenant's jobs. SQLite's write
@@ -86,11 +94,10 @@ def take(url: str, key: str, rate: Rate, now: float) -> float:
                 if row is None:
                     s.add(RateBucket(key=key, tokens=rate.burst - 1.0, stamp=now))
                     return 0.0
-                tokens = rate.refill(row.tokens, row.stamp, now)
-                if wait := rate.wait(tokens):
-                    return wait
-                row.tokens, row.stamp = tokens - 1.0, max(row.stamp, now)
-                return 0.0
+                wait, tokens, stamp = rate.take(row.tokens, row.stamp, now)
+                if not wait:
+                    row.tokens, row.stamp = tokens, stamp
+                return wait
         except IntegrityError:
             continue
     raise RuntimeError(f"rate bucket {key}: could not be added")
