@@ -5,6 +5,8 @@
 - normal prior: 0.2 L1 + 0.05 edge-aware smoothness |grad N| exp(-|grad N_prior|).
 - depth-normal consistency: 0.01 mean(sg(O_g) - N . n(D)), n(D) the normal of the
   back-projected expected depth by central differences, in world space like N.
+- sparsity (off by default): opacity_l1 mean(o) + scale_l1 mean(s) / extent, 3DGS-MCMC's
+  regularizers (Kheradmand et al. 2024), the scale over the scene extent.
 - visibility: 0.1 L1 + 0.01 smoothness |grad V| exp(-|grad N_prior|) (the paper's Eq. 10: AO
   may change across a crease of the prior normals; without a prior, unweighted).
 The weights are the defaults of `LossWeights`; each function returns the weighted term.
@@ -29,6 +31,7 @@ __all__ = [
     "geometry_mask_loss",
     "normal_prior_loss",
     "photometric_loss",
+    "sparsity_loss",
     "ssim",
     "ssim_reference",
     "visibility_loss",
@@ -246,3 +249,18 @@ def geometry_mask_loss(alpha_g: Tensor, mask: Tensor,
     """w * mean |alpha_g - mask| over the (H, W, 1) image: the geometry branch covers what the
     capture's coverage mask covers, and nothing else."""
     return weights.geometry_mask * coverage_l1(alpha_g, mask)
+
+
+def sparsity_loss(opacities: list[Tensor], scales: Tensor, extent: float,
+                  weights: LossWeights = LossWeights()) -> Tensor:
+    """w_o * mean opacity (over each of `opacities`, (N,) in 0..1, summed) + w_s * mean of the
+    (N, 3) `scales` / `extent`: 3DGS-MCMC's opacity and scale regularizers (module docstring).
+    Zero weights give an exact 0 with no graph."""
+    if extent <= 0:
+        raise ValueError(f"extent: expected > 0, got {extent}")
+    loss = scales.new_zeros(())
+    if weights.opacity_l1 > 0:
+        loss = loss + weights.opacity_l1 * sum(o.mean() for o in opacities)
+    if weights.scale_l1 > 0:
+        loss = loss + weights.scale_l1 * scales.mean() / extent
+    return loss

@@ -190,6 +190,13 @@ class LossWeights:
     geometry_mask: Weight = 1.0
     """L1 between the geometry coverage and the capture's mask (ours: keeps geometry-only
     Gaussians out of the background)."""
+    opacity_l1: Weight = 0.0
+    """Mean opacity of the Gaussians (both opacities once the geometry branch has its own), as
+    3DGS-MCMC (Kheradmand et al. 2024) regularizes it (0.01 there): a Gaussian that does not
+    earn its opacity fades and is pruned. 0: off (the paper has none)."""
+    scale_l1: Weight = 0.0
+    """Mean scale of the Gaussians over the scene extent (3DGS-MCMC: 0.01 on the mean scale in
+    scene units; ours is over the extent, so one weight suits every capture's units). 0: off."""
 
 
 @section

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from core.ao import GaussianAOBaker
+from core.losses import sparsity_loss
 from core.config import TrainConfig, Views, select_views
 from core.device import to_device
 from core.data.points import PointCloud, read_points_ply
@@ -139,6 +140,11 @@ class Trainer(FrameFitter):
         terms = image_terms(r, self.views[index], self.cameras[index],
                             self.target(index, background), p, self.config.losses,
                             ao_target=None if self.ao_targets is None else self.ao_targets[index])
+        w = self.config.losses
+        if w.opacity_l1 > 0 or w.scale_l1 > 0:
+            own_g = p.geometry_branch and not p.tie_opacity
+            opacities = [self.model.opacity_c] + ([self.model.opacity_g] if own_g else [])
+            terms["sparsity"] = sparsity_loss(opacities, self.model.scales, self.extent, w)
         return terms, r, p
 
     def train(self) -> GaussianModel:

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
 import torch
 
+from core.config import LossWeights
 from core.losses import (
+    sparsity_loss,
     depth_normal_consistency,
     depth_to_normals,
     depth_to_points,
@@ -249,3 +252,23 @@ def test_geometry_mask_loss_known_values():
     assert (alpha.grad[:2] < 0).all() and (alpha.grad[2:] == 0).all()
     with pytest.raises(ValueError, match="alpha, mask"):
         geometry_mask_loss(alpha, torch.zeros(4, 3, 1))
+
+
+def test_sparsity_loss_known_values_and_gradients():
+    """3DGS-MCMC's regularizers: w_o * sum of the mean opacities + w_s * mean scale / extent,
+    checked against the analytic values and gradients; zero weights are an exact 0."""
+    o_c = torch.tensor([0.2, 0.6], requires_grad=True)
+    o_g = torch.tensor([0.1, 0.3], requires_grad=True)
+    scales = torch.tensor([[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]], requires_grad=True)
+    off = sparsity_loss([o_c, o_g], scales, 2.0)
+    assert off.item() == 0.0 and not off.requires_grad
+    w = replace(LossWeights(), opacity_l1=0.01, scale_l1=0.02)
+    loss = sparsity_loss([o_c, o_g], scales, 2.0, w)
+    # 0.01 * (0.4 + 0.2) + 0.02 * 0.35 / 2
+    assert loss.item() == pytest.approx(0.006 + 0.0035)
+    loss.backward()
+    assert torch.allclose(o_c.grad, torch.full((2,), 0.01 / 2))
+    assert torch.allclose(o_g.grad, torch.full((2,), 0.01 / 2))
+    assert torch.allclose(scales.grad, torch.full((2, 3), 0.02 / 6 / 2.0))
+    with pytest.raises(ValueError, match="extent"):
+        sparsity_loss([o_c], scales, 0.0, w)

@@ -234,3 +234,23 @@ def test_random_background_makes_background_coloured_coverage_cost(views: list[V
     assert torch.equal(unmasked.step_background(0), torch.zeros(3))
     fixed = Trainer(views, replace(cfg, random_background=False), ao_baker=FakeBaker())
     assert torch.equal(fixed.step_background(0), torch.zeros(3))
+
+
+def test_sparsity_regularizers_fade_and_shrink_the_gaussians(views: list[View], one_thread):
+    """With 3DGS-MCMC's opacity and scale regularizers (`losses.opacity_l1`, `scale_l1`) a
+    key frame ends with lower mean opacities and scales than the same run without them, the
+    term is in the step's losses, and off (the default) it is not."""
+    base = replace(train_config("test"), bake_ao=False)
+    seen: list = []
+    plain = Trainer(views, base, callbacks=[ProgressCallback(every=1, report=seen.append)])
+    plain.train()
+    assert all("sparsity" not in i.losses for i in seen)
+    cfg = replace(base, losses=replace(base.losses, opacity_l1=0.05, scale_l1=0.5))
+    seen = []
+    sparse = Trainer(views, cfg, callbacks=[ProgressCallback(every=1, report=seen.append)])
+    sparse.train()
+    assert all("sparsity" in i.losses for i in seen)
+    for name in ("opacity_c", "opacity_g", "scales"):
+        a = float(getattr(plain.model, name).detach().mean())
+        b = float(getattr(sparse.model, name).detach().mean())
+        assert b < a, (name, a, b)
