@@ -49,7 +49,13 @@ class Schedule:
     densify_until: Steps = 15_000
     """... and < densify_until (3DGS densify_until_iter); opacity resets stop here too."""
     densify_interval: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 100
-    """Steps between densifications (3DGS densification_interval)."""
+    """Steps between densifications (3DGS densification_interval); with `densify_epoch`, at
+    least one epoch."""
+    densify_epoch: bool = True
+    """Densifications are at least an epoch apart: the trainer raises `densify_interval` to
+    the number of training views (`for_views`), so a Gaussian's gradient statistic is a mean
+    over every view that sees it, not over the handful drawn since the last one (a scaled
+    schedule's interval: 4 steps of a 27-view key frame). False: `densify_interval` as given."""
     reset_interval: Annotated[int, Field(ge=1, le=MAX_STEPS)] = 3_000
     """Steps between opacity resets, each after pruning (3DGS opacity_reset_interval)."""
 
@@ -59,6 +65,15 @@ class Schedule:
                 "stage2_start, stage3_start: expected 0 < stage2_start <= stage3_start <= "
                 f"iterations, got {self.stage2_start}, {self.stage3_start}, {self.iterations} "
                 "(a preset's boundaries do not follow a new iterations: give them too)")
+
+    def for_views(self, views: int) -> Schedule:
+        """The schedule a key frame of `views` training views follows: with `densify_epoch`,
+        `densify_interval` raised to `views`."""
+        if views < 1:
+            raise ValueError(f"views: expected >= 1, got {views}")
+        if not self.densify_epoch or self.densify_interval >= views:
+            return self
+        return replace(self, densify_interval=views)
 
     def scaled(self, iterations: int) -> Schedule:
         """The same plan for `iterations` steps: every step count scaled proportionally

@@ -52,6 +52,8 @@ class Trainer(FrameFitter):
                  ao_baker: AOBaker | None = None, points: PointCloud | None = None,
                  static: PointCloud | None = None, clear_of: Sequence = ()):
         super().__init__(views, config, callbacks=callbacks)
+        self.schedule = config.schedule.for_views(len(self.views))
+        """The schedule these views follow (`Schedule.for_views`)."""
         if ao_baker is None and config.bake_ao:
             ao_baker = GaussianAOBaker(config.ao)
         self.ao_baker = ao_baker if config.bake_ao else None
@@ -113,8 +115,9 @@ class Trainer(FrameFitter):
         return self.model, self.plan_at(min(self.step, self.iterations - 1))
 
     def plan_at(self, step: int) -> StagePlan:
-        """The stage plan of `step` for the configured method."""
-        return plan(step, self.config.schedule, self.config.method)
+        """The stage plan of `step` for the configured method (the schedule for these views:
+        `Schedule.for_views`)."""
+        return plan(step, self.schedule, self.config.method)
 
     def before_step(self) -> None:
         p = self.plan_at(self.step)

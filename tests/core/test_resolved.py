@@ -82,7 +82,8 @@ def test_a_version_1_config_json_upgrades_to_the_run_it_described(v1_capture: Pa
     assert (run.preset, run.capture, run.frames) == ("test", old["capture"],
                                                      ("000000", "000001"))
     expected = load_config("test", overrides={"split": "every8", "downscale": 2.0,
-                                              "train": {"seed": 3, "near": 0.01}}, gop=2)
+                                              "train": {"seed": 3, "near": 0.01, "schedule": {
+                                                  "densify_epoch": False}}}, gop=2)
     assert run.config == run.on_device("cpu").config and run.config.train.device == "cpu"
     assert dataclasses.replace(expected, train=dataclasses.replace(
         expected.train, device="cpu")) == run.config
@@ -97,6 +98,24 @@ def test_a_version_1_config_json_upgrades_to_the_run_it_described(v1_capture: Pa
                       capture_name=old["capture"])
     assert now.same_run(run) and now.frames == run.frames
     assert upgrade(run.to_json()) == run.to_json()  # the current version as it is
+
+
+def test_a_version_3_record_keeps_the_densification_interval_it_ran_at(tmp_path: Path):
+    """Version 3 records predate `densify_epoch`: they upgrade with it off, the interval
+    their runs densified at, and keep everything else (the near plane they resolved)."""
+    run = resolve_run(_capture(3), load_config("test", overrides={
+        "split": "none", "train": {"seed": 5}}), preset="test")
+    data = run.to_json()
+    assert data["config"]["train"]["schedule"]["densify_epoch"] is True  # today's default
+    del data["config"]["train"]["schedule"]["densify_epoch"]
+    old = {**data, "version": 3}
+    new = upgrade(old)
+    assert new["version"] == CONFIG_VERSION
+    assert new["config"]["train"]["schedule"]["densify_epoch"] is False
+    assert new["config"]["train"]["near"] == data["config"]["train"]["near"]
+    back = ResolvedRun.from_json(old)
+    assert back.config.train.schedule.densify_epoch is False
+    assert back.config.train.seed == 5
 
 
 def test_an_unknown_version_is_refused_naming_it():

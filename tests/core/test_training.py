@@ -118,7 +118,8 @@ class FakeBaker:
 
 def test_stage_transitions_and_ao_hook(views: list[View], one_thread):
     schedule = Schedule(iterations=12, stage2_start=4, stage3_start=8, sh_interval=1,
-                        densify_from=1, densify_until=10, densify_interval=3, reset_interval=5)
+                        densify_from=1, densify_until=10, densify_interval=3, reset_interval=5,
+                        densify_epoch=False)
     cfg = replace(train_config("test"), schedule=schedule, init_points=200)
     baker = FakeBaker()
     seen = []
@@ -254,3 +255,20 @@ def test_sparsity_regularizers_fade_and_shrink_the_gaussians(views: list[View], 
         a = float(getattr(plain.model, name).detach().mean())
         b = float(getattr(sparse.model, name).detach().mean())
         assert b < a, (name, a, b)
+
+
+def test_densifications_are_an_epoch_apart(views: list[View]):
+    """`densify_epoch` (the default) raises a scaled schedule's interval to the number of
+    training views: every view is drawn once between two densifications; off, or with a
+    longer interval, the schedule is kept."""
+    sched = train_config("test").schedule
+    assert sched.densify_epoch and sched.densify_interval < len(views)
+    trainer = Trainer(views, train_config("test"))
+    assert trainer.schedule.densify_interval == len(views)
+    steps = [s for s in range(sched.iterations) if trainer.plan_at(s).densify]
+    assert steps and all(s % len(views) == 0 for s in steps)
+    assert sched.for_views(1) is sched
+    off = replace(sched, densify_epoch=False)
+    assert off.for_views(len(views)) is off
+    with pytest.raises(ValueError, match="views"):
+        sched.for_views(0)
