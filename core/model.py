@@ -224,6 +224,25 @@ class GaussianModel:
                              f"got {mask.dtype} {tuple(mask.shape)}")
         self._edit(optimizer, lambda name, t, is_state: t[mask])
 
+    def replace_rows(self, rows: Tensor, values: dict[str, Tensor],
+                     optimizer: torch.optim.Optimizer | None = None) -> None:
+        """Overwrite the Gaussians at `rows` (distinct indices) with raw `values` per
+        parameter, their Adam moments zeroed (a relocation: the rows are new Gaussians)."""
+        if rows.dim() != 1 or rows.numel() != rows.unique().numel():
+            raise ValueError("rows: expected distinct indices in one dimension")
+        for name in PARAM_NAMES:
+            v = values.get(name)
+            if v is None or v.shape != (rows.numel(), *self.params[name].shape[1:]):
+                raise ValueError(f"values[{name!r}]: expected {rows.numel()} rows of "
+                                 f"{tuple(self.params[name].shape[1:])}")
+
+        def edit(name: str, t: Tensor, is_state: bool) -> Tensor:
+            t = t.clone()
+            t[rows] = 0 if is_state else values[name].detach().to(t.dtype)
+            return t
+
+        self._edit(optimizer, edit)
+
     def assign(self, name: str, values: Tensor,
                optimizer: torch.optim.Optimizer | None = None) -> None:
         """Overwrite one parameter in place of its values and zero its Adam moments (used by the

@@ -17,6 +17,9 @@ object with explicit state, in the manner of gsplat's `strategy/` (called after 
   rho *= 0.75 and opacities become min(o, 0.01) (3DGS reset; `reset_opacity` off leaves them,
   as released gsplat 1.5.3 does). With `prune_at` densify the transparent ones go at every
   densification instead, as in 3DGS.
+- With `relocate` the transparent are moved instead (3DGS-MCMC, Kheradmand et al. 2024): at each
+  densification each takes the place of a copy of a live Gaussian drawn by opacity, and the
+  drawn one and its copies share its cover (`relocation`, the paper's Eq. 9).
 - From the first reset on, every densification and reset also drops Gaussians whose largest scale
   exceeds 0.1 x the scene extent (3DGS densify_and_prune `big_points_ws`; gsplat
   DefaultStrategy prune_scale3d 0.1): a sheet that large is a floater the training views cannot
@@ -36,7 +39,41 @@ from core.model import GaussianModel
 from native.reference import quat_to_rotmat
 from native.types import RasterOutput
 
-__all__ = ["DensifyStrategy", "StrategyState"]
+__all__ = ["MAX_COPIES", "DensifyStrategy", "StrategyState", "relocation"]
+
+
+MAX_COPIES = 51
+"""At most this many Gaussians share one relocated Gaussian's cover (gsplat's n_max)."""
+_LINE = torch.linspace(-10.0, 10.0, 801, dtype=torch.float64)
+"""Where `relocation` integrates a unit Gaussian's alpha along a line through its centre."""
+
+
+def relocation(opacity: Tensor, scales: Tensor, copies: Tensor) -> tuple[Tensor, Tensor]:
+    """3DGS-MCMC's Eq. 9: the opacity (N,) and scales (N, 3) that each of `copies` (N,) >= 1
+    Gaussians at one place takes so that together they keep the original's (`opacity`,
+    `scales`): its opacity at the centre, 1 - (1 - o')^n = o, and the integral of its alpha
+    along a line through the centre, s o = s' sum_j C(n, j) (-1)^(j+1) o'^j / sqrt(j). The
+    alternating sum loses every digit to cancellation for large n and o' (its terms reach
+    1e13), so the same integral is evaluated by quadrature of the positive integrand
+    1 - (1 - o' exp(-x^2 / 2))^n (a trapezoid rule, float64: exact to ~1e-12). `copies` is
+    clamped to `MAX_COPIES`."""
+    if opacity.dim() != 1 or scales.shape != (opacity.shape[0], 3) or \
+            copies.shape != opacity.shape:
+        raise ValueError(f"opacity (N,), scales (N, 3), copies (N,): got {tuple(opacity.shape)}"
+                         f", {tuple(scales.shape)}, {tuple(copies.shape)}")
+    if bool((copies < 1).any()):
+        raise ValueError("copies: expected >= 1")
+    n = copies.clamp(max=MAX_COPIES).to(torch.float64)
+    o = opacity.to(torch.float64).clamp(0.0, 1.0 - 1e-12)
+    shared = 1.0 - (1.0 - o) ** (1.0 / n)
+    line = _LINE.to(o.device)
+    denom = torch.empty_like(o)
+    for start in range(0, o.shape[0], 4096):  # (rows, 801) at a time
+        part = slice(start, start + 4096)
+        alpha = 1.0 - (1.0 - shared[part, None] * torch.exp(-0.5 * line * line)) ** n[part, None]
+        denom[part] = torch.trapezoid(alpha, line, dim=1) / math.sqrt(2.0 * math.pi)
+    coeff = torch.where(denom > 0, o / denom.clamp_min(1e-300), torch.ones_like(o))
+    return shared.to(opacity.dtype), scales * coeff.to(scales.dtype)[:, None]
 
 
 @dataclass
@@ -156,9 +193,11 @@ class DensifyStrategy:
                 state.select(keep)
             for name in ("grad_c", "grad_g", "count", "max_radii"):
                 getattr(state, name).zero_()
+            moved = self._relocate(model, optimizer, state, generator, tied) \
+                if self.config.relocate else 0
             big = self._too_big(model, state)
             faint = self._transparent(model, tied) if self.config.prune_at == "densify" \
-                else torch.zeros_like(big)
+                and not self.config.relocate else torch.zeros_like(big)
             drop = big | faint
             if state.frozen is not None:
                 drop &= ~state.frozen
@@ -169,10 +208,53 @@ class DensifyStrategy:
                 state.select(~drop)
         record = {"cloned": int(clone.sum()), "split": int(split.sum()),
                   "pruned_big": int((big & drop).sum()), "n": len(model)}
-        if self.config.prune_at == "densify":
+        if self.config.prune_at == "densify" and not self.config.relocate:
             record["pruned"] = int((faint & drop).sum())
+        if self.config.relocate:
+            record["relocated"] = moved
         state.history.append(record)
         return record
+
+    def _relocate(self, model: GaussianModel, optimizer: torch.optim.Optimizer | None,
+                  state: StrategyState, generator: torch.Generator | None, tied: bool) -> int:
+        """Move the transparent (`_transparent`, never `state.frozen` rows) onto live ones
+        drawn with replacement by opacity (the larger branch's; the appearance one's when
+        `tied`): each drawn Gaussian and its copies take `relocation`'s opacities (per branch,
+        at least `transparent`) and scales (from the appearance opacity, what the picture
+        shows); the moved rows inherit the drawn one's statistics, and both have their Adam
+        moments zeroed. Returns how many moved."""
+        cfg = self.config
+        dead = self._transparent(model, tied)
+        live = ~dead
+        if state.frozen is not None:
+            dead, live = dead & ~state.frozen, live & ~state.frozen
+        o_c, o_g = model.opacity_c.detach(), model.opacity_g.detach()
+        weight = (o_c if tied else torch.maximum(o_c, o_g))[live]
+        count = int(dead.sum())
+        if count == 0 or not bool((weight > 0).any()):
+            return 0
+        live_idx, dead_idx = live.nonzero()[:, 0], dead.nonzero()[:, 0]
+        # Drawn on the (CPU) generator whatever the device: the same draws everywhere.
+        draw = torch.multinomial(weight.double().cpu(), count, replacement=True,
+                                 generator=generator).to(live_idx.device)
+        sources = live_idx[draw]
+        copies = torch.bincount(sources, minlength=len(model))
+        picked = copies.nonzero()[:, 0]
+        n = copies[picked] + 1
+        rows = {k: p.detach()[picked].clone() for k, p in model.params.items()}
+        shared_c, scales = relocation(o_c[picked], model.scales.detach()[picked], n)
+        shared_g, _ = relocation(o_g[picked], rows["scales"], n)
+        floor, top = cfg.transparent, 1.0 - 1e-6
+        rows["opacity_c"] = torch.logit(shared_c.clamp(floor, top))
+        rows["opacity_g"] = torch.logit(shared_g.clamp(floor, top))
+        rows["scales"] = torch.log(scales)
+        where = torch.searchsorted(picked, sources)  # each moved row's source among `picked`
+        model.replace_rows(torch.cat([picked, dead_idx]),
+                           {k: torch.cat([v, v[where]]) for k, v in rows.items()}, optimizer)
+        index = torch.arange(len(model), device=sources.device)
+        index[dead_idx] = sources
+        state.select(index)
+        return count
 
     def _too_big(self, model: GaussianModel, state: StrategyState) -> Tensor:
         """(N,) Gaussians larger than prune_scale x extent, once a reset has happened (before it
@@ -234,7 +316,7 @@ class DensifyStrategy:
         with torch.no_grad():
             n = len(model)
             drop = self._too_big(model, state)
-            if cfg.prune_at == "reset":
+            if cfg.prune_at == "reset" and not cfg.relocate:
                 drop |= self._transparent(model, tied)
             k = int(math.floor(state.rho * n))
             if k > 0:

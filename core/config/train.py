@@ -164,6 +164,12 @@ class DensifyConfig:
     """Opacity of the copy in a branch that did not pass its threshold."""
     transparent: Fraction = 0.005
     """Below this opacity in both branches a Gaussian is pruned (3DGS min_opacity)."""
+    relocate: bool = False
+    """Transparent Gaussians are moved, not pruned: at each densification those under
+    `transparent` in both branches take the place of copies of live ones drawn by appearance
+    opacity, and each drawn one and its copies share its cover (3DGS-MCMC's relocation,
+    Kheradmand et al. 2024, Eq. 9). Under a cap the slots pruning frees are then refilled where
+    the picture is, not by the next densification's gradients."""
     prune_at: Literal["reset", "densify"] = "reset"
     """When transparent Gaussians are pruned: at each opacity reset, or at each densification
     (3DGS densify_and_prune, gsplat DefaultStrategy)."""

@@ -152,7 +152,12 @@ def test_resume_ignores_the_device_and_accepts_records_without_one(tiny_run: Pat
     del flat["train"]["device"]
     old = ResolvedRun.from_json(flat)
     assert old.config.train.device == "auto"
-    assert old.same_run(record) and other.same_run(record) and record.same_run(other)
+    # (a record of before `densify_epoch` reads with it off: the interval its run densified at)
+    then = replace(record.config.train.schedule, densify_epoch=False)
+    legacy = replace(record, config=replace(record.config, train=replace(record.config.train,
+                                                                         schedule=then)))
+    assert old.same_run(legacy) and not old.same_run(record)
+    assert other.same_run(record) and record.same_run(other)
     eps = replace(other.config.train, eps2d=0.3)
     assert not replace(other, config=replace(other.config, train=eps)).same_run(record)
 

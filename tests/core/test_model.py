@@ -235,3 +235,16 @@ def test_plain_3dgs_ply_loads_with_defaults(tmp_path):
     with pytest.raises(ValueError, match="path"):
         GaussianModel.load_ply(bad)
     assert math.isfinite(float(m.scales.detach().sum()))
+
+
+def test_replace_rows_checks_its_rows_and_values():
+    m = GaussianModel.from_points(torch.zeros(4, 3))
+    values = {k: p.detach()[:2].clone() for k, p in m.params.items()}
+    with pytest.raises(ValueError, match="distinct"):
+        m.replace_rows(torch.tensor([1, 1]), values)
+    with pytest.raises(ValueError, match="means"):
+        m.replace_rows(torch.tensor([1, 2]), {**values, "means": torch.zeros(3, 3)})
+    values["means"] += 5.0
+    m.replace_rows(torch.tensor([3, 0]), values)
+    assert torch.equal(m.params["means"][3], torch.full((3,), 5.0))
+    assert torch.equal(m.params["means"][1], torch.zeros(3))

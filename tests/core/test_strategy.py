@@ -11,7 +11,7 @@ import torch
 from core.model import GaussianModel
 from core.render import RenderCamera, render
 from core.config import DensifyConfig
-from core.strategy import DensifyStrategy
+from core.strategy import MAX_COPIES, DensifyStrategy, relocation
 from native.types import RasterOutput
 
 
@@ -293,3 +293,86 @@ def test_the_plain_3dgs_settings():
         m2.params["opacity_c"][2] = logit(0.001)
     assert s.densify(m2, None, frozen, tied=True)["n"] == 3  # nothing grown, nothing pruned
     assert replace(cfg, prune_at="reset").prune_at == "reset"
+
+
+def test_relocation_keeps_the_cover_of_the_gaussian_it_shares():
+    """3DGS-MCMC's Eq. 9 against its definition: one copy changes nothing; n copies keep the
+    opacity at the centre (1 - (1 - o')^n = o) and the integral of the alpha along a line
+    through it (numerically, on a fine grid); the quadrature equals the paper's alternating
+    binomial sum where that sum is exact (small n and o')."""
+    o = torch.tensor([0.3, 0.3, 0.05, 0.9, 0.999, 0.6], dtype=torch.float32)
+    n = torch.tensor([1, 2, 5, 3, 51, 80])
+    scales = torch.tensor([[0.1, 0.2, 0.3]] * 6)
+    shared, new_scales = relocation(o, scales, n)
+    assert shared[0] == pytest.approx(0.3) and torch.allclose(new_scales[0], scales[0])
+    nn = n.clamp(max=MAX_COPIES).double()
+    assert torch.allclose(1 - (1 - shared.double()) ** nn, o.double(), atol=1e-6)
+    x = torch.linspace(-40, 40, 200_001, dtype=torch.float64)
+    for i in range(6):
+        c = float(new_scales[i, 0] / scales[i, 0])  # one factor for the three axes
+        assert torch.allclose(new_scales[i] / scales[i], torch.full((3,), c), rtol=1e-5)
+        one = torch.trapezoid(o[i].double() * torch.exp(-0.5 * x * x), x)
+        many = torch.trapezoid(1 - (1 - shared[i].double() * torch.exp(-0.5 * (x / c) ** 2))
+                               ** nn[i], x)
+        assert float(many) == pytest.approx(float(one), rel=1e-5), i
+    for i in range(3):  # the paper's closed form, exact in float64 here
+        k = int(nn[i])
+        exact = sum(math.comb(k, j) * (-1) ** (j + 1) * float(shared[i]) ** j / math.sqrt(j)
+                    for j in range(1, k + 1))
+        assert float(new_scales[i, 0] / scales[i, 0]) == pytest.approx(float(o[i]) / exact,
+                                                                       rel=1e-5)
+    with pytest.raises(ValueError, match="copies"):
+        relocation(o, scales, torch.zeros(6, dtype=torch.long))
+
+
+def test_relocation_moves_the_transparent_onto_live_gaussians():
+    """With `relocate` a densification moves the Gaussians transparent in both branches onto
+    live ones (none pruned, the count kept), the drawn ones and their copies share the cover
+    (same place, opacity 1 - (1 - o)^(1/n)), both have their Adam moments zeroed, the moved
+    rows inherit the drawn one's statistics and frozen rows are left alone."""
+    n = 12
+    m = tiny_model(n)
+    with torch.no_grad():
+        for i in (2, 7):
+            m.params["opacity_c"][i] = logit(0.001)
+            m.params["opacity_g"][i] = logit(0.002)
+        m.params["opacity_c"][9] = logit(0.001)  # transparent in one branch only: live
+        m.params["opacity_c"][4] = logit(0.001)
+        m.params["opacity_g"][4] = logit(0.001)
+    opt = _stepped_optimizer(m)
+    s = DensifyStrategy(DensifyConfig(relocate=True, rho=0.0, grad_threshold_c=1.0,
+                                      grad_threshold_g=1.0), extent=100.0)
+    st = s.initialize_state(n)
+    st.contribution[:] = torch.arange(n, dtype=torch.float32)
+    st.frozen = torch.zeros(n, dtype=torch.bool)
+    st.frozen[4] = True  # a tracked frame's static scene: never moved
+    before = {k: p.detach().clone() for k, p in m.params.items()}
+    moments = {g["name"]: opt.state[g["params"][0]]["exp_avg"].clone() for g in opt.param_groups}
+    rec = s.densify(m, opt, st, torch.Generator().manual_seed(0))
+    assert rec["relocated"] == 2 and "pruned" not in rec and len(m) == n
+    assert torch.equal(m.params["means"][4], before["means"][4])
+    moved = [2, 7]
+    sources = [int(torch.nonzero((before["means"] == m.params["means"][i]).all(dim=1))[0])
+               for i in moved]
+    assert all(j not in (2, 4, 7) for j in sources)
+    copies = {j: sources.count(j) + 1 for j in sources}
+    for i, j in zip(moved, sources):
+        for name in ("opacity_c", "opacity_g"):  # at least `transparent`: not moved again
+            o = torch.sigmoid(before[name][j])
+            want = max(float(1 - (1 - o) ** (1 / copies[j])), 0.005)
+            got = torch.sigmoid(m.params[name].detach())
+            assert float(got[i]) == pytest.approx(want, rel=1e-5)
+            assert float(got[j]) == pytest.approx(want, rel=1e-5)
+        assert torch.equal(m.params["scales"][i], m.params["scales"][j])
+        assert float(st.contribution[i]) == float(j)  # the drawn one's statistics
+    others = [i for i in range(n) if i not in moved + sources]
+    for group in opt.param_groups:
+        state = opt.state[group["params"][0]]["exp_avg"]
+        for i in moved + sources:
+            assert torch.all(state[i] == 0)
+        assert torch.equal(state[others], moments[group["name"]][others])
+    # A reset with `relocate` leaves the transparent to the next densification.
+    with torch.no_grad():
+        m.params["opacity_c"][0] = logit(0.001)
+        m.params["opacity_g"][0] = logit(0.001)
+    assert s.prune_and_reset(m, opt, st)["pruned"] == 0 and len(m) == n

@@ -272,3 +272,17 @@ def test_densifications_are_an_epoch_apart(views: list[View]):
     assert off.for_views(len(views)) is off
     with pytest.raises(ValueError, match="views"):
         sched.for_views(0)
+
+
+def test_a_key_frame_relocates_its_transparent_gaussians(views: list[View], one_thread):
+    """`densify.relocate` in a key frame: Gaussians the opacity regularizer fades are moved at
+    densifications (the history says how many), and the key frame still learns its views."""
+    base = replace(train_config("test"), bake_ao=False)
+    cfg = replace(base, losses=replace(base.losses, opacity_l1=0.05),
+                  densify=replace(base.densify, relocate=True))
+    trainer = Trainer(views, cfg)
+    before = trainer.evaluate()
+    trainer.train()
+    moved = [h["relocated"] for h in trainer.state.history if "relocated" in h]
+    assert moved and sum(moved) > 0
+    assert trainer.evaluate() > before + 3.0

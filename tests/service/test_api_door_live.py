@@ -194,9 +194,12 @@ def test_a_run_the_capture_cannot_follow_is_refused_at_the_door(live, synth_capt
 
 
 # -- issue 32: the door, second pass ------------------------------------------------------------
+# 40 steps densified every 4 (not an epoch apart: densify_epoch off), so that the tiny job grows
+# enough to mesh.
 TINY = {"train": {"schedule": {"iterations": 40, "stage2_start": 12, "stage3_start": 28,
                                "densify_from": 2, "densify_until": 24, "densify_interval": 4,
-                               "reset_interval": 16, "sh_interval": 4}, "init_points": 300},
+                               "densify_epoch": False, "reset_interval": 16, "sh_interval": 4},
+                  "init_points": 300},
         "sequence": {"enabled": False}}
 JSON = {"Content-Type": "application/json"}
 
