@@ -234,20 +234,24 @@ class DensifyStrategy:
         if count == 0 or not bool((weight > 0).any()):
             return 0
         live_idx, dead_idx = live.nonzero()[:, 0], dead.nonzero()[:, 0]
-        # Drawn on the (CPU) generator whatever the device: the same draws everywhere.
-        draw = torch.multinomial(weight.double().cpu(), count, replacement=True,
-                                 generator=generator).to(live_idx.device)
+        # Drawn on the (CPU) generator whatever the device, the same draws everywhere; by the
+        # inverse of the cumulative weight (torch.multinomial stops at 2^24 categories).
+        cdf = torch.cumsum(weight.double().cpu(), dim=0)
+        u = torch.rand(count, generator=generator, dtype=torch.float64) * cdf[-1]
+        draw = torch.searchsorted(cdf, u, right=True).clamp(max=cdf.numel() - 1)
+        draw = draw.to(live_idx.device)
         sources = live_idx[draw]
         copies = torch.bincount(sources, minlength=len(model))
         picked = copies.nonzero()[:, 0]
         n = copies[picked] + 1
         rows = {k: p.detach()[picked].clone() for k, p in model.params.items()}
-        shared_c, scales = relocation(o_c[picked], model.scales.detach()[picked], n)
-        shared_g, _ = relocation(o_g[picked], rows["scales"], n)
+        scales = model.scales.detach()[picked]
+        shared_c, scales_new = relocation(o_c[picked], scales, n)
+        shared_g, _ = relocation(o_g[picked], scales, n)
         floor, top = cfg.transparent, 1.0 - 1e-6
         rows["opacity_c"] = torch.logit(shared_c.clamp(floor, top))
         rows["opacity_g"] = torch.logit(shared_g.clamp(floor, top))
-        rows["scales"] = torch.log(scales)
+        rows["scales"] = torch.log(scales_new)
         where = torch.searchsorted(picked, sources)  # each moved row's source among `picked`
         model.replace_rows(torch.cat([picked, dead_idx]),
                            {k: torch.cat([v, v[where]]) for k, v in rows.items()}, optimizer)
