@@ -48,6 +48,14 @@ _LINE = torch.linspace(-10.0, 10.0, 801, dtype=torch.float64)
 """Where `relocation` integrates a unit Gaussian's alpha along a line through its centre."""
 
 
+def _shared_opacity(opacity: Tensor, copies: Tensor) -> Tensor:
+    """The opacity o' each of `copies` Gaussians at one place takes to keep `opacity` at the
+    centre: 1 - (1 - o')^n = o (`copies` clamped to `MAX_COPIES`, as in `relocation`)."""
+    n = copies.clamp(max=MAX_COPIES).to(torch.float64)
+    o = opacity.to(torch.float64).clamp(0.0, 1.0 - 1e-12)
+    return 1.0 - (1.0 - o) ** (1.0 / n)
+
+
 def relocation(opacity: Tensor, scales: Tensor, copies: Tensor) -> tuple[Tensor, Tensor]:
     """3DGS-MCMC's Eq. 9: the opacity (N,) and scales (N, 3) that each of `copies` (N,) >= 1
     Gaussians at one place takes so that together they keep the original's (`opacity`,
@@ -65,7 +73,7 @@ def relocation(opacity: Tensor, scales: Tensor, copies: Tensor) -> tuple[Tensor,
         raise ValueError("copies: expected >= 1")
     n = copies.clamp(max=MAX_COPIES).to(torch.float64)
     o = opacity.to(torch.float64).clamp(0.0, 1.0 - 1e-12)
-    shared = 1.0 - (1.0 - o) ** (1.0 / n)
+    shared = _shared_opacity(o, n)
     line = _LINE.to(o.device)
     denom = torch.empty_like(o)
     for start in range(0, o.shape[0], 4096):  # (rows, 801) at a time
@@ -172,6 +180,7 @@ class DensifyStrategy:
         """Clone / split where either branch passed its threshold; reset the gradient stats;
         prune those too big (after the first reset) and, with `prune_at` densify, the
         transparent (`tied` as in `prune_and_reset`). `state.frozen` rows are left alone."""
+        prune_faint = self.config.prune_at == "densify" and not self.config.relocate
         with torch.no_grad():
             pass_c, pass_g = self._selection(model, state)
             if state.frozen is not None:
@@ -196,8 +205,7 @@ class DensifyStrategy:
             moved = self._relocate(model, optimizer, state, generator, tied) \
                 if self.config.relocate else 0
             big = self._too_big(model, state)
-            faint = self._transparent(model, tied) if self.config.prune_at == "densify" \
-                and not self.config.relocate else torch.zeros_like(big)
+            faint = self._transparent(model, tied) if prune_faint else torch.zeros_like(big)
             drop = big | faint
             if state.frozen is not None:
                 drop &= ~state.frozen
@@ -208,7 +216,7 @@ class DensifyStrategy:
                 state.select(~drop)
         record = {"cloned": int(clone.sum()), "split": int(split.sum()),
                   "pruned_big": int((big & drop).sum()), "n": len(model)}
-        if self.config.prune_at == "densify" and not self.config.relocate:
+        if prune_faint:
             record["pruned"] = int((faint & drop).sum())
         if self.config.relocate:
             record["relocated"] = moved
@@ -245,9 +253,8 @@ class DensifyStrategy:
         picked = copies.nonzero()[:, 0]
         n = copies[picked] + 1
         rows = {k: p.detach()[picked].clone() for k, p in model.params.items()}
-        scales = model.scales.detach()[picked]
-        shared_c, scales_new = relocation(o_c[picked], scales, n)
-        shared_g, _ = relocation(o_g[picked], scales, n)
+        shared_c, scales_new = relocation(o_c[picked], model.scales.detach()[picked], n)
+        shared_g = _shared_opacity(o_g[picked], n).to(o_g.dtype)  # the scale is shared
         floor, top = cfg.transparent, 1.0 - 1e-6
         rows["opacity_c"] = torch.logit(shared_c.clamp(floor, top))
         rows["opacity_g"] = torch.logit(shared_g.clamp(floor, top))

@@ -15,10 +15,10 @@ import torch
 from torch import Tensor
 
 from core.ao import GaussianAOBaker
-from core.losses import sparsity_loss
 from core.config import TrainConfig, Views, select_views
 from core.device import to_device
 from core.data.points import PointCloud, read_points_ply
+from core.losses import sparsity_loss
 from core.model import GaussianModel, means_lr
 from core.render import RenderCamera, seen_directions
 from core.rig.geometry import RigGeometry
