@@ -10,10 +10,13 @@ Both from the same capture at the same downscale, then `dgs eval` (held-out view
 camera): PSNR over the whole image and SSIM, and over the subject where the capture has masks
 (`benchmarks/subject_masks.py` makes a masked capture). Meshes are skipped unless `--mesh`
 (the method's: a plain 3DGS has no geometry branch). `--steps N` scales the preset's plan to N
-steps (`Schedule.scaled`: every boundary in proportion).
+steps (`Schedule.scaled`: every boundary in proportion). `--set KEY=VALUE` lays a setting of the run's
+config over both variants' (dotted, VALUE JSON, as `benchmarks/panoptic.py` takes it: e.g.
+`--set train.init.source=triangulate` seeds from sparse points where the default fuses stereo).
 
     nice python benchmarks/real.py CAPTURE --out DIR [--downscale 4] [--preset fast]
                                    [--steps N] [--mesh] [--variants method plain] [--threads 1]
+                                   [--seed S] [--set KEY=VALUE ...]
 
 Finished variants in DIR are scored again, not trained again; an interrupted one resumes.
 """
@@ -27,11 +30,13 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from benchmarks.panoptic import lay_setting  # noqa: E402
+
 VARIANTS = ("method", "plain")
 
 
 def overrides(variant: str, preset: str, downscale: float, steps: int | None = None,
-              mesh: bool = False, seed: int = 0) -> dict:
+              mesh: bool = False, seed: int = 0, settings: tuple[str, ...] = ()) -> dict:
     from dataclasses import asdict
 
     from core.config import train_config
@@ -45,12 +50,14 @@ def overrides(variant: str, preset: str, downscale: float, steps: int | None = N
         out["train"]["rates"] = {"means_decay_steps": steps}
     if variant == "plain":
         out["train"]["method"] = "3dgs"
+    for setting in settings:
+        lay_setting(out, setting)
     return out
 
 
 def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: float,
                 steps: int | None = None, mesh: bool = False, seed: int = 0,
-                extra: dict | None = None) -> dict:
+                extra: dict | None = None, settings: tuple[str, ...] = ()) -> dict:
     """Train (or resume, or re-score) one variant in `out`; `extra` train settings are laid
     over the variant's (`benchmarks/plain_gap.py`)."""
     from core.data import load_capture
@@ -61,7 +68,7 @@ def run_variant(capture: Path, out: Path, variant: str, preset: str, downscale: 
     if done:
         metrics = json.loads((out / "metrics.json").read_text())
     else:
-        over = overrides(variant, preset, downscale, steps, mesh, seed)
+        over = overrides(variant, preset, downscale, steps, mesh, seed, settings)
         over["train"].update(extra or {})
         metrics = reconstruct(capture, out, preset=preset, resume=True, progress=True,
                               overrides=over)
@@ -90,6 +97,9 @@ def main() -> None:
     ap.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
     ap.add_argument("--seed", type=int, default=0, help="train.seed (view order, splits)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="a setting of the run's config, dotted, VALUE JSON (e.g. "
+                         "train.init.source=triangulate)")
     args = ap.parse_args()
     if args.threads:
         import torch
@@ -98,7 +108,8 @@ def main() -> None:
     rows = []
     for variant in args.variants:
         rows.append(run_variant(args.capture, args.out / variant, variant, args.preset,
-                                args.downscale, args.steps, args.mesh, args.seed))
+                                args.downscale, args.steps, args.mesh, args.seed,
+                                settings=tuple(args.set)))
         (args.out / f"{variant}.json").write_text(json.dumps(rows[-1], indent=2))
     steps = f", {args.steps} steps" if args.steps else ""
     print(f"\n{args.capture} at 1/{args.downscale:g}, preset {args.preset}{steps}\n")
