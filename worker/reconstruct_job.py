@@ -55,7 +55,7 @@ class ReconstructJob:
         try:
             self._reconstruct(capture, run, self.resolved(capture))
         except Stopped as exc:
-            raise JobStopped(f"step {exc.step}") from exc
+            raise JobStopped(exc.where) from exc
         if self.part:
             self._finish_part(run)
             return

@@ -267,7 +267,9 @@ class Runner:
                 raise ValueError(f"capture: {job.capture_id} is not in the store")
             link.update(fraction=0.0, stage="fetching capture",
                         message=f"{len(blobs)} files, {sum(b.size for b in blobs) / 1e6:.0f} MB")
-            for blob in blobs:
+            for i, blob in enumerate(blobs):
+                if link.should_stop():  # a cancel, a shutdown: not after the whole download
+                    raise JobStopped(f"fetching the capture ({i} of {len(blobs)} files)")
                 self.blobs.get_file(blob.key, folder / blob.key[len(prefix) + 1:])
 
         cache = capture_folder(self.settings.scratch, job.capture_id)

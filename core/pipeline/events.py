@@ -53,12 +53,20 @@ class Progress:
 
 
 class Stopped(Exception):
-    """`reconstruct` stopped because `should_stop()` said so; the frame's checkpoint was written
-    first, so `resume=True` continues from the step it stopped at."""
+    """`reconstruct` stopped because `should_stop()` said so: after a step, with the frame's
+    checkpoint written first, so `resume=True` continues from the step it stopped at; or,
+    `step` None, before the frame began (its setup, seeds included, not spent), every frame
+    before it finished."""
 
-    def __init__(self, frame: str, step: int):
-        super().__init__(f"stopped at step {step} of frame {frame} (checkpoint written)")
+    def __init__(self, frame: str, step: int | None):
+        super().__init__(f"stopped at step {step} of frame {frame} (checkpoint written)"
+                         if step is not None else f"stopped before frame {frame} began")
         self.frame, self.step = frame, step
+
+    @property
+    def where(self) -> str:
+        """Where it stopped, for a log: 'step 57', 'the start of frame 000003'."""
+        return f"step {self.step}" if self.step is not None else f"the start of frame {self.frame}"
 
 
 class History(Callback):

@@ -17,7 +17,7 @@ from pathlib import Path
 from core.config import ResolvedRun, load_config, resolve_run
 from core.data import check_capture
 from core.device import check_device_spec, resolve_device
-from core.pipeline.events import Hooks, Progress
+from core.pipeline.events import Hooks, Progress, Stopped
 from core.pipeline.frame import FrameJob, display_mode, fit_frame
 from core.plots import plot_run
 from core.priors import load_estimator
@@ -87,8 +87,9 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
     config.json records the device it resolved to.
 
     `progress` shows a bar on a terminal; `on_progress` receives `Progress` events (every step,
-    checkpoint and frame); `should_stop` is asked after every step and, when it returns True,
-    the frame's checkpoint is written and `Stopped` raised (a service's cooperative cancel).
+    checkpoint and frame); `should_stop` is asked before each frame begins and after every
+    step: when it returns True, `Stopped` is raised, after a step once the frame's checkpoint is
+    written (a service's cooperative cancel; a time budget's stop at a frame boundary).
     `model_files` maps a model the configuration names (`normal_estimator`: a service's asset
     id or allow-listed name) to the file to load; config.json keeps the name. `gops` runs only
     those groups of pictures (a part of a sequence job, docs/design.md 4.4: with
@@ -117,6 +118,8 @@ def reconstruct(capture_dir: str | os.PathLike[str], run_dir: str | os.PathLike[
         if (gops is not None and role.gop not in gops) or (role.frame in records and (
                 run.ply(role.frame).is_file() or role.frame in carried)):
             continue
+        if should_stop is not None and should_stop():  # before the frame's setup and seeds
+            raise Stopped(role.frame, None)
         hooks = Hooks(role.frame, i, len(chosen), on_progress, should_stop)
         label = f"frame {role.frame} ({i + 1}/{len(chosen)})"
         records[role.frame] = fit_frame(job, role, plan.inputs(i, records), label,

@@ -253,9 +253,11 @@ def test_cuda_pipeline_end_to_end(synth_capture: Path, tmp_path: Path):
     result = evaluate_run(run, device="cuda")
     assert math.isfinite(result["psnr"])
     stopped = tmp_path / "stopped"
+    steps: list[int] = []  # stopped after the first step (a stop before it trains nothing)
     with pytest.raises(Stopped):
         reconstruct(synth_capture, stopped, preset="test", frames="0:1", overrides=overrides,
-                    progress=False, device="cuda", should_stop=lambda: True)
+                    progress=False, device="cuda", should_stop=lambda: bool(steps),
+                    on_progress=lambda e: e.kind == "step" and steps.append(e.step))
     resumed = reconstruct(synth_capture, stopped, preset="test", frames="0:1",
                           overrides=overrides, progress=False, device="cpu", resume=True)
     assert resumed["frames"]["000000"]["resumed_at"] == 1

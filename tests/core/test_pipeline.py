@@ -189,6 +189,36 @@ def test_progress_events_and_cooperative_stop(capture: Path, short_config: Path,
     assert metrics["frames"]["000000"]["resumed_at"] == 45
 
 
+def test_a_stop_between_frames_spends_nothing_on_the_next(capture: Path, short_config: Path,
+                                                          tmp_path: Path):
+    """A stop asked before a frame begins (a cancel right after a job's claim, a time budget at
+    a frame boundary) stops there: none of that frame's setup, seeds or steps is spent and no
+    checkpoint is written for it; a resumed run starts it afresh."""
+    out = tmp_path / "run"
+    with pytest.raises(Stopped) as info:
+        reconstruct(capture, out, preset="test", config_file=short_config, progress=False,
+                    should_stop=lambda: True)
+    assert (info.value.frame, info.value.step) == ("000000", None)
+    assert info.value.where == "the start of frame 000000"
+    assert not list(out.rglob("*.pt")) and not list(out.rglob("gaussians.ply"))
+
+    events: list[Progress] = []
+    with pytest.raises(Stopped) as info:
+        reconstruct(capture, out, preset="test", config_file=short_config, progress=False,
+                    resume=True, on_progress=events.append,
+                    should_stop=lambda: any(e.kind == "frame_done" for e in events))
+    assert (info.value.frame, info.value.step) == ("000001", None)
+    assert [e.frame for e in events if e.kind == "frame_start"] == ["000000"]
+    assert not (out / "checkpoints" / "000001.pt").exists()
+
+    events.clear()
+    metrics = reconstruct(capture, out, preset="test", config_file=short_config,
+                          progress=False, resume=True, on_progress=events.append)
+    assert [e.frame for e in events if e.kind == "frame_start"] == ["000001"]
+    assert events[0].step == 0 and list(metrics["frames"]) == ["000000", "000001"]
+    assert metrics["frames"]["000001"]["resumed_at"] == 0  # begun afresh
+
+
 def test_progress_bar_on_a_terminal_lines_elsewhere(capture: Path, short_config: Path,
                                                     tmp_path: Path, capsys: pytest.CaptureFixture,
                                                     monkeypatch: pytest.MonkeyPatch):

@@ -127,6 +127,48 @@ def test_two_jobs_on_one_capture_fetch_it_once(setup, tiny_capture: Path):
     assert load_capture(folder).frames
 
 
+class _CancelledWhileFetching(_RemoteStore):
+    """A remote store whose job is cancelled during its first download: the download returns
+    once the job's heartbeat has seen the cancel (its log line is in the store)."""
+
+    def __init__(self, root: Path, store: JobStore):
+        super().__init__(root)
+        self.store, self.job_id = store, None
+
+    def get_file(self, key: str, dest: Path) -> None:
+        super().get_file(key, dest)
+        if self.job_id is not None and self.downloads == 1:
+            self.store.request_cancel(self.job_id, "t1")
+            wait_for(lambda: any("cancel requested" in r.line
+                                 for r in self.store.logs(self.job_id, 0, 100)),
+                     300, "the heartbeat to see the cancel")
+
+
+def test_a_job_cancelled_while_its_capture_downloads_stops_there(setup, tiny_capture: Path):
+    """A cancel that comes while a job's capture downloads stops the download at the next file
+    (not after the whole capture, then the run's setup): the job is cancelled, the half
+    download is not marked complete, and the next job on the capture fetches all of it."""
+    settings, store, _ = setup
+    settings = settings.model_copy(update={"cancel_grace_seconds": 600})  # never killed here
+    blobs = _CancelledWhileFetching(settings.data_dir / "store", store)
+    cap = add_capture(store, blobs, tiny_capture)
+    job = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=cap)
+    blobs.job_id = job.id
+    assert Runner(settings, store, blobs).run(job.id).status == "cancelled"
+    assert store.get(job.id).state == "cancelled" and blobs.downloads == 1
+    lines = [r.line for r in store.logs(job.id, 0, 100)]
+    assert any("fetching the capture (1 of " in line for line in lines), lines
+    folder = settings.scratch / "captures" / cap
+    assert not (folder / ".complete").exists()
+
+    blobs.job_id = None
+    again = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=cap)
+    link = JobLink(store, again, Owner.current(), settings)
+    assert Runner(settings, store, blobs).capture(again, link) == folder
+    files = sorted(p for p in tiny_capture.rglob("*") if p.is_file())
+    assert blobs.downloads == 1 + len(files) and (folder / ".complete").is_file()
+
+
 def test_a_duplicate_message_of_a_running_job_is_dropped(setup):
     settings, store, blobs = setup
     job = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=None)
