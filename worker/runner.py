@@ -199,24 +199,28 @@ class Runner:
         if (link.shutdown or link.yielding) and not link.cancelled:
             why = ("its worker shut down" if link.shutdown else
                    "it gave its worker to another tenant's job (fair share)")
-            link.log(f"{why}: {reason}; back in the queue")
-            link.close()
-            self.store.release(job.id, link.owner, f"back in the queue: {why} at {exc.where}")
-            return Outcome("released", gave_way=not link.shutdown)
+            return self._release(job, link, f"{why}: {reason}", f"{why} at {exc.where}",
+                                 gave_way=not link.shutdown)
         link.log(f"cancelled: {reason}")
         link.close()
         self.store.finish(job.id, link.owner, "cancelled", None,
                           f"cancelled; {execution.retry_note}")
         return Outcome("cancelled")
 
+    def _release(self, job: Job, link: JobLink, logged: str, why: str, *,
+                 gave_way: bool = False) -> Outcome:
+        """Give the claimed job back to the queue (no attempt counted): `logged` goes to its
+        log, `why` to its message."""
+        link.log(f"{logged}; back in the queue")
+        link.close()
+        self.store.release(job.id, link.owner, f"back in the queue: {why}")
+        return Outcome("released", gave_way=gave_way)
+
     def _fail(self, job: Job, link: JobLink, exc: Exception, retry_note: str) -> Outcome:
         roots = self._client_roots(job, link)
         if isinstance(exc, SoftTimeLimitExceeded) and self._handed:
             why = "its pool process reached its time limit (it ran another job first)"
-            link.log(f"{why}; back in the queue, to resume from its last checkpoint")
-            link.close()
-            self.store.release(job.id, link.owner, f"back in the queue: {why}")
-            return Outcome("released")
+            return self._release(job, link, f"{why}, to resume from its last checkpoint", why)
         if isinstance(exc, SoftTimeLimitExceeded):
             error = {"code": "time_limit", "retryable": True,
                      "message": f"the job reached its time limit; {retry_note}"}

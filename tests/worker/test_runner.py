@@ -18,6 +18,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from billiard.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import update
 from worker_harness import add_capture, tiny_config, wait_for
 
@@ -167,6 +168,40 @@ def test_a_job_cancelled_while_its_capture_downloads_stops_there(setup, tiny_cap
     assert Runner(settings, store, blobs).capture(again, link) == folder
     files = sorted(p for p in tiny_capture.rglob("*") if p.is_file())
     assert blobs.downloads == 1 + len(files) and (folder / ".complete").is_file()
+
+
+class _OutOfTime:
+    """An execution whose task reaches its soft time limit (Celery raises it in the job)."""
+
+    retry_note = "retry resumes from the last checkpoint"
+
+    def run(self) -> None:
+        raise SoftTimeLimitExceeded()
+
+
+def test_a_handed_job_that_reaches_the_borrowed_time_limit_goes_back_to_the_queue(
+        setup, tiny_capture: Path, monkeypatch: pytest.MonkeyPatch):
+    """A job handed to a pool process after another gave way runs under that task's time limit:
+    reaching it gives the job back to the queue (no attempt counted), where a job that ran
+    under its own limit fails with time_limit, retryable."""
+    settings, store, blobs = setup
+    cap = add_capture(store, blobs, tiny_capture)
+    monkeypatch.setattr(Runner, "_execution", lambda self, job, link: _OutOfTime())
+    handed = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=cap)
+    outcome = Runner(settings, store, blobs).run(handed.id, handed=True)
+    assert (outcome.status, outcome.gave_way) == ("released", False)
+    back = store.get(handed.id)
+    assert back.state == "queued" and back.lease_owner is None and back.redeliveries == 0
+    assert back.message == ("back in the queue: its pool process reached its time limit (it "
+                            "ran another job first)")
+    lines = [r.line for r in store.logs(handed.id, 0, 100)]
+    assert any(line.endswith("to resume from its last checkpoint; back in the queue")
+               for line in lines), lines
+
+    own = store.create("t1", "reconstruct", {"preset": "test"}, capture_id=cap)
+    assert Runner(settings, store, blobs).run(own.id).status == "failed"
+    error = store.get(own.id).error
+    assert error["code"] == "time_limit" and error["retryable"]
 
 
 def test_a_duplicate_message_of_a_running_job_is_dropped(setup):
