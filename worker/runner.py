@@ -217,10 +217,10 @@ class Runner:
         return Outcome("released", gave_way=gave_way)
 
     def _fail(self, job: Job, link: JobLink, exc: Exception, retry_note: str) -> Outcome:
-        roots = self._client_roots(job, link)
         if isinstance(exc, SoftTimeLimitExceeded) and self._handed:
             why = "its pool process reached its time limit (it ran another job first)"
             return self._release(job, link, f"{why}, to resume from its last checkpoint", why)
+        roots = self._client_roots(job, link)  # what a failure's message may name
         if isinstance(exc, SoftTimeLimitExceeded):
             error = {"code": "time_limit", "retryable": True,
                      "message": f"the job reached its time limit; {retry_note}"}
