@@ -12,7 +12,7 @@ distance):
 - **none**: the capture without, `rig_priors` off (no prior term).
 
     python benchmarks/priors.py [--sizes test:12:64 fast:16:128] [--seeds 0] [--threads 1]
-                                [--work DIR]
+                                [--work DIR] [--runs capture rig none]
 
 With `--work`, runs an earlier call finished there are read, not run again.
 
@@ -77,6 +77,8 @@ def main() -> None:
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--work", type=Path, default=None)
+    p.add_argument("--runs", nargs="+", choices=[n.split("'")[0].strip() for n in RUNS],
+                   default=None, help="only these rows (default: all three)")
     args = p.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="dgs-priors-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -87,6 +89,8 @@ def main() -> None:
     for size in args.sizes:
         preset, views, pixels = size.split(":")
         for name in RUNS:
+            if args.runs and name.split("'")[0].strip() not in args.runs:
+                continue
             rs = [one(work, preset, int(views), int(pixels), s, name, args.threads)
                   for s in args.seeds]
             mean = {k: statistics.mean(r[k] for r in rs) for k in ("psnr", "cos", "deg",

@@ -139,7 +139,11 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
 
     Only pixels with a prior (non-zero vector) and inside `mask` (H, W, 1) count for the L1; the
     smoothness uses forward differences with both pixels valid, |.| the channel mean of |diff|.
-    `confidence` (H, W, 1) in 0..1 weighs each pixel (a prior from fused stereo depth).
+    `confidence` (H, W, 1) in 0..1 weighs each pixel (a pair: the lesser of its two) as
+    `weights.normal_confidence` says: `absolute`, both means stay over the pixels (pairs) with a
+    prior, so a view whose priors all have confidence 0.5 pulls half as hard as one whose priors
+    are sure (the rig's priors: planes fitted to fused stereo depth up to 1, the visual hull's
+    0.5); `per_view`, the means are over the weights (pairs: the product of the two).
     """
     if normal.shape != prior.shape or normal.shape[-1] != 3:
         raise ValueError(f"normal, prior: expected equal (H, W, 3) shapes, got "
@@ -147,16 +151,24 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
     valid = (prior.abs().sum(dim=-1, keepdim=True) > 0).float()
     if mask is not None:
         valid = valid * (mask > 0.5).float()
-    if confidence is not None:
-        valid = valid * confidence
-    count = valid.sum().clamp_min(1.0)
-    l1 = ((normal - prior).abs().mean(dim=-1, keepdim=True) * valid).sum() / count
+    if confidence is not None and weights.normal_confidence == "per_view":
+        valid = valid * confidence  # the means are over the weights (config version <= 4)
+        weight = valid
+    else:
+        if confidence is not None:
+            valid = valid * (confidence > 0).float()  # confidence 0: no prior there
+        weight = valid if confidence is None else valid * confidence
+    l1 = ((normal - prior).abs().mean(dim=-1, keepdim=True) * weight).sum() \
+        / valid.sum().clamp_min(1.0)
     smooth = normal.new_zeros(())
-    pairs = ((_dx, valid[:, 1:] * valid[:, :-1]), (_dy, valid[1:] * valid[:-1]))
-    for d, v in pairs:  # v: both pixels of the difference are valid
+    for d, a, b in ((_dx, (slice(None), slice(1, None)), (slice(None), slice(None, -1))),
+                    (_dy, (slice(1, None),), (slice(None, -1),))):
+        # pairs whose both pixels have a prior: absolute, each as sure as the less sure of the
+        # two, over the pairs; per_view, the product of the two, over the products
         g = d(normal).abs().mean(dim=-1, keepdim=True)
         edge = torch.exp(-d(prior).abs().mean(dim=-1, keepdim=True))
-        smooth = smooth + ((g * edge) * v).sum() / v.sum().clamp_min(1)
+        pair = valid[a] * valid[b] if weight is valid else torch.minimum(weight[a], weight[b])
+        smooth = smooth + ((g * edge) * pair).sum() / (valid[a] * valid[b]).sum().clamp_min(1)
     return weights.normal_l1 * l1 + weights.normal_smooth * smooth
 
 

@@ -30,9 +30,10 @@ from core.data.schema import load_capture
 
 __all__ = ["CONFIG_VERSION", "ResolvedRun", "read_run", "resolve_run", "upgrade"]
 
-CONFIG_VERSION = 4
+CONFIG_VERSION = 5
 """The version of RUN/config.json this code writes (1: the configuration's fields at the top
-level, without the resolved views; 2: no train.near, every render clipped at 0.01)."""
+level, without the resolved views; 2: no train.near, every render clipped at 0.01; 3: no
+train.schedule.densify_epoch; 4: no train.losses.normal_confidence)."""
 
 OLD_NEAR = 0.01
 """The near plane every render had before runs recorded theirs (the rasterizer's default)."""
@@ -120,13 +121,15 @@ def upgrade(data: Any, capture_dir: str | os.PathLike[str] | None = None) -> dic
     old records are read. Version 1 (the configuration's fields at the top level) gets its
     views resolved against its capture (`capture_dir`, else the folder it names): the same
     rule its run followed. Versions 1 and 2 get train.near 0.01, the plane they rendered at;
-    versions 1 to 3 train.schedule.densify_epoch false, the interval they densified at."""
+    versions 1 to 3 train.schedule.densify_epoch false, the interval they densified at;
+    versions 1 to 4 train.losses.normal_confidence `per_view`, how their priors' confidences
+    weighed."""
     if not isinstance(data, dict):
         raise ConfigError([{"path": "config.json", "message": "expected a JSON object"}])
     version = data.get("version")
     if version == CONFIG_VERSION:
         return data
-    if version not in (1, 2, 3):
+    if version not in (1, 2, 3, 4):
         raise ConfigError([{"path": "config.json", "message": f"version {version!r} is not "
                             f"one this code reads (1 to {CONFIG_VERSION})"}])
     record = _from_version_1(data, capture_dir) if version == 1 else data
@@ -136,8 +139,11 @@ def upgrade(data: Any, capture_dir: str | os.PathLike[str] | None = None) -> dic
         if version < 3 and train.get("near") is None:
             train = {**train, "near": OLD_NEAR}
         schedule = train.get("schedule")
-        if isinstance(schedule, dict):  # (version 1's is made with today's defaults)
+        if version < 4 and isinstance(schedule, dict):  # (version 1's: today's defaults)
             train = {**train, "schedule": {**schedule, "densify_epoch": False}}
+        losses = train.get("losses")
+        if isinstance(losses, dict):
+            train = {**train, "losses": {**losses, "normal_confidence": "per_view"}}
         record = {**record, "config": {**config, "train": train}}
     return {**record, "version": CONFIG_VERSION}
 

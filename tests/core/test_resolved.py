@@ -83,7 +83,8 @@ def test_a_version_1_config_json_upgrades_to_the_run_it_described(v1_capture: Pa
                                                      ("000000", "000001"))
     expected = load_config("test", overrides={"split": "every8", "downscale": 2.0,
                                               "train": {"seed": 3, "near": 0.01, "schedule": {
-                                                  "densify_epoch": False}}}, gop=2)
+                                                  "densify_epoch": False}, "losses": {
+                                                  "normal_confidence": "per_view"}}}, gop=2)
     assert run.config == run.on_device("cpu").config and run.config.train.device == "cpu"
     assert dataclasses.replace(expected, train=dataclasses.replace(
         expected.train, device="cpu")) == run.config
@@ -112,10 +113,27 @@ def test_a_version_3_record_keeps_the_densification_interval_it_ran_at(tmp_path:
     new = upgrade(old)
     assert new["version"] == CONFIG_VERSION
     assert new["config"]["train"]["schedule"]["densify_epoch"] is False
+    assert new["config"]["train"]["losses"]["normal_confidence"] == "per_view"
     assert new["config"]["train"]["near"] == data["config"]["train"]["near"]
     back = ResolvedRun.from_json(old)
     assert back.config.train.schedule.densify_epoch is False
     assert back.config.train.seed == 5
+
+
+def test_a_version_4_record_keeps_how_its_priors_confidences_weighed():
+    """Version 4 records predate `normal_confidence`: they upgrade with `per_view`, the
+    weighing their runs trained with, and keep the densification interval they recorded."""
+    run = resolve_run(_capture(3), load_config("test", overrides={
+        "split": "none", "train": {"seed": 5}}), preset="test")
+    data = run.to_json()
+    assert data["config"]["train"]["losses"]["normal_confidence"] == "absolute"  # today's
+    del data["config"]["train"]["losses"]["normal_confidence"]
+    old = {**data, "version": 4}
+    new = upgrade(old)
+    assert new["version"] == CONFIG_VERSION
+    assert new["config"]["train"]["losses"]["normal_confidence"] == "per_view"
+    assert new["config"]["train"]["schedule"]["densify_epoch"] is True  # as version 4 had it
+    assert ResolvedRun.from_json(old).config.train.losses.normal_confidence == "per_view"
 
 
 def test_an_unknown_version_is_refused_naming_it():
