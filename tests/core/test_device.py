@@ -152,10 +152,12 @@ def test_resume_ignores_the_device_and_accepts_records_without_one(tiny_run: Pat
     del flat["train"]["device"]
     old = ResolvedRun.from_json(flat)
     assert old.config.train.device == "auto"
-    # (a record of before `densify_epoch` reads with it off: the interval its run densified at)
+    # (a record of before `densify_epoch` reads with it off: the interval its run densified at;
+    # and of before `normal_confidence` with `per_view`: how its priors' confidences weighed)
     then = replace(record.config.train.schedule, densify_epoch=False)
-    legacy = replace(record, config=replace(record.config, train=replace(record.config.train,
-                                                                         schedule=then)))
+    losses = replace(record.config.train.losses, normal_confidence="per_view")
+    legacy = replace(record, config=replace(record.config, train=replace(
+        record.config.train, schedule=then, losses=losses)))
     assert old.same_run(legacy) and not old.same_run(record)
     assert other.same_run(record) and record.same_run(other)
     eps = replace(other.config.train, eps2d=0.3)
