@@ -37,6 +37,11 @@ RUNS = {"capture's priors": (True, {}), "rig's priors": (False, {}),
         "none": (False, {"rig_priors": False})}
 
 
+def short(name: str) -> str:
+    """A row's name on the command line and in file names: `capture`, `rig`, `none`."""
+    return name.split("'")[0].strip()
+
+
 def dgs(*args: str, threads: int) -> None:
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
     subprocess.run([sys.executable, "-m", "core.cli", *args], cwd=ROOT, env=env, check=True,
@@ -51,7 +56,7 @@ def one(work: Path, preset: str, views: int, pixels: int, seed: int, name: str,
         dgs("synth", str(capture), "--frames", "1", "--views", str(views), "--size",
             str(pixels), str(pixels), "--seed", str(seed), *(["--priors"] if priors else []),
             threads=threads)
-    run = work / f"run-{preset}-{views}-{pixels}-{seed}-{name.split(chr(39))[0].strip()}"
+    run = work / f"run-{preset}-{views}-{pixels}-{seed}-{short(name)}"
     cfg = work / f"{run.name}.json"
     cfg.write_text(json.dumps(config))
     timing = work / f"{run.name}.seconds"
@@ -77,7 +82,7 @@ def main() -> None:
     p.add_argument("--seeds", nargs="+", type=int, default=[0])
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--work", type=Path, default=None)
-    p.add_argument("--runs", nargs="+", choices=[n.split("'")[0].strip() for n in RUNS],
+    p.add_argument("--runs", nargs="+", choices=[short(n) for n in RUNS],
                    default=None, help="only these rows (default: all three)")
     args = p.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="dgs-priors-"))
@@ -89,7 +94,7 @@ def main() -> None:
     for size in args.sizes:
         preset, views, pixels = size.split(":")
         for name in RUNS:
-            if args.runs and name.split("'")[0].strip() not in args.runs:
+            if args.runs and short(name) not in args.runs:
                 continue
             rs = [one(work, preset, int(views), int(pixels), s, name, args.threads)
                   for s in args.seeds]

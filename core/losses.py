@@ -151,24 +151,24 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
     valid = (prior.abs().sum(dim=-1, keepdim=True) > 0).float()
     if mask is not None:
         valid = valid * (mask > 0.5).float()
-    if confidence is not None and weights.normal_confidence == "per_view":
-        valid = valid * confidence  # the means are over the weights (config version <= 4)
-        weight = valid
-    else:
-        if confidence is not None:
-            valid = valid * (confidence > 0).float()  # confidence 0: no prior there
-        weight = valid if confidence is None else valid * confidence
+    absolute = confidence is not None and weights.normal_confidence == "absolute"
+    if confidence is not None:
+        # absolute: the means are over the pixels with a prior (confidence 0: none there);
+        # per_view: over the confidences (config version <= 4)
+        valid = valid * ((confidence > 0).float() if absolute else confidence)
+    weight = valid * confidence if absolute else valid
     l1 = ((normal - prior).abs().mean(dim=-1, keepdim=True) * weight).sum() \
         / valid.sum().clamp_min(1.0)
     smooth = normal.new_zeros(())
     for d, a, b in ((_dx, (slice(None), slice(1, None)), (slice(None), slice(None, -1))),
                     (_dy, (slice(1, None),), (slice(None, -1),))):
-        # pairs whose both pixels have a prior: absolute, each as sure as the less sure of the
-        # two, over the pairs; per_view, the product of the two, over the products
+        # pairs whose both pixels have a prior; absolute: each as sure as the less sure of its
+        # two, over the pairs; per_view: the product of the two, over the products
         g = d(normal).abs().mean(dim=-1, keepdim=True)
         edge = torch.exp(-d(prior).abs().mean(dim=-1, keepdim=True))
-        pair = valid[a] * valid[b] if weight is valid else torch.minimum(weight[a], weight[b])
-        smooth = smooth + ((g * edge) * pair).sum() / (valid[a] * valid[b]).sum().clamp_min(1)
+        both = valid[a] * valid[b]
+        pair = torch.minimum(weight[a], weight[b]) if absolute else both
+        smooth = smooth + ((g * edge) * pair).sum() / both.sum().clamp_min(1)
     return weights.normal_l1 * l1 + weights.normal_smooth * smooth
 
 
