@@ -5,7 +5,10 @@ result the uninterrupted run gives.
 A tracked frame reads, besides the run's records (metrics.json: track ids, deform losses, the
 refine budget), only its previous frame's Gaussians and the positions and track ids of the two
 frames before that (its motion starts); its deformation graph is rebuilt from the previous
-frame's Gaussians, deterministically. A key frame reads nothing. So `pack_resume` writes:
+frame's Gaussians, deterministically. A key frame reads nothing of the frames before it, but a
+later key frame of a scene around a subject keeps the static scene the run's first key frame
+seeded (RUN/seeds/static.ply), which the next call's capture need not hold the frame to make
+again. So `pack_resume` writes:
 
 - resume.json: config.json, metrics.json and sequence.json, and what the array files hold;
 - for the next frame to run, when it is a tracked frame: its previous frame's Gaussians (every
@@ -13,11 +16,13 @@ frame's Gaussians, deterministically. A key frame reads nothing. So `pack_resume
   .npz files (lossless), split by rows so that no file exceeds `part_bytes` (a lent machine
   returns files of at most 16 MiB). Only when the lossless files exceed `budget` are the
   higher SH coefficients (shN, 45 of a Gaussian's 64 values) stored as float16, which
-  resume.json then says (`lossy`).
+  resume.json then says (`lossy`);
+- the static seeds, when the run has them, byte for byte (`resume--static-N.npz`: no frame's
+  name starts with a hyphen), outside the budget (a point is 15 bytes).
 
 `unpack_resume` lays those files out as a run directory that `reconstruct(resume=True)`
 continues: the records, the previous frame's PLY (bit for bit the original), the earlier
-frames' tracks (frames/<frame>/tracks.npz), and RUN/carried.json naming the frames finished
+frames' tracks (frames/<frame>/tracks.npz), the static seeds, and RUN/carried.json naming the frames finished
 elsewhere, which the run does not redo and `dgs eval` does not score (their renders stayed
 with the run that made them).
 
@@ -45,6 +50,8 @@ __all__ = ["PART_BYTES", "FrameBudget", "pack_resume", "unpack_resume"]
 
 PART_BYTES = 15 * 2**20
 """Largest array file (a lent machine returns files of at most 16 MiB)."""
+STATIC_STEM = "resume--static"
+"""The static seeds' files (a frame's are resume-<frame>-N.npz)."""
 _NAME = re.compile(r"[^A-Za-z0-9._-]")
 
 
@@ -114,6 +121,9 @@ def pack_resume(run_dir: str | os.PathLike[str], out: str | os.PathLike[str], *,
                 v["shN"], lossy["shN"] = v["shN"].astype(np.float16), "float16"
     files = {f: _write_parts(out, f"resume-{_NAME.sub('_', f)}", a, part_bytes)
              for f, a in arrays.items()}
+    static = run.static_seeds()
+    static_files = _write_parts(out, STATIC_STEM, {"ply": np.frombuffer(
+        static.read_bytes(), np.uint8)}, part_bytes) if static.is_file() else []
     total = sum((out / n).stat().st_size for names in files.values() for n in names)
     dropped: list[str] = []
     if budget is not None and total > budget:  # carry whole groups only
@@ -135,9 +145,10 @@ def pack_resume(run_dir: str | os.PathLike[str], out: str | os.PathLike[str], *,
               or (dropped[0] if dropped else None if index is None
                   else plan.roles[index].frame),
               "arrays": {f: {"kind": need[f], "files": files[f]} for f in need},
-              "lossy": lossy}
+              "lossy": lossy, "static": static_files}
     (out / "resume.json").write_text(json.dumps(record))
-    record["files"] = [n for names in files.values() for n in names] + ["resume.json"]
+    record["files"] = [n for names in files.values() for n in names] + static_files + \
+        ["resume.json"]
     return record
 
 
@@ -176,6 +187,9 @@ def unpack_resume(folder: str | os.PathLike[str], run_dir: str | os.PathLike[str
             ids = arrays.pop("ids")
             write_gaussian_ply(run.ply(frame), {k: v.astype(np.float32)
                                                 for k, v in arrays.items()}, ids)
+    if record.get("static"):
+        run.static_seeds().parent.mkdir(parents=True, exist_ok=True)
+        run.static_seeds().write_bytes(_load_parts(folder, record["static"])["ply"].tobytes())
     return record
 
 

@@ -99,6 +99,41 @@ def test_at_a_group_boundary_nothing_but_the_records_is_carried(capture, tmp_pat
     assert record["next"] is None  # every chosen frame is finished
 
 
+def test_a_later_key_frame_resumed_elsewhere_keeps_the_first_ones_static_seeds(
+        tmp_path, one_thread):
+    """A scene around a subject, every frame a key frame: stopped after frame 0 and carried to a
+    machine whose capture holds frame 1 alone (the lend's next call), frame 1 keeps frame 0's
+    static seeds and comes out as the run continued in place makes it."""
+    import shutil
+
+    from core.synth import SynthConfig, synthesize
+
+    full = tmp_path / "capture"  # 64 pixels: enough for stereo to seed the static scene
+    synthesize(full, SynthConfig(frames=2, views=10, width=64, height=64, seed=4,
+                                 ao_directions=8))
+    data = json.loads((full / "capture.json").read_text())
+    data["masks"] = "subject"
+    (full / "capture.json").write_text(json.dumps(data))
+    later = tmp_path / "later"  # what the next call's capture holds: frame 1 on
+    shutil.copytree(full, later, ignore=shutil.ignore_patterns("000000"))
+    (later / "capture.json").write_text(json.dumps({**data, "frames": ["000001"]}))
+
+    over = {**RUN, "gop": 1}
+    here = tmp_path / "here"
+    with pytest.raises(Stopped):
+        reconstruct(full, here, preset="test", overrides=over, progress=False, frames="0:2",
+                    should_stop=lambda: (here / "frames" / "000000" / "gaussians.ply").exists())
+    record = pack_resume(here, tmp_path / "pack", part_bytes=20_000)
+    assert record["next"] == "000001" and record["capture_from"] == "000001"
+    assert record["arrays"] == {} and len(record["static"]) > 1  # parts of at most 20 kB
+    there = tmp_path / "there"
+    unpack_resume(tmp_path / "pack", there)
+    reconstruct(later, there, preset="test", overrides=over, progress=False, resume=True)
+    reconstruct(full, here, preset="test", overrides=over, progress=False, frames="0:2",
+                resume=True)
+    for path in ("seeds/static.ply", "frames/000001/gaussians.ply"):
+        assert (there / path).read_bytes() == (here / path).read_bytes(), path
+
 def test_over_budget_the_higher_sh_is_halved_and_said(straight, tmp_path):
     run = tmp_path / "run"
     import shutil
