@@ -154,7 +154,7 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
     absolute = confidence is not None and weights.normal_confidence == "absolute"
     if confidence is not None:
         # absolute: the means are over the pixels with a prior (confidence 0: none there);
-        # per_view: over the confidences (config version <= 4)
+        # per_view (the default): over the confidences
         valid = valid * ((confidence > 0).float() if absolute else confidence)
     weight = valid * confidence if absolute else valid
     l1 = ((normal - prior).abs().mean(dim=-1, keepdim=True) * weight).sum() \

@@ -102,8 +102,9 @@ def test_normal_prior_loss_known_values():
     holes = prior.clone()
     holes[:, :5] = 0
     assert normal_prior_loss(pred, holes).item() == pytest.approx(0.2 * 0.5)
-    # A confidence weighs each pixel (the rig's priors), and is absolute: the means stay over
-    # the pixels (pairs) with a prior.
+    # A confidence weighs each pixel (the rig's priors). absolute: the means stay over the
+    # pixels (pairs) with a prior.
+    absolute = LossWeights(normal_confidence="absolute")
     off = torch.tensor([0.0, 1.0, 0.0]).expand(10, 10, 3).clone()
     off[:, :5] = torch.tensor([0.0, 0.0, 1.0])  # the left half agrees with the prior
     sure = torch.ones(10, 10, 1)
@@ -112,20 +113,24 @@ def test_normal_prior_loss_known_values():
     # smoothness: the jump between the halves (2/3 a channel) weighs 1 x 0.25 in each of the
     # 10 rows, out of 90 horizontal pairs; no vertical pair differs
     expected = 0.2 * l1 + 0.05 * (10 * 2 / 3 * 0.25) / 90
-    assert normal_prior_loss(off, prior, confidence=sure).item() == pytest.approx(expected)
+    assert normal_prior_loss(off, prior, weights=absolute, confidence=sure).item() \
+        == pytest.approx(expected)
     # A view all of half confidence pulls half as hard as a sure one.
-    half = normal_prior_loss(off, prior, confidence=torch.full((10, 10, 1), 0.5))
+    half = normal_prior_loss(off, prior, weights=absolute,
+                             confidence=torch.full((10, 10, 1), 0.5))
     assert half.item() == pytest.approx(0.5 * normal_prior_loss(off, prior).item(), rel=1e-6)
-    # per_view (config version <= 4): the weighted means, a pair weighed by the product
-    old = LossWeights(normal_confidence="per_view")
+    # per_view (the default): the weighted means, a pair weighed by the product; a view all
+    # of half confidence pulls as hard as a sure one
+    assert LossWeights().normal_confidence == "per_view"
     l1 = (0.25 * 50 * 2 / 3) / (50 + 0.25 * 50)
     expected = 0.2 * l1 + 0.05 * (10 * 2 / 3 * 0.25) / 45  # a row's pairs: 4 + 0.25 + 4 / 16
-    assert normal_prior_loss(off, prior, weights=old, confidence=sure).item() \
-        == pytest.approx(expected)
-    assert normal_prior_loss(off, prior, weights=old, confidence=torch.full((10, 10, 1), 0.5)
+    assert normal_prior_loss(off, prior, confidence=sure).item() == pytest.approx(expected)
+    assert normal_prior_loss(off, prior, confidence=torch.full((10, 10, 1), 0.5)
                              ).item() == pytest.approx(normal_prior_loss(off, prior).item())
-    sure[:, 5:] = 0.0  # confidence 0: no prior there
-    assert normal_prior_loss(off, prior, confidence=sure).item() == pytest.approx(0.0, abs=1e-7)
+    sure[:, 5:] = 0.0  # confidence 0: no prior there, under either weighing
+    for weights in (absolute, LossWeights()):
+        assert normal_prior_loss(off, prior, weights=weights, confidence=sure).item() \
+            == pytest.approx(0.0, abs=1e-7)
     # Edge-aware: the same jump in N costs less where the prior has an edge there too.
     jump = torch.zeros(10, 10, 3)
     jump[:, 5:] = 1.0
