@@ -77,9 +77,9 @@ def _write_parts(out: Path, stem: str, arrays: dict[str, np.ndarray], part_bytes
                  ) -> list[str]:
     n = next(iter(arrays.values())).shape[0]
     row = max(1, sum(a[:1].nbytes for a in arrays.values()))
-    # The raw size bounds the compressed one; 64 KiB for the zip's headers and deflate's
-    # worst case on incompressible floats.
-    rows = max(1, (part_bytes - 65536) // row)
+    # The raw size bounds the compressed one; up to 64 KiB (half a small part) for the zip's
+    # headers and deflate's worst case on incompressible floats.
+    rows = max(1, (part_bytes - min(65536, part_bytes // 2)) // row)
     names = []
     for k, start in enumerate(range(0, max(n, 1), rows)):
         name = f"{stem}-{k}.npz"
