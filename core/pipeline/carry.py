@@ -22,9 +22,9 @@ again. So `pack_resume` writes:
 
 `unpack_resume` lays those files out as a run directory that `reconstruct(resume=True)`
 continues: the records, the previous frame's PLY (bit for bit the original), the earlier
-frames' tracks (frames/<frame>/tracks.npz), the static seeds, and RUN/carried.json naming the frames finished
-elsewhere, which the run does not redo and `dgs eval` does not score (their renders stayed
-with the run that made them).
+frames' tracks (frames/<frame>/tracks.npz), the static seeds, and RUN/carried.json naming the
+frames finished elsewhere, which the run does not redo and `dgs eval` does not score (their
+renders stayed with the run that made them).
 
 `FrameBudget` ends a run with a time limit at a frame boundary, where it has the least to carry.
 """

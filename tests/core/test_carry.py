@@ -46,13 +46,14 @@ def straight(capture: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
     return run
 
 
-def _stop_after(capture: Path, run: Path, frame: str) -> None:
-    """The run, stopped at the first step after `frame` is finished (as a time limit would)."""
+def _stop_after(capture: Path, run: Path, frame: str, overrides: dict = RUN, **kwargs) -> None:
+    """The run, stopped at the first step after `frame` is finished (as a time limit would);
+    `kwargs` go to `reconstruct`."""
     done: list[str] = []
     with pytest.raises(Stopped):
-        reconstruct(capture, run, preset="test", overrides=RUN, progress=False,
+        reconstruct(capture, run, preset="test", overrides=overrides, progress=False,
                     on_progress=lambda e: e.kind == "frame_done" and done.append(e.frame),
-                    should_stop=lambda: frame in done)
+                    should_stop=lambda: frame in done, **kwargs)
 
 
 def test_a_run_stopped_after_a_frame_resumes_elsewhere_to_the_same_result(
@@ -120,9 +121,7 @@ def test_a_later_key_frame_resumed_elsewhere_keeps_the_first_ones_static_seeds(
 
     over = {**RUN, "gop": 1}
     here = tmp_path / "here"
-    with pytest.raises(Stopped):
-        reconstruct(full, here, preset="test", overrides=over, progress=False, frames="0:2",
-                    should_stop=lambda: (here / "frames" / "000000" / "gaussians.ply").exists())
+    _stop_after(full, here, "000000", over, frames="0:2")
     record = pack_resume(here, tmp_path / "pack", part_bytes=100_000)
     assert record["next"] == "000001" and record["capture_from"] == "000001"
     assert record["arrays"] == {} and record["static"] == ["resume--static-0.npz"]
@@ -133,6 +132,7 @@ def test_a_later_key_frame_resumed_elsewhere_keeps_the_first_ones_static_seeds(
                 resume=True)
     for path in ("seeds/static.ply", "frames/000001/gaussians.ply"):
         assert (there / path).read_bytes() == (here / path).read_bytes(), path
+
 
 def test_over_budget_the_higher_sh_is_halved_and_said(straight, tmp_path):
     run = tmp_path / "run"
