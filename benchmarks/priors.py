@@ -12,9 +12,11 @@ distance):
 - **none**: the capture without, `rig_priors` off (no prior term).
 
     python benchmarks/priors.py [--sizes test:12:64 fast:16:128] [--seeds 0] [--threads 1]
-                                [--work DIR] [--runs capture rig none]
+                                [--work DIR] [--runs capture rig none] [--set KEY=VALUE ...]
 
-With `--work`, runs an earlier call finished there are read, not run again.
+With `--work`, runs an earlier call finished there are read, not run again. `--set` lays a
+setting on every row (`train.losses.normal_confidence=by_source`); the runs' folders are named
+by the settings, so one `--work` keeps runs with and without them apart.
 
 Each size is PRESET:VIEWS:PIXELS. Prints the table of docs/benchmarks.md.
 """
@@ -33,6 +35,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from benchmarks.panoptic import lay_setting  # noqa: E402
+
 RUNS = {"capture's priors": (True, {}), "rig's priors": (False, {}),
         "none": (False, {"rig_priors": False})}
 
@@ -49,14 +54,19 @@ def dgs(*args: str, threads: int) -> None:
 
 
 def one(work: Path, preset: str, views: int, pixels: int, seed: int, name: str,
-        threads: int) -> dict:
+        threads: int, settings: tuple[str, ...] = ()) -> dict:
     priors, config = RUNS[name]
+    config = json.loads(json.dumps(config))
+    for setting in settings:
+        lay_setting(config, setting)
     capture = work / f"{preset}-{views}-{pixels}-{seed}-{'priors' if priors else 'bare'}"
     if not capture.exists():
         dgs("synth", str(capture), "--frames", "1", "--views", str(views), "--size",
             str(pixels), str(pixels), "--seed", str(seed), *(["--priors"] if priors else []),
             threads=threads)
-    run = work / f"run-{preset}-{views}-{pixels}-{seed}-{short(name)}"
+    tag = "".join(f"-{k.rpartition('.')[2]}={v}"  # -normal_confidence=by_source
+                  for k, _, v in (s.partition("=") for s in settings))
+    run = work / f"run-{preset}-{views}-{pixels}-{seed}-{short(name)}{tag}"
     cfg = work / f"{run.name}.json"
     cfg.write_text(json.dumps(config))
     timing = work / f"{run.name}.seconds"
@@ -84,6 +94,8 @@ def main() -> None:
     p.add_argument("--work", type=Path, default=None)
     p.add_argument("--runs", nargs="+", choices=[short(n) for n in RUNS],
                    default=None, help="only these rows (default: all three)")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a setting laid on every row (a dotted key of the run's config)")
     args = p.parse_args()
     work = args.work or Path(tempfile.mkdtemp(prefix="dgs-priors-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -96,8 +108,8 @@ def main() -> None:
         for name in RUNS:
             if args.runs and short(name) not in args.runs:
                 continue
-            rs = [one(work, preset, int(views), int(pixels), s, name, args.threads)
-                  for s in args.seeds]
+            rs = [one(work, preset, int(views), int(pixels), s, name, args.threads,
+                      tuple(args.set)) for s in args.seeds]
             mean = {k: statistics.mean(r[k] for r in rs) for k in ("psnr", "cos", "deg",
                                                                     "seconds")}
             chamfers = [r["chamfer"] for r in rs if r["chamfer"] is not None]

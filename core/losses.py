@@ -134,16 +134,20 @@ def _dy(t: Tensor) -> Tensor:
 
 def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
                       weights: LossWeights = LossWeights(),
-                      confidence: Tensor | None = None) -> Tensor:
+                      confidence: Tensor | None = None,
+                      measured: Tensor | None = None) -> Tensor:
     """0.2 L1(N, N_prior) + 0.05 mean(|grad N| exp(-|grad N_prior|)) on (H, W, 3) maps.
 
     Only pixels with a prior (non-zero vector) and inside `mask` (H, W, 1) count for the L1; the
     smoothness uses forward differences with both pixels valid, |.| the channel mean of |diff|.
-    `confidence` (H, W, 1) in 0..1 weighs each pixel (a pair: the lesser of its two) as
-    `weights.normal_confidence` says: `absolute`, both means stay over the pixels (pairs) with a
-    prior, so a view whose priors all have confidence 0.5 pulls half as hard as one whose priors
-    are sure (the rig's priors: planes fitted to fused stereo depth up to 1, the visual hull's
-    0.5); `per_view`, the means are over the weights (pairs: the product of the two).
+    `confidence` (H, W, 1) in 0..1 weighs each pixel as `weights.normal_confidence` says:
+    `per_view`, the means are over the confidences (a pair: weighed and counted by the product
+    of its two), so a confidence ranks a view's pixels against each other; `absolute`, the means
+    stay over the pixels (pairs) with a prior (a pair as sure as the less sure of its two), so a
+    view whose priors all have confidence 0.5 pulls half as hard as one whose priors are sure;
+    `by_source`, `per_view` where `measured` (H, W, 1) is 1 (stereo's plane fits: a ramp on the
+    fit's residual) and `absolute` where it is 0 (the visual hull's guess; a pair with one such
+    pixel too). None `measured`: every confidence is a measurement's.
     """
     if normal.shape != prior.shape or normal.shape[-1] != 3:
         raise ValueError(f"normal, prior: expected equal (H, W, 3) shapes, got "
@@ -151,24 +155,33 @@ def normal_prior_loss(normal: Tensor, prior: Tensor, mask: Tensor | None = None,
     valid = (prior.abs().sum(dim=-1, keepdim=True) > 0).float()
     if mask is not None:
         valid = valid * (mask > 0.5).float()
-    absolute = confidence is not None and weights.normal_confidence == "absolute"
+    # Per pixel: `weight` pulls it, `count` is what it adds to the mean's denominator;
+    # `absolute` 1 where its confidence is counted as a pixel, 0 where as its value.
+    weight = count = valid
+    absolute = None
     if confidence is not None:
-        # absolute: the means are over the pixels with a prior (confidence 0: none there);
-        # per_view (the default): over the confidences
-        valid = valid * ((confidence > 0).float() if absolute else confidence)
-    weight = valid * confidence if absolute else valid
+        weight = valid * confidence
+        mode = weights.normal_confidence
+        if mode == "absolute":
+            absolute = torch.ones_like(weight)
+        elif mode == "by_source" and measured is not None:
+            absolute = 1.0 - (measured > 0.5).float()
+        count = weight if absolute is None else \
+            absolute * (weight > 0).float() + (1.0 - absolute) * weight
     l1 = ((normal - prior).abs().mean(dim=-1, keepdim=True) * weight).sum() \
-        / valid.sum().clamp_min(1.0)
+        / count.sum().clamp_min(1.0)
     smooth = normal.new_zeros(())
     for d, a, b in ((_dx, (slice(None), slice(1, None)), (slice(None), slice(None, -1))),
                     (_dy, (slice(1, None),), (slice(None, -1),))):
-        # pairs whose both pixels have a prior; absolute: each as sure as the less sure of its
-        # two, over the pairs; per_view: the product of the two, over the products
         g = d(normal).abs().mean(dim=-1, keepdim=True)
         edge = torch.exp(-d(prior).abs().mean(dim=-1, keepdim=True))
-        both = valid[a] * valid[b]
-        pair = torch.minimum(weight[a], weight[b]) if absolute else both
-        smooth = smooth + ((g * edge) * pair).sum() / both.sum().clamp_min(1)
+        pull = part = weight[a] * weight[b]  # per view: the product, weighed and counted
+        if absolute is not None:
+            # a pair with an absolute pixel: as sure as its less sure pixel, counted as one
+            either = torch.maximum(absolute[a], absolute[b])
+            pull = either * torch.minimum(weight[a], weight[b]) + (1.0 - either) * pull
+            part = either * (part > 0).float() + (1.0 - either) * part
+        smooth = smooth + ((g * edge) * pull).sum() / part.sum().clamp_min(1)
     return weights.normal_l1 * l1 + weights.normal_smooth * smooth
 
 

@@ -116,14 +116,15 @@ def load_estimator(path: str | os.PathLike[str] | None,
 def fill_priors(views: Sequence, estimator: NormalEstimator | None, rig=None) -> str:
     """Give every `core.training.View` without a prior one from `estimator` (rotated to world
     space when it estimates camera-space normals), else from `rig` (a `core.rig.RigGeometry`
-    of these views: normals and confidences from their fused depth), on the device of the
+    of these views: normals, confidences and where they were measured), on the device of the
     view's image (both run on the CPU). Returns where the priors came from: 'capture',
     'estimator', 'rig', 'mixed' or 'off'."""
     have = sum(v.normal is not None for v in views)
     if estimator is None and rig is not None and have == 0 and views:
-        for v, (n, c) in zip(views, rig.priors()):
+        for v, (n, c, measured) in zip(views, rig.priors()):
             v.normal = torch.from_numpy(n).to(v.image.device)
             v.normal_weight = torch.from_numpy(c).to(v.image.device)
+            v.normal_measured = torch.from_numpy(measured).to(v.image.device)
         return "rig"
     if estimator is None or have == len(views):
         return "capture" if have == len(views) and views else ("mixed" if have else "off")

@@ -72,11 +72,11 @@ class RigGeometry:
                 self.cameras, self.images, self.depth_masks, points, self.config))
         return self._fused
 
-    def priors(self) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Per view a world-space normal prior (H, W, 3) float32 (zero: none) and its confidence
-        (H, W, 1) float32 in 0..1, at the view's resolution: the planes fitted to the fused
-        depth, and where every view has a matte, the visual hull's normals where they found
-        none (`core.rig.hull`)."""
+    def priors(self) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """Per view a world-space normal prior (H, W, 3) float32 (zero: none), its confidence
+        (H, W, 1) float32 in 0..1 and where it was measured (H, W, 1) float32 (1: a plane
+        fitted to the fused depth; 0: elsewhere, where every view has a matte the visual
+        hull's normals fill what stereo left, `core.rig.hull`), at the view's resolution."""
         fused = self.fused()
 
         def work():
@@ -85,10 +85,12 @@ class RigGeometry:
                 n, c = depth_normals(small, depth, self.config.normal_radius)
                 out.append(resize_prior(n, c, cam.width, cam.height))
             hull = self._hull()
+            measured = [c > 0 for _, c in out]
             if hull is not None:
                 out = [(np.where(c[..., None] > 0, n, hn), np.where(c > 0, c, hc))
                        for (n, c), (hn, hc) in zip(out, hull)]
-            return [(n.astype(np.float32), c[..., None].astype(np.float32)) for n, c in out]
+            return [(n.astype(np.float32), c[..., None].astype(np.float32),
+                     m[..., None].astype(np.float32)) for (n, c), m in zip(out, measured)]
         return self._timed("priors", work)
 
     def _hull(self) -> list[tuple[np.ndarray, np.ndarray]] | None:

@@ -37,7 +37,7 @@ def image_terms(r, view, camera, target: Tensor, plan: StagePlan, weights: LossW
                                              weights)}
     if plan.normal_prior and view.normal is not None:
         terms["normal"] = normal_prior_loss(r.normal, view.normal, view.mask, weights,
-                                            view.normal_weight)
+                                            view.normal_weight, view.normal_measured)
     if mask_term and plan.geometry_branch and not plan.tie_opacity and view.mask is not None \
             and weights.geometry_mask > 0:
         terms["mask"] = geometry_mask_loss(r.alpha_g, view.mask, weights)

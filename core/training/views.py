@@ -27,6 +27,9 @@ class View:
     """(H, W, 1) where the subject is, in a picture reconstructed whole (masks `subject`)."""
     normal_weight: Tensor | None = None
     """(H, W, 1) the normal prior's confidence in 0..1 (None: 1 wherever there is a prior)."""
+    normal_measured: Tensor | None = None
+    """(H, W, 1) 1 where the confidence is a measurement's (stereo's plane fits), 0 where a
+    guess's (the visual hull's); None: all measured (`LossWeights.normal_confidence`)."""
 
     @classmethod
     def from_sample(cls, sample, subject: bool = False) -> View:
@@ -44,7 +47,8 @@ class View:
     def to(self, device: torch.device | str) -> View:
         """This view with its tensors on `device` (itself when they are there already): a
         fitter moves each view once, not every step."""
-        fields = (self.image, self.mask, self.normal, self.subject, self.normal_weight)
+        fields = (self.image, self.mask, self.normal, self.subject, self.normal_weight,
+                  self.normal_measured)
         moved = [None if t is None else t.to(device) for t in fields]
         if all(a is b for a, b in zip(moved, fields)):
             return self

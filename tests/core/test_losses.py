@@ -144,6 +144,92 @@ def test_normal_prior_loss_known_values():
     assert torch.isfinite(pred.grad).all()
 
 
+def _prior_loss_by_hand(normal, prior, confidence, measured, mode):
+    """The prior term written pixel by pixel and pair by pair: a pixel measured under
+    `by_source` (or any under `per_view`) is weighed and counted by its confidence, any other
+    weighed by it and counted as one; a pair of two per-view pixels by the product of theirs,
+    any other pair weighed by the lesser and counted as one."""
+    h, w = normal.shape[:2]
+    ok = [[bool(prior[i, j].abs().sum() > 0) and float(confidence[i, j]) > 0 for j in range(w)]
+          for i in range(h)]
+
+    def counted_per_view(i, j):
+        return mode == "per_view" or (mode == "by_source" and float(measured[i, j]) > 0.5)
+
+    num, den = 0.0, 0.0
+    for i in range(h):
+        for j in range(w):
+            if ok[i][j]:
+                c = confidence[i, j, 0]
+                num = num + (normal[i, j] - prior[i, j]).abs().mean() * c
+                den += float(c) if counted_per_view(i, j) else 1.0
+    l1 = num / max(den, 1.0)
+    smooth = 0.0
+    for di, dj in ((0, 1), (1, 0)):
+        num, den = 0.0, 0.0
+        for i in range(h - di):
+            for j in range(w - dj):
+                p, q = (i, j), (i + di, j + dj)
+                if not (ok[p[0]][p[1]] and ok[q[0]][q[1]]):
+                    continue
+                g = (normal[q] - normal[p]).abs().mean()
+                edge = torch.exp(-(prior[q] - prior[p]).abs().mean())
+                cp, cq = float(confidence[p]), float(confidence[q])
+                if counted_per_view(*p) and counted_per_view(*q):
+                    num, den = num + g * edge * cp * cq, den + cp * cq
+                else:
+                    num, den = num + g * edge * min(cp, cq), den + 1.0
+        smooth = smooth + num / max(den, 1.0)
+    return 0.2 * l1 + 0.05 * smooth
+
+
+@pytest.mark.parametrize("mode", ["per_view", "absolute", "by_source"])
+def test_confidence_weighings_against_a_loop(mode):
+    """Each weighing of the prior's confidence, forward and backward, against the same term
+    written with loops (random maps with holes, zero confidences and both sources)."""
+    g = torch.Generator().manual_seed(3)
+    h, w = 7, 6
+    prior = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g, dtype=torch.float64),
+                                          dim=-1)
+    prior[0, :3] = 0.0  # no prior
+    confidence = torch.rand(h, w, 1, generator=g, dtype=torch.float64)
+    confidence[4, 2:] = 0.0
+    measured = (torch.rand(h, w, 1, generator=g) > 0.4).double()
+    base = torch.randn(h, w, 3, generator=g, dtype=torch.float64)
+    a = base.clone().requires_grad_(True)
+    loss = normal_prior_loss(a, prior, weights=LossWeights(normal_confidence=mode),
+                             confidence=confidence, measured=measured)
+    loss.backward()
+    b = base.clone().requires_grad_(True)
+    ref = _prior_loss_by_hand(b, prior, confidence, measured, mode)
+    ref.backward()
+    torch.testing.assert_close(loss, ref)
+    torch.testing.assert_close(a.grad, b.grad)
+
+
+def test_by_source_is_each_weighing_where_its_source_is_alone():
+    """All measured (a capture with no mattes, so no hull: the Panoptic twin, the fox), the
+    weighing by source is `per_view` bit for bit; none measured (the hull's alone), `absolute`;
+    without a source map, `per_view`."""
+    g = torch.Generator().manual_seed(5)
+    prior = torch.nn.functional.normalize(torch.randn(12, 9, 3, generator=g), dim=-1)
+    confidence = torch.rand(12, 9, 1, generator=g)
+    confidence[3:5] = 0.0
+    by_source = LossWeights(normal_confidence="by_source")
+    pred = torch.randn(12, 9, 3, generator=g)
+    for measured, mode in ((torch.ones(12, 9, 1), "per_view"), (None, "per_view"),
+                           (torch.zeros(12, 9, 1), "absolute")):
+        a = pred.clone().requires_grad_(True)
+        b = pred.clone().requires_grad_(True)
+        got = normal_prior_loss(a, prior, weights=by_source, confidence=confidence,
+                                measured=measured)
+        want = normal_prior_loss(b, prior, weights=LossWeights(normal_confidence=mode),
+                                 confidence=confidence)
+        got.backward()
+        want.backward()
+        assert torch.equal(got, want) and torch.equal(a.grad, b.grad)
+
+
 def rotation(axis: list[float], angle: float) -> torch.Tensor:
     a = torch.nn.functional.normalize(torch.tensor(axis, dtype=torch.float64), dim=0)
     k = torch.tensor([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]], dtype=torch.float64)

@@ -110,8 +110,10 @@ def test_normal_priors_match_the_true_normals(roof):
     cams, renders = roof
     rig = RigGeometry(cams, [r[0] for r in renders], [None] * len(cams))
     priors = rig.priors()
-    for (normal, conf), (_, _, truth) in zip(priors, renders):
+    for (normal, conf, measured), (_, _, truth) in zip(priors, renders):
         assert normal.shape == (SIZE, SIZE, 3) and conf.shape == (SIZE, SIZE, 1)
+        # no mattes, so no hull: every prior is stereo's
+        assert np.array_equal(measured > 0, conf > 0)
         has = conf[..., 0] > 0
         assert has.mean() > 0.4
         cos = (normal * truth).sum(-1)

@@ -17,6 +17,7 @@ from core.data.importers.colmap import export_colmap
 from core.data.importers.transforms import export_transforms
 from core.data.points import PointCloud, read_colmap_points, read_points_ply, write_points_ply
 from core.config import InitConfig, train_config
+from core.rig.hull import HULL_CONFIDENCE
 from core.seeding import encloses, look_at_center, seed_points
 from core.synth import SynthConfig, synthesize
 from core.training import Trainer
@@ -249,14 +250,22 @@ def test_rig_priors_fill_views_without_priors(textured: Path):
     assert fill_priors(trainer.views, None, trainer.rig) == "rig"
     gt = [np.load(textured / "gt" / "normals" / "000000" / f"{v.camera.id}.npy")
           for v in trainer.views]
-    cos, cover = [], []
+    cos, cover, hull = [], [], []
     for v, truth in zip(trainer.views, gt):
         n, w = v.normal.numpy(), v.normal_weight.numpy()[..., 0]
         on = (np.linalg.norm(truth, axis=-1) > 0.5) & (w > 0)
         cover.append(on.sum() / (np.linalg.norm(truth, axis=-1) > 0.5).sum())
         cos.append(float((n * truth).sum(-1)[on].mean()))
         assert ((w > 0) <= (np.linalg.norm(n, axis=-1) > 0.5)).all()  # weight only on priors
+        # Each prior says its source: stereo's measured, the hull's (the figure's mattes) not,
+        # at the hull's confidence.
+        measured = v.normal_measured.numpy()[..., 0]
+        assert set(np.unique(measured)) <= {0.0, 1.0} and (measured <= (w > 0)).all()
+        guessed = (measured == 0) & (w > 0)
+        assert np.allclose(w[guessed], HULL_CONFIDENCE)
+        hull.append(guessed.sum() / (w > 0).sum())
     assert np.mean(cover) > 0.8 and np.mean(cos) > 0.8, (np.mean(cover), np.mean(cos))
+    assert 0 < np.mean(hull) < 1, np.mean(hull)  # both sources in use
     assert "priors" in trainer.rig.seconds
     # Off (no rig) the views keep no prior.
     fresh = Trainer.from_capture(cap, "000000", cfg)
