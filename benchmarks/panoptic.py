@@ -17,7 +17,7 @@ Steps, each written under OUT as it ends (a run cut short keeps what it measured
 5. the relit MP4 of the first test camera over the frames under an HDRI (`--hdri`);
 6. with `--plain`, the honest baseline: a plain 3DGS (`train.method` 3dgs) trained on every
    frame independently (groups of 1) at the same steps a frame, cap and seeds, into OUT/plain,
-   scored the same way.
+   scored the same way; `--plain-only` runs it alone (the sequence's rows made elsewhere).
 
 Each key frame's seeds (dense points fused from the views' stereo depth where the capture has
 no point cloud, `core.rig`) and normal priors are timed apart: the table gives their share of
@@ -36,7 +36,7 @@ lays such a pack out as OUT/run and continues it; the earlier call's rows come f
     python benchmarks/panoptic.py [SRC] --out DIR --pack --frames 0:50   (a slice to carry)
     python benchmarks/panoptic.py [SRC] --out DIR [--frames 0:10] [--downscale 2]
         [--preset fast] [--steps N] [--gop 10] [--max-gaussians N] [--mesh-voxels 256]
-        [--serve N] [--serve-frames 0:12] [--hdri EXR] [--plain]
+        [--serve N] [--serve-frames 0:12] [--hdri EXR] [--plain | --plain-only]
         [--deadline S] [--reserve S] [--pack-to DIR] [--resume-from DIR]
         [--device auto] [--threads N] [--set KEY=VALUE ...]
 """
@@ -398,6 +398,8 @@ def arguments(argv: list[str] | None):
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--plain", action="store_true",
                     help="also a plain 3DGS on every frame independently (OUT/plain)")
+    ap.add_argument("--plain-only", action="store_true",
+                    help="only the plain 3DGS on every frame (OUT/plain), no sequence")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="a setting of RUN/config.json's config, dotted, VALUE JSON (e.g. "
                          "train.near=0.01; repeat for more)")
@@ -430,6 +432,14 @@ def main(argv: list[str] | None = None) -> int:
         (args.out / "result.json").write_text(json.dumps(result, indent=2))
 
     capture = prepare(args.src, args.out, args.frames)
+    if args.plain_only:
+        result["plain"] = plain = plain_baseline(capture, args.out / "plain", args)
+        save()
+        print(f"plain 3DGS, every frame independently: PSNR {plain['psnr_full']:.2f}, SSIM "
+              f"{plain['ssim']:.4f}, LPIPS {_fmt(plain.get('lpips'), '.3f')}; by frame "
+              + ", ".join(f"{f['psnr']:.2f}" for f in plain["per_frame"])
+              + f"; {plain['seconds']:.1f} s and {plain['gaussians']:.0f} Gaussians a frame")
+        return 0
     run = args.out / "run"
     earlier = resume_files(args, run)
     deadline = None if args.deadline is None else started + args.deadline
