@@ -202,13 +202,15 @@ class LossWeights:
     """L1 between rendered normals and the prior."""
     normal_smooth: Weight = 0.05
     """Edge-aware smoothness of rendered normals."""
-    normal_confidence: Literal["absolute", "by_source", "per_view"] = "per_view"
+    normal_confidence: Literal["absolute", "by_source", "per_view"] = "by_source"
     """How a prior's confidence (the rig's priors, `core.rig`) weighs it: `per_view`, it ranks
     a view's pixels against each other (a view whose priors are all uncertain pulls as hard as
     a sure one); `absolute`, a pixel of confidence c pulls c times as hard as a sure one (the
-    visual hull's 0.5 half as hard as the capture's normals/: 0.3 dB better on the synthetic
-    figure, 0.3 dB worse on the Panoptic twin, three seeds each; docs/benchmarks.md);
-    `by_source`, stereo's confidences per view and the hull's absolutely."""
+    visual hull's 0.5 half as hard as the capture's normals/); `by_source`, stereo's
+    confidences (a ramp on the plane fit's residual) per view and the hull's (a guess every
+    view shares) absolutely: per view's on captures without mattes (the Panoptic twin, where
+    absolute lost 0.3 dB), absolute's on the synthetic figure (+0.37 dB over per view, three
+    seeds) and +0.18 dB on the masked fox (one seed; docs/benchmarks.md)."""
     consistency: Weight = 0.01
     """Depth-normal consistency."""
     visibility_l1: Weight = 0.1

@@ -119,9 +119,9 @@ def test_normal_prior_loss_known_values():
     half = normal_prior_loss(off, prior, weights=absolute,
                              confidence=torch.full((10, 10, 1), 0.5))
     assert half.item() == pytest.approx(0.5 * normal_prior_loss(off, prior).item(), rel=1e-6)
-    # per_view (the default): the weighted means, a pair weighed by the product; a view all
-    # of half confidence pulls as hard as a sure one
-    assert LossWeights().normal_confidence == "per_view"
+    # per_view: the weighted means, a pair weighed by the product; a view all of half
+    # confidence pulls as hard as a sure one
+    assert LossWeights().normal_confidence == "by_source"  # without a source map: per_view
     l1 = (0.25 * 50 * 2 / 3) / (50 + 0.25 * 50)
     expected = 0.2 * l1 + 0.05 * (10 * 2 / 3 * 0.25) / 45  # a row's pairs: 4 + 0.25 + 4 / 16
     assert normal_prior_loss(off, prior, confidence=sure).item() == pytest.approx(expected)
