@@ -27,6 +27,7 @@ import argparse
 import json
 import os
 import shutil
+import signal
 import statistics
 import subprocess
 import sys
@@ -48,9 +49,19 @@ def short(name: str) -> str:
 
 
 def dgs(*args: str, threads: int) -> None:
+    """`dgs ARGS` in a child process, stopped with this one (a killed benchmark leaves no run
+    training: `main` turns SIGTERM into an exit)."""
     env = {**os.environ, "OMP_NUM_THREADS": str(threads)}
-    subprocess.run([sys.executable, "-m", "core.cli", *args], cwd=ROOT, env=env, check=True,
-                   stdout=subprocess.DEVNULL)
+    cmd = [sys.executable, "-m", "core.cli", *args]
+    child = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+    try:
+        code = child.wait()
+    finally:
+        if child.poll() is None:
+            child.terminate()
+            child.wait()
+    if code:
+        raise subprocess.CalledProcessError(code, cmd)
 
 
 def one(work: Path, preset: str, views: int, pixels: int, seed: int, name: str,
@@ -97,6 +108,7 @@ def main() -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting laid on every row (a dotted key of the run's config)")
     args = p.parse_args()
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(128 + signal.SIGTERM))
     work = args.work or Path(tempfile.mkdtemp(prefix="dgs-priors-"))
     work.mkdir(parents=True, exist_ok=True)
     print(f"load before: {os.getloadavg()}; work {work}")
