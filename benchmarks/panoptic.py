@@ -304,6 +304,14 @@ def _fmt(v, spec: str) -> str:
     return "-" if v is None else (v if isinstance(v, str) else format(v, spec))
 
 
+def plain_lines(plain: dict) -> tuple[str, str]:
+    """The per-frame plain 3DGS (`plain_baseline`): its row of the scores' table, and its
+    seconds and Gaussians a frame."""
+    return (f"| plain 3DGS, every frame independently | {plain['psnr_full']:.2f} | "
+            f"{plain['ssim']:.4f} | {_fmt(plain.get('lpips'), '.3f')} |",
+            f"plain 3DGS: {plain['seconds']:.1f} s and {plain['gaussians']:.0f} Gaussians a frame")
+
+
 def report(rows: list[dict], ev: dict, stream: dict | None, args,
            plain: dict | None = None) -> None:
     """The table: per frame seconds (training, extras), peak GPU memory and the scores; then
@@ -332,8 +340,7 @@ def report(rows: list[dict], ev: dict, stream: dict | None, args,
           f"{_fmt(mean([r['ssim'] for r in rows]), '.4f')} | "
           f"{_fmt(mean([r['lpips'] for r in rows if r.get('lpips') is not None]), '.3f')} |")
     if plain:
-        print(f"| plain 3DGS, every frame independently | {plain['psnr_full']:.2f} | "
-              f"{plain['ssim']:.4f} | {_fmt(plain.get('lpips'), '.3f')} |")
+        print(plain_lines(plain)[0])
     bake = [r["ao_bake_seconds"] / r["seconds"] for r in key if r["ao_bake_seconds"]]
     meshes = [r["mesh_seconds"] for r in rows if r["mesh_seconds"]]
     for name, group in (("key frame", key), ("tracked frame", tracked)):
@@ -347,8 +354,7 @@ def report(rows: list[dict], ev: dict, stream: dict | None, args,
           f", priors {_fmt(mean(priors), '.1%')}, subject mesh {_fmt(mean(meshes), '.2f')} s "
           "a frame")
     if plain:
-        print(f"plain 3DGS: {plain['seconds']:.1f} s and {plain['gaussians']:.0f} Gaussians a "
-              "frame")
+        print(plain_lines(plain)[1])
     if stream:
         print(f"subject stream: {stream['bytes_per_frame'] / 1e6:.3f} MB a frame "
               f"({stream['gaussians']:.0f} Gaussians, {stream['share']:.1%} of the scene's), "
@@ -435,10 +441,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.plain_only:
         result["plain"] = plain = plain_baseline(capture, args.out / "plain", args)
         save()
-        print(f"plain 3DGS, every frame independently: PSNR {plain['psnr_full']:.2f}, SSIM "
-              f"{plain['ssim']:.4f}, LPIPS {_fmt(plain.get('lpips'), '.3f')}; by frame "
-              + ", ".join(f"{f['psnr']:.2f}" for f in plain["per_frame"])
-              + f"; {plain['seconds']:.1f} s and {plain['gaussians']:.0f} Gaussians a frame")
+        row, timing = plain_lines(plain)
+        print(f"{row}\nby frame: " + ", ".join(f"{f['psnr']:.2f}" for f in plain["per_frame"])
+              + f"\n{timing}")
         return 0
     run = args.out / "run"
     earlier = resume_files(args, run)

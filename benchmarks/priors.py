@@ -24,6 +24,7 @@ Each size is PRESET:VIEWS:PIXELS. Prints the table of docs/benchmarks.md.
 from __future__ import annotations
 
 import argparse
+import copy
 import json
 import os
 import shutil
@@ -67,7 +68,7 @@ def dgs(*args: str, threads: int) -> None:
 def one(work: Path, preset: str, views: int, pixels: int, seed: int, name: str,
         threads: int, settings: tuple[str, ...] = ()) -> dict:
     priors, config = RUNS[name]
-    config = json.loads(json.dumps(config))
+    config = copy.deepcopy(config)
     for setting in settings:
         lay_setting(config, setting)
     capture = work / f"{preset}-{views}-{pixels}-{seed}-{'priors' if priors else 'bare'}"

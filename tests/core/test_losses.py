@@ -217,8 +217,11 @@ def test_by_source_is_each_weighing_where_its_source_is_alone():
     confidence[3:5] = 0.0
     by_source = LossWeights(normal_confidence="by_source")
     pred = torch.randn(12, 9, 3, generator=g)
-    for measured, mode in ((torch.ones(12, 9, 1), "per_view"), (None, "per_view"),
-                           (torch.zeros(12, 9, 1), "absolute")):
+    cases = [(torch.ones(12, 9, 1), "per_view"),
+             ((confidence > 0).float(), "per_view"),  # the rig's map of a capture without mattes
+             (None, "per_view"),
+             (torch.zeros(12, 9, 1), "absolute")]
+    for measured, mode in cases:
         a = pred.clone().requires_grad_(True)
         b = pred.clone().requires_grad_(True)
         got = normal_prior_loss(a, prior, weights=by_source, confidence=confidence,
