@@ -173,6 +173,7 @@ def main() -> None:
     import torch
 
     from core.config import train_config
+    from core.config.views import select_views
     from core.data import load_capture
     from core.training import Trainer
     from core.training.views import frame_views
@@ -180,7 +181,8 @@ def main() -> None:
     if args.threads:
         torch.set_num_threads(args.threads)
     capture = load_capture(args.capture)
-    views = frame_views(capture, next(iter(capture.frames)), args.downscale)
+    views = frame_views(capture, next(iter(capture.frames)),
+                        select_views(capture, downscale=args.downscale))
     if "render" in args.parts:
         row = render_part(views, maths, reference, seed=args.seed)
         print(f"\nrenders: {row['gaussians']} Gaussians, {row['size']} px; largest absolute "

@@ -77,13 +77,15 @@ def profile(step, steps: int, device: torch.device) -> dict:
             "sync_lines": {k: v / steps for k, v in counter.by_line.most_common(12)}}
 
 
-def build(tmp: Path, device: str):
-    """A key-frame trainer at its stage 3 and a tracked frame's fitter after it."""
+def build(tmp: Path, device: str, key_steps: int = 240):
+    """A key-frame trainer at its stage 3 and a tracked frame's fitter after it (the key frame
+    trained `key_steps` first: a model to track)."""
     from core.config import SequenceConfig, train_config
     from core.data import load_capture
     from core.sequence import FrameTracker
     from core.sequence.tracks import subject_rows
     from core.synth import SynthConfig, synthesize
+    from core.config.views import select_views
     from core.training import Trainer, frame_views
 
     synthesize(tmp / "capture", SynthConfig(frames=2, views=8, width=64, height=64, seed=3,
@@ -91,13 +93,14 @@ def build(tmp: Path, device: str):
     capture = load_capture(tmp / "capture")
     base = train_config("fast")
     cfg = replace(base, device=device, masks="subject", bake_ao=False, init_points=2000,
-                  schedule=base.schedule.scaled(240))
-    key = Trainer(frame_views(capture, "000000", 1.0, "auto", cfg.masks), cfg)
-    key.train()  # 240 steps: a model to track
+                  schedule=base.schedule.scaled(key_steps))
+    selected = select_views(capture, "auto", 1.0, cfg.masks)
+    key = Trainer(frame_views(capture, "000000", selected), cfg)
+    key.train()
     key.step = cfg.schedule.stage3_start + 1  # profile stage-3 steps (every term)
     seq = SequenceConfig()
-    views = frame_views(capture, "000001", 1.0, "auto", cfg.masks)
-    before = frame_views(capture, "000000", 1.0, "auto", cfg.masks)
+    views = frame_views(capture, "000001", selected)
+    before = frame_views(capture, "000000", selected)
     model = key.model
     moving = subject_rows(model.means.detach(), [views, before], seq)
     ids = torch.arange(len(model))
@@ -114,6 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--steps", type=int, default=20)
+    ap.add_argument("--key-steps", type=int, default=240,
+                    help="steps the key frame trains before its steps are counted")
     ap.add_argument("--label", default="this tree")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
@@ -123,7 +128,7 @@ def main(argv: list[str] | None = None) -> int:
     device = resolve_device(args.device)
     rows = {}
     with tempfile.TemporaryDirectory() as tmp:
-        key, tracker, setup = build(Path(tmp), str(device))
+        key, tracker, setup = build(Path(tmp), str(device), args.key_steps)
         rows["key frame (stage 3)"] = profile(key.train_step, args.steps, device)
         rows["tracked: deform"] = profile(tracker.train_step, args.steps, device)
         tracker.step = tracker.deform_steps  # the refine stage starts at the next step

@@ -176,12 +176,14 @@ class GaussianModel:
     # -- optimizer -------------------------------------------------------------------------
     def make_optimizer(self, rates: LearningRates = LearningRates(),
                        extent: float = 1.0) -> torch.optim.Adam:
-        """One Adam with one named group per parameter (eps 1e-15 as in 3DGS)."""
+        """One Adam with one named group per parameter (eps 1e-15 as in 3DGS), fused: one
+        kernel a group where torch's default runs about ten a group (docs/benchmarks.md, "A
+        step's host syncs"; the same updates to float rounding)."""
         if not extent > 0:
             raise ValueError(f"extent: expected a positive scene extent, got {extent}")
         groups = [{"params": [p], "lr": rates.for_param(name, extent), "name": name}
                   for name, p in self.params.items()]
-        return torch.optim.Adam(groups, lr=0.0, eps=1e-15)
+        return torch.optim.Adam(groups, lr=0.0, eps=1e-15, fused=True)
 
     def _edit(self, optimizer: torch.optim.Optimizer | None,
               edit: Callable[[str, Tensor, bool], Tensor]) -> None:

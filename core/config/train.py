@@ -210,7 +210,7 @@ class LossWeights:
     confidences (a ramp on the plane fit's residual) per view and the hull's (a guess every
     view shares) absolutely: per view's on captures without mattes (the Panoptic twin, where
     absolute lost 0.3 dB), absolute's on the synthetic figure (+0.37 dB over per view, three
-    seeds) and +0.18 dB on the masked fox (one seed; docs/benchmarks.md)."""
+    seeds), level with per view on the masked fox (three seeds; docs/benchmarks.md)."""
     consistency: Weight = 0.01
     """Depth-normal consistency."""
     visibility_l1: Weight = 0.1

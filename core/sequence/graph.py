@@ -16,14 +16,13 @@ manipulation") over a frame's Gaussians, as docs/design.md section 5 fixes it:
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cache
 
 import torch
 from torch import Tensor
 
-from native.reference import quat_to_rotmat
-
 __all__ = ["DeformationGraph", "arap_loss", "blend_weights", "build_graph",
-           "farthest_point_sampling", "quat_multiply", "quat_norm_loss"]
+           "farthest_point_sampling", "quat_multiply", "quat_norm_loss", "quat_to_rotmat"]
 
 
 def farthest_point_sampling(points: Tensor, count: int, start: int = 0) -> Tensor:
@@ -74,14 +73,60 @@ def _knn(queries: Tensor, points: Tensor, k: int, chunk: int = 4096) -> tuple[Te
     return torch.cat(dists), torch.cat(idx)
 
 
+# Both quaternion maps a deform step calls are quadratic in quaternion components, so each is
+# one outer product and one matrix product with a constant table: a handful of operators forward
+# and back where the entries written out one by one took 140 (rotation) and 67 (product), each a
+# kernel launch on a GPU (docs/benchmarks.md, "A step's host syncs"). Tables are (16, K): row
+# 4 i + j holds the coefficient of u_i v_j in each of the K outputs.
+_HAMILTON = (  # (a * b)_k = sum over (i, j, sign) of sign a_i b_j, components w x y z
+    ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, -1)),
+    ((0, 1, 1), (1, 0, 1), (2, 3, 1), (3, 2, -1)),
+    ((0, 2, 1), (1, 3, -1), (2, 0, 1), (3, 1, 1)),
+    ((0, 3, 1), (1, 2, 1), (2, 1, -1), (3, 0, 1)),
+)
+_ROTATION = (  # R(u) of a unit quaternion, row-major: u^T A_k u with A_k symmetric
+    ((0, 0, 1), (1, 1, 1), (2, 2, -1), (3, 3, -1)),  # w w + x x - y y - z z = 1 - 2 (yy + zz)
+    ((1, 2, 2), (0, 3, -2)), ((1, 3, 2), (0, 2, 2)),
+    ((1, 2, 2), (0, 3, 2)),
+    ((0, 0, 1), (1, 1, -1), (2, 2, 1), (3, 3, -1)),
+    ((2, 3, 2), (0, 1, -2)),
+    ((1, 3, 2), (0, 2, -2)), ((2, 3, 2), (0, 1, 2)),
+    ((0, 0, 1), (1, 1, -1), (2, 2, -1), (3, 3, 1)),
+)
+
+
+@cache
+def _table(name: str, device: torch.device, dtype: torch.dtype) -> Tensor:
+    """The (16, K) table on `device` (made there once: no copy from the host a step)."""
+    terms = {"hamilton": _HAMILTON, "rotation": _ROTATION}[name]
+    table = torch.zeros(16, len(terms), dtype=torch.float64)
+    for k, output in enumerate(terms):
+        for i, j, c in output:
+            if i == j or name == "hamilton":
+                table[4 * i + j, k] += c
+            else:  # a symmetric form: the cross term's coefficient split over both orders
+                table[4 * i + j, k] += c / 2
+                table[4 * j + i, k] += c / 2
+    return table.to(device=device, dtype=dtype)
+
+
+def _bilinear(name: str, u: Tensor, v: Tensor) -> Tensor:
+    outer = (u[..., :, None] * v[..., None, :]).flatten(-2)
+    return outer @ _table(name, u.device, u.dtype)
+
+
 def quat_multiply(a: Tensor, b: Tensor) -> Tensor:
     """Hamilton product a * b of (..., 4) quaternions (w, x, y, z)."""
-    aw, ax, ay, az = a.unbind(-1)
-    bw, bx, by, bz = b.unbind(-1)
-    return torch.stack([aw * bw - ax * bx - ay * by - az * bz,
-                        aw * bx + ax * bw + ay * bz - az * by,
-                        aw * by - ax * bz + ay * bw + az * bx,
-                        aw * bz + ax * by - ay * bx + az * bw], dim=-1)
+    a, b = torch.broadcast_tensors(a, b)
+    return _bilinear("hamilton", a, b)
+
+
+def quat_to_rotmat(quats: Tensor) -> Tensor:
+    """(N, 4) quaternions (w, x, y, z), any norm -> (N, 3, 3) rotation matrices:
+    `native.reference.quat_to_rotmat` (a test holds them equal, values and gradients) in a
+    few operators."""
+    u = quats / quats.norm(dim=-1, keepdim=True)
+    return _bilinear("rotation", u, u).reshape(-1, 3, 3)
 
 
 @dataclass(frozen=True)

@@ -114,7 +114,7 @@ class FrameTracker(FrameFitter):
         self.optimizer = torch.optim.Adam(
             [{"params": [self.node_q], "lr": sequence.lr_rotation, "name": "node_q"},
              {"params": [self.node_t], "lr": sequence.lr_translation * self.extent,
-              "name": "node_t"}], lr=0.0)
+              "name": "node_t"}], lr=0.0, fused=True)
         self.model = previous
         self._rows = self._rows_of = None  # `_moving_rows`' and the frozen mask it is of
         self.state: TrackedState | None = None

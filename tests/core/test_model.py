@@ -127,6 +127,31 @@ def test_extend_and_keep_keep_adam_moments_consistent():
     _step(m, opt)
 
 
+def test_the_fused_optimizer_updates_as_torchs_default_through_edits():
+    # make_optimizer's Adam is fused (one kernel a group): the same steps, extends and keeps
+    # give the parameters torch's default Adam gives, to float rounding.
+    runs = []
+    for fused in (True, None):
+        m = random_model(6, seed=3)
+        opt = m.make_optimizer(LearningRates(), extent=2.0)
+        assert all(g["fused"] for g in opt.param_groups)
+        for group in opt.param_groups:
+            group["fused"] = fused
+        g = torch.Generator().manual_seed(4)
+        for i in range(6):
+            for p in m.params.values():
+                p.grad = torch.randn(p.shape, generator=g)
+            opt.step()
+            if i == 2:
+                m.extend({k: torch.randn((2,) + tuple(v.shape[1:]), generator=g)
+                          for k, v in m.params.items()}, opt)
+            if i == 4:
+                m.keep(torch.tensor([True, False] * 4), opt)
+        runs.append(m.params)
+    for name in PARAM_NAMES:
+        torch.testing.assert_close(runs[0][name], runs[1][name], rtol=1e-5, atol=1e-6)
+
+
 def test_assign_zeroes_only_that_moment():
     m = random_model(4)
     opt = m.make_optimizer()

@@ -78,3 +78,27 @@ def test_a_tracked_frame_step_reads_nothing_back(fitted, one_thread):
     quiet = [s for i, s in enumerate(syncs) if i not in busy]
     assert len(quiet) >= tracker.deform_steps + tracker.refine_steps - 6
     assert all(s == {} for s in quiet), [s for s in quiet if s]
+
+
+def test_the_step_profile_runs_and_a_deform_step_stays_near_a_key_frames_work(tmp_path):
+    # benchmarks/step_profile.py is what a lent GPU runs to count launches (issue 38): it must
+    # run as the tree is (it once called frame_views with arguments the function had stopped
+    # taking). A deform step's operators (about one kernel launch each on a GPU) stay within
+    # 1.8x a key frame step's: its rotations are a table each (the entries written out took
+    # 1,209 operators a step against the key frame's 542).
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    out = tmp_path / "profile.json"
+    subprocess.run([sys.executable, str(root / "benchmarks" / "step_profile.py"), "--steps", "1",
+                    "--key-steps", "30", "--json", str(out)], check=True, cwd=root,
+                   stdout=subprocess.DEVNULL)
+    rows = json.loads(out.read_text())["rows"]
+    key, deform, refine = (rows[k]["ops"] for k in ("key frame (stage 3)", "tracked: deform",
+                                                    "tracked: refine"))
+    assert key > 100 and refine > 100
+    assert deform <= 1.8 * key, (deform, key)
+    assert all(rows[k]["syncs"] == 0 for k in rows)
