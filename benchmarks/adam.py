@@ -28,15 +28,20 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # ao.load_model
 
 
+def as_default(optimizer: torch.optim.Adam) -> None:
+    """Make a fused Adam run torch's default implementation, as `make_optimizer`'s did before
+    2026-12-01 (before its first step: nothing else differs)."""
+    for group in optimizer.param_groups:
+        group["fused"] = None
+
+
 def step_ms(model, fused: bool, repeats: int, device: torch.device) -> float:
     """Median milliseconds of one optimizer step (after two warm-ups)."""
     from core.config import LearningRates
 
     optimizer = model.make_optimizer(LearningRates())
-    if not fused:  # torch's default, as the optimizer was made before 2026-12-01
-        for group in optimizer.param_groups:
-            group["fused"] = None
-        optimizer.defaults["fused"] = None
+    if not fused:
+        as_default(optimizer)
     gen = torch.Generator().manual_seed(0)
     for p in model.params.values():
         p.grad = torch.randn(p.shape, generator=gen).to(device)
@@ -71,8 +76,7 @@ def training_step_ms(base, capture, repeats: int) -> list[tuple[str, float, floa
         trainer = Trainer([view], cfg, model=type(base)({k: v.clone()
                                                           for k, v in base.params.items()}))
         if not fused:
-            for group in trainer.optimizer.param_groups:
-                group["fused"] = None
+            as_default(trainer.optimizer)
         trainer.step = cfg.schedule.stage3_start + 1
         passes, steps = [], []
         for i in range(repeats + 2):

@@ -172,8 +172,7 @@ def main() -> None:
 
     import torch
 
-    from core.config import train_config
-    from core.config.views import select_views
+    from core.config import select_views, train_config
     from core.data import load_capture
     from core.training import Trainer
     from core.training.views import frame_views

@@ -57,8 +57,7 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from core.color import linear_to_srgb  # noqa: E402
-from core.config import method_defaults, train_config  # noqa: E402
-from core.config.views import select_views  # noqa: E402
+from core.config import method_defaults, select_views, train_config  # noqa: E402
 from core.data import CaptureDataset, import_capture, load_capture  # noqa: E402
 from core.evaluation.run import _view_metrics  # noqa: E402
 from core.losses import depth_to_normals, photometric_loss  # noqa: E402
@@ -463,8 +462,8 @@ def main() -> int:
     capture = open_capture(args.capture, work)
     frame = args.frame or next(iter(capture.frames))
     config = replace(train_config("paper").stretched(args.steps / 30_000), device=dev)
-    views = [v.to(dev) for v in frame_views(capture, frame,
-                                                     select_views(capture, downscale=args.downscale))]
+    selected = select_views(capture, downscale=args.downscale)
+    views = [v.to(dev) for v in frame_views(capture, frame, selected)]
     if args.seed_file is not None and args.seed_file.is_file():
         z = np.load(args.seed_file)
         points, colors, note = (torch.from_numpy(z["points"]), torch.from_numpy(z["colors"]),

@@ -80,12 +80,11 @@ def profile(step, steps: int, device: torch.device) -> dict:
 def build(tmp: Path, device: str, key_steps: int = 240):
     """A key-frame trainer at its stage 3 and a tracked frame's fitter after it (the key frame
     trained `key_steps` first: a model to track)."""
-    from core.config import SequenceConfig, train_config
+    from core.config import SequenceConfig, select_views, train_config
     from core.data import load_capture
     from core.sequence import FrameTracker
     from core.sequence.tracks import subject_rows
     from core.synth import SynthConfig, synthesize
-    from core.config.views import select_views
     from core.training import Trainer, frame_views
 
     synthesize(tmp / "capture", SynthConfig(frames=2, views=8, width=64, height=64, seed=3,
@@ -94,7 +93,7 @@ def build(tmp: Path, device: str, key_steps: int = 240):
     base = train_config("fast")
     cfg = replace(base, device=device, masks="subject", bake_ao=False, init_points=2000,
                   schedule=base.schedule.scaled(key_steps))
-    selected = select_views(capture, "auto", 1.0, cfg.masks)
+    selected = select_views(capture, masks=cfg.masks)
     key = Trainer(frame_views(capture, "000000", selected), cfg)
     key.train()
     key.step = cfg.schedule.stage3_start + 1  # profile stage-3 steps (every term)
